@@ -1,0 +1,33 @@
+# calib: two commands on a fresh clone: `make demo` and `make test`.
+PY      ?= python3
+VENV    := .venv
+BIN     := $(VENV)/bin
+STAMP   := $(VENV)/.installed
+
+.PHONY: install demo test validate lint bench clean
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	PATH=$(CURDIR)/$(BIN):$$PATH bash sample_data/demo.sh
+
+test: $(STAMP)
+	MPLBACKEND=Agg $(BIN)/python -m pytest -q
+
+validate: $(STAMP)
+	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m slow tests
+
+lint: $(STAMP)
+	$(BIN)/ruff check calib_cli tests
+
+bench: $(STAMP)
+	MPLBACKEND=Agg $(BIN)/python -m calib_cli.bench
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache demo_out

@@ -1,0 +1,3 @@
+from calib_cli.cli.main import main
+
+main()

@@ -1,0 +1,35 @@
+"""calib fit METHOD RAW --out CAL: the estimators."""
+
+from __future__ import annotations
+
+import click
+
+from calib_cli.cli.common import info
+from calib_cli.cli.main import cli
+from calib_cli.cli.render import render_summary
+from calib_cli.io.h5 import read_raw, write_calibration
+
+
+@cli.group("fit")
+def fit_group():
+    """Fit a calibration to a raw recording."""
+
+
+def save(res, raw, out, extra_inputs=()):
+    write_calibration(out, res, [raw, *extra_inputs])
+    render_summary(res)
+    info(f"-> {out}")
+
+
+@fit_group.command("accel")
+@click.argument("raw", type=click.Path(dir_okay=False))
+@click.option("--out", required=True, type=click.Path(dir_okay=False))
+@click.option("--method", type=click.Choice(["auto", "vector", "scalar"]), default="auto",
+              show_default=True, help="vector: known attitudes; scalar: |a| = g.")
+def fit_accel_cmd(raw, out, method):
+    """Static multi-position accelerometer fit: A = b + K f."""
+    from calib_cli.methods.accel_lsq import fit_accel
+
+    rec = read_raw(raw)
+    res = fit_accel(rec, method)
+    save(res, raw, out)

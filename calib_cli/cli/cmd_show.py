@@ -1,0 +1,101 @@
+"""calib show FILE [--json] [--covariance]"""
+
+from __future__ import annotations
+
+import click
+import numpy as np
+from rich.table import Table
+
+from calib_cli.cli.common import Ctx, out_console, print_json
+from calib_cli.cli.main import cli
+from calib_cli.cli.render import params_table
+from calib_cli.io.h5 import file_kind, provenance, read_calibration, read_raw
+
+
+def calibration_json(path, covariance: bool = False) -> dict:
+    """The contract's JSON object for a calibration file."""
+    c = read_calibration(path)
+    obj = {"method": c.method, "unit": {"serial": c.serial},
+           "params": c.params, "sigma": c.sigma, "units": c.units, "stats": c.stats}
+    if covariance:
+        obj["covariance"] = {"order": [[k, i] for k, i in c.cov_order],
+                             "matrix": c.covariance}
+    return obj
+
+
+def raw_json(path) -> dict:
+    r = read_raw(path)
+    return {"kind": provenance(path)["kind"], "unit": {"serial": r.serial},
+            "samples": len(r), "sample_rate_hz": r.sample_rate, "units": r.units,
+            "plan_kind": r.plan_kind, "channels": r.layout.n,
+            "segments": [{"label": s.label, "kind": s.kind, "start": s.start, "stop": s.stop,
+                          "attitude": s.attitude} for s in r.segments],
+            "counters": r.counters}
+
+
+# kind -> (json builder, terminal renderer); other modules add their kinds
+SHOWERS: dict = {}
+
+
+def _render_provenance(path):
+    prov = provenance(path)
+    t = Table(title=f"{path}", show_header=False)
+    for k in ("kind", "format_version", "tool_version", "created_utc", "unit_serial", "command"):
+        if k in prov:
+            t.add_row(k, str(prov[k]))
+    out_console.print(t)
+
+
+def _render_calibration(path, covariance):
+    c = read_calibration(path)
+    out_console.print(params_table(c.params, c.sigma, c.units, title=f"calibration ({c.method})"))
+    st = Table(title="stats", show_header=False)
+    for k, v in c.stats.items():
+        if isinstance(v, float):
+            v = f"{v:.6g}"
+        st.add_row(k, str(v))
+    out_console.print(st)
+    if "g_table" in c.tables:
+        gt = Table(title="|g| per position (m/s^2)")
+        for col in ("position", "samples", "before", "after", "after - g"):
+            gt.add_column(col)
+        labels = c.tables.get("segment_labels", [])
+        for lab, row in zip(labels, np.asarray(c.tables["g_table"])):
+            gt.add_row(lab, f"{row[0]:.0f}", "-" if np.isnan(row[1]) else f"{row[1]:.6f}",
+                       f"{row[2]:.6f}", f"{row[3]:+.2e}")
+        out_console.print(gt)
+    if covariance:
+        out_console.print(f"covariance: {c.covariance.shape[0]} free entries (use --json)")
+
+
+def _render_raw(path):
+    r = read_raw(path)
+    t = Table(title=f"{len(r)} samples at {r.sample_rate:.4g} Hz, units {r.units}")
+    for col in ("segment", "kind", "samples", "duration s", "attitude deg"):
+        t.add_column(col)
+    for s in r.segments:
+        att = "unknown" if s.attitude is None else ", ".join(f"{x:.4g}" for x in np.degrees(s.attitude))
+        t.add_row(s.label, s.kind, str(s.n), f"{s.n / max(r.sample_rate, 1e-9):.1f}", att)
+    out_console.print(t)
+
+
+@cli.command("show")
+@click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("--json", "as_json", is_flag=True, help="One JSON object (contract section 5).")
+@click.option("--covariance", is_flag=True, help="Include the covariance matrix.")
+def show_cmd(files, as_json, covariance):
+    """Summarise a calib HDF5 file (raw, calibration, corrected, ...)."""
+    path = files[0]
+    kind = file_kind(path)
+    if kind in SHOWERS:
+        return SHOWERS[kind](files, as_json, covariance)
+    if as_json:
+        print_json(calibration_json(path, covariance) if kind == "calibration" else raw_json(path))
+        return 0
+    if not Ctx.quiet:
+        _render_provenance(path)
+    if kind == "calibration":
+        _render_calibration(path, covariance)
+    else:
+        _render_raw(path)
+    return 0

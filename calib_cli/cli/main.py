@@ -1,0 +1,69 @@
+"""The `calib` command: click group, global options, exit-code mapping."""
+
+from __future__ import annotations
+
+import sys
+import traceback
+
+import click
+
+from calib_cli import __version__
+from calib_cli.cli.common import Ctx, err_console
+from calib_cli.errors import CalibError
+
+EXIT_INTERNAL = 70  # not in the contract: an unexpected error inside calib (a bug)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="calib")
+@click.option("--debug", is_flag=True, help="Show tracebacks on errors.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress or status output.")
+def cli(debug: bool, quiet: bool) -> None:
+    """calib: bench calibration of inertial measurement units.
+
+    Steps are chained through HDF5 files: import/simulate/record -> raw.h5 ->
+    fit -> cal.h5 -> apply/show/report. See docs/commands.md.
+    """
+    Ctx.debug = debug
+    Ctx.quiet = quiet
+
+
+def _register() -> None:
+    # each command lives in its own module; importing it registers it on `cli`
+    from calib_cli.cli import cmd_apply, cmd_fit, cmd_import, cmd_show, cmd_simulate  # noqa: F401
+
+
+_register()
+
+
+def main(argv=None) -> None:
+    """Entry point: run the command, map failures to the contract's exit codes."""
+    try:
+        rv = cli.main(args=argv, prog_name="calib", standalone_mode=False)
+        sys.exit(rv if isinstance(rv, int) else 0)
+    except CalibError as exc:
+        if Ctx.debug:
+            traceback.print_exc()
+        err_console.print(f"calib: error: {exc.line()}", markup=False, soft_wrap=True)
+        sys.exit(exc.exit_code)
+    except click.exceptions.Abort:
+        err_console.print("calib: interrupted", markup=False)
+        sys.exit(130)
+    except KeyboardInterrupt:
+        err_console.print("calib: interrupted", markup=False)
+        sys.exit(130)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except click.exceptions.Exit as exc:
+        sys.exit(exc.exit_code)
+    except SystemExit:
+        raise
+    except BrokenPipeError:
+        sys.exit(0)
+    except Exception as exc:  # a bug: one line, traceback only with --debug
+        if Ctx.debug or "--debug" in (argv or sys.argv):
+            traceback.print_exc()
+        err_console.print(f"calib: internal error: {type(exc).__name__}: {exc} "
+                          "(run with --debug for the traceback)", markup=False, soft_wrap=True)
+        sys.exit(EXIT_INTERNAL)

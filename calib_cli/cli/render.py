@@ -1,0 +1,83 @@
+"""Rich rendering of results: parameters with sigma in engineering units."""
+
+from __future__ import annotations
+
+import numpy as np
+from rich.table import Table
+
+from calib_cli.cli.common import Ctx, err_console
+
+# key -> (factor, unit) for the terminal; values stay SI in files and JSON
+DISPLAY = {
+    "accel_bias": (1e3 / 9.80665, "mg"),
+    "accel_K": (1.0, ""),
+    "gyro_bias": (180 / np.pi * 3600, "deg/h"),
+    "gyro_K": (1.0, ""),
+    "gyro_D": (180 / np.pi * 3600 * 9.80665, "deg/h/g"),
+    "lever_arm": (1e3, "mm"),
+    "proof_mass_offsets": (1e3, "mm"),
+    "attitude": (180 / np.pi, "deg"),
+    "time_offset": (1e3, "ms"),
+}
+for _s in ("accel", "gyro"):
+    DISPLAY[f"{_s}_dEl"] = (1e3, "mrad")
+    DISPLAY[f"{_s}_dAz"] = (1e3, "mrad")
+    DISPLAY[f"{_s}_scale_error"] = (1e6, "ppm")
+
+
+def display_of(key: str, unit: str) -> tuple[float, str]:
+    if "count" in unit:
+        return 1.0, unit
+    return DISPLAY.get(key, (1.0, unit))
+
+
+def fmt_value(v: float, s: float | None, factor: float, matrix_key: bool) -> str:
+    if s is None or not np.isfinite(s):
+        sig = "unobservable"
+    elif s == 0:
+        sig = "fixed"
+    elif matrix_key:
+        sig = f"+- {s * 1e6:.3g} ppm"
+    else:
+        sig = f"+- {s * factor:.3g}"
+    return f"{v * factor:.7g}  {sig}"
+
+
+def params_table(params: dict, sigma: dict, units: dict, title: str = "parameters") -> Table:
+    tab = Table(title=title, show_lines=False)
+    tab.add_column("parameter")
+    tab.add_column("value +- 1 sigma")
+    tab.add_column("unit")
+    for key, val in params.items():
+        val = np.asarray(val, dtype=float)
+        sig = np.asarray(sigma.get(key, np.full(val.shape, np.nan)), dtype=float)
+        factor, unit = display_of(key, units.get(key, ""))
+        matrix_key = key.endswith("_K") and "count" not in units.get(key, "")
+        if val.ndim == 0:
+            tab.add_row(key, fmt_value(float(val), float(sig), factor, False), unit)
+            continue
+        for idx in np.ndindex(val.shape):
+            name = f"{key}[{','.join(map(str, idx))}]"
+            tab.add_row(name, fmt_value(val[idx], sig[idx], factor, matrix_key),
+                        unit if not matrix_key else "-")
+    return tab
+
+
+def render_summary(res) -> None:
+    """A short terminal summary of a fit (stderr; silent with --quiet)."""
+    if Ctx.quiet:
+        return
+    err_console.print(params_table(res.params, res.sigma, res.units,
+                                   title=f"calibration ({res.method})"))
+    st = res.stats
+    if "g_error_rms_after" in st:
+        before = st.get("g_error_rms_before")
+        b = "n/a (counts)" if before is None else f"{before * 1e3 / 9.80665:.3f} mg"
+        err_console.print(f"|g| error RMS: before {b}, after "
+                          f"{st['g_error_rms_after'] * 1e3 / 9.80665:.4f} mg "
+                          f"(noise floor {st.get('g_error_floor', float('nan')) * 1e3 / 9.80665:.4f} mg)")
+    if st.get("unobservable"):
+        err_console.print(f"[yellow]unobservable:[/] {', '.join(st['unobservable'])}")
+    if st.get("sigma_inflation", 1.0) != 1.0:
+        err_console.print(f"[yellow]sigma inflated by sqrt({st['sigma_inflation']:.2f}):[/] the "
+                          "residuals scatter more than the noise explains")

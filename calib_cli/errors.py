@@ -1,0 +1,47 @@
+"""Exceptions that map onto the contract's exit codes (CONTRACT.md section 5).
+
+The core raises these; only the CLI turns them into exit codes and one-line
+messages, so library users get ordinary exceptions.
+"""
+
+from __future__ import annotations
+
+
+class CalibError(Exception):
+    """Base class. ``exit_code`` is the contract's exit status."""
+
+    exit_code = 1
+
+    def __init__(self, message: str, path: str | None = None):
+        super().__init__(message)
+        self.message = message
+        self.path = path
+
+    def line(self) -> str:
+        """The one line printed on stderr."""
+        return f"{self.path}: {self.message}" if self.path else self.message
+
+
+class InputError(CalibError):
+    """Bad or unreadable input (exit 3). Always names the file where known."""
+
+    exit_code = 3
+
+
+class EstimationError(CalibError):
+    """The estimate failed: too few or degenerate positions, no convergence,
+    nothing observable (exit 4). The message says what the experiment lacks."""
+
+    exit_code = 4
+
+
+class ToleranceError(CalibError):
+    """A tolerance check failed (exit 5, the CI gate)."""
+
+    exit_code = 5
+
+
+class FaultDetected(CalibError):
+    """A sensor fault was detected (exit 6)."""
+
+    exit_code = 6

@@ -1,0 +1,101 @@
+"""Static-interval detection that explains itself.
+
+Rule (docs/import.md): the moving standard deviation of each accelerometer
+axis (and gyro axis, when present) over a window of ``window_s`` (default
+1 s) is compared with the noise floor of that axis, estimated as the 10th
+percentile of the moving standard deviation over the whole record (robust as
+long as at least ~10 % of the record is static). A sample is static when every
+axis is below ``multiplier`` times its floor (default 3). Runs of static
+samples at least ``min_duration_s`` long (default 1 s), trimmed by half a
+window at each end (the window smears the motion), are the intervals.
+
+The gyro test matters: a turn about the vertical leaves the accelerometers
+unchanged, so accelerometers alone would merge the positions on either side.
+
+When the count is not what the plan expects, ``DetectionReport.explain``
+says how many intervals other multipliers would find.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+FLOOR_QUANTILE = 10.0  # percent
+DEFAULT_MULTIPLIER = 3.0
+MULTIPLIERS = (1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 20.0)
+
+
+@dataclass(frozen=True)
+class DetectionReport:
+    intervals: list[tuple[int, int]]  # [start, stop) sample indices
+    multiplier: float
+    window_s: float
+    min_duration_s: float
+    floor_accel: np.ndarray  # per-axis noise floor (std), data units
+    floor_gyro: np.ndarray | None
+    counts: dict  # multiplier -> number of intervals it would find
+
+    def explain(self, expected: int | None = None) -> str:
+        n = len(self.intervals)
+        parts = [f"found {n} static interval{'s' * (n != 1)} of >= {self.min_duration_s:g} s "
+                 f"(window {self.window_s:g} s, threshold {self.multiplier:g} x the noise floor)"]
+        alts = ", ".join(f"{k:g}x: {c}" for k, c in sorted(self.counts.items()))
+        parts.append(f"other thresholds would find {alts}")
+        if expected is not None:
+            hits = [k for k, c in sorted(self.counts.items()) if c == expected]
+            if hits:
+                parts.append(f"--threshold {hits[0]:g} finds {expected}")
+            else:
+                parts.append("no threshold finds that many: check --min-static "
+                             "(shorter positions) or the plan's segment count")
+        return "; ".join(parts)
+
+
+def moving_std(x: np.ndarray, w: int) -> np.ndarray:
+    """Centred moving standard deviation over w samples, per column (N, k)."""
+    x = np.asarray(x, dtype=float)
+    n = len(x)
+    w = max(2, min(w, n))
+    x = x - x.mean(axis=0)  # conditioning for the cumulative sums
+    c1 = np.vstack([np.zeros(x.shape[1]), np.cumsum(x, axis=0)])
+    c2 = np.vstack([np.zeros(x.shape[1]), np.cumsum(x * x, axis=0)])
+    lo = np.clip(np.arange(n) - w // 2, 0, n - w)
+    s1 = c1[lo + w] - c1[lo]
+    s2 = c2[lo + w] - c2[lo]
+    var = np.maximum(s2 / w - (s1 / w) ** 2, 0.0) * w / (w - 1)
+    return np.sqrt(var)
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
+
+
+def detect_static(t, accel, gyro=None, window_s: float = 1.0, multiplier: float = DEFAULT_MULTIPLIER,
+                  min_duration_s: float = 1.0) -> DetectionReport:
+    t = np.asarray(t, dtype=float)
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    w = max(3, int(round(window_s / dt)))
+    sa = moving_std(accel, w)
+    fa = np.maximum(np.percentile(sa, FLOOR_QUANTILE, axis=0), 1e-300)
+    sg = fg = None
+    if gyro is not None:
+        sg = moving_std(gyro, w)
+        fg = np.maximum(np.percentile(sg, FLOOR_QUANTILE, axis=0), 1e-300)
+
+    def find(k):
+        ok = np.all(sa < k * fa, axis=1)
+        if sg is not None:
+            ok &= np.all(sg < k * fg, axis=1)
+        out = []
+        half = w // 2
+        for a, b in _runs(ok):
+            a2, b2 = a + half, b - half
+            if b2 > a2 and (t[b2 - 1] - t[a2]) + dt >= min_duration_s:
+                out.append((int(a2), int(b2)))
+        return out
+
+    counts = {k: len(find(k)) for k in sorted(set(MULTIPLIERS) | {multiplier})}
+    return DetectionReport(find(multiplier), multiplier, window_s, min_duration_s, fa, fg, counts)

@@ -1,0 +1,483 @@
+"""The effect catalogue: every physical error term, written once.
+
+Each effect is one small class: its catalogue name (CONTRACT.md section 5),
+the sensor it acts on, its parameters (keys, shapes, units, typical sizes)
+and a forward step that adds its contribution to the sensor outputs. The
+simulator runs a model forward, the estimators fit its parameters through
+the same forward function, and ``diagnose`` tries the effects a model lacks.
+
+The forward pipeline of one sensor (see ``ImuModel.predict``) runs the
+effects by stage:
+
+    SHIFT      the inputs in time (time offset)
+    INPUT      the input vector each channel sees (lever arm, proof masses)
+    TRANSFER   input -> output (scale/misalignment K, or RIMU installation)
+    CORRECTION terms on the channel's own input u (nonlinearity, asymmetry,
+               temperature, misalignment from a diagonal base)
+    ADDITIVE   terms independent of the channel's input (bias, g-sensitivity)
+    STOCHASTIC noise processes (bias random walk, flicker); zero in the
+               deterministic prediction, realised only by the simulator
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calib_cli.model.kinematics import Kinematics, force_at
+
+SHIFT, INPUT, TRANSFER, CORRECTION, ADDITIVE, STOCHASTIC = range(6)
+
+TEMP_REF_C = 25.0  # degC: reference temperature of the temperature-drift terms
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Channel geometry of a unit.
+
+    A triad has three orthogonal channels per sensor. A redundant unit (RIMU)
+    has n single-axis channels with nominal elevation/azimuth (rad).
+    ``n_cycles`` is the number of lever-arm rows (rotating segments).
+    """
+
+    n: int = 3
+    el0: np.ndarray | None = None
+    az0: np.ndarray | None = None
+    n_cycles: int = 0
+
+    @property
+    def redundant(self) -> bool:
+        return self.el0 is not None
+
+    def axes(self, del_=None, daz=None) -> np.ndarray:
+        """(n, 3) unit sensing directions; nominal, or with errors dEl, dAz (rad)."""
+        if not self.redundant:
+            return np.eye(3)
+        el = self.el0 + (0.0 if del_ is None else del_)
+        az = self.az0 - (0.0 if daz is None else daz)
+        return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One parameter array of an effect.
+
+    key: name in ``params`` (the contract's keys). shape: array shape.
+    unit: SI unit. typical: 1-sigma size on a typical MEMS unit, SI (prior
+    for simulation defaults and scale for the optimiser). identity: the
+    neutral value is the identity matrix (else zeros). fixed: entries fixed
+    by convention (value 0 or 1, sigma 0), same shape, or None.
+    display: (factor, unit) for the terminal.
+    """
+
+    key: str
+    shape: tuple
+    unit: str
+    typical: float
+    identity: bool = False
+    fixed: np.ndarray | None = None
+    display: tuple = (1.0, "")
+
+    def neutral(self) -> np.ndarray:
+        if self.identity:
+            return np.eye(self.shape[0])
+        return np.zeros(self.shape)
+
+    def fixed_mask(self) -> np.ndarray:
+        return np.zeros(self.shape, bool) if self.fixed is None else self.fixed
+
+
+class _Ctx:
+    """Working state of one sensor's forward pass."""
+
+    def __init__(self, kin: Kinematics, layout: Layout, sensor: str):
+        self.kin = kin
+        self.layout = layout
+        self.sensor = sensor
+        n = layout.n
+        src = kin.f if sensor == "accel" else kin.w
+        self.F = np.repeat(src[:, None, :], n, axis=1)  # (N, n, 3) input vector of each channel
+        self.f_ref = kin.f  # specific force at the unit's reference point
+        self.u = None  # (N, n) input along each channel's sensitive axis
+        self.y = None  # (N, n) output
+
+
+@dataclass(frozen=True)
+class Effect:
+    """Base class. ``sensor`` is "accel" or "gyro"."""
+
+    sensor: str
+    name: str = field(default="", init=False)
+    stage: int = field(default=ADDITIVE, init=False)
+
+    def specs(self, layout: Layout) -> list[ParamSpec]:
+        return []
+
+    def apply(self, p: dict, ctx: _Ctx) -> None:
+        """Add this effect's contribution to ctx (in place)."""
+
+    def realise(self, p: dict, kin: Kinematics, layout: Layout, rng) -> np.ndarray:
+        """A random realisation (N, n) of a stochastic effect (simulator only)."""
+        return 0.0
+
+    @property
+    def label(self) -> str:
+        return f"{self.sensor} {self.name}" if self.sensor else self.name
+
+    def _key(self, suffix: str) -> str:
+        return f"{self.sensor}_{suffix}"
+
+
+_ACC_DISPLAY = (1e3 / 9.80665, "mg")
+_GYR_DISPLAY = (180 / np.pi * 3600, "deg/h")
+
+
+# ---------------------------------------------------------------------------
+# additive terms
+
+
+@dataclass(frozen=True)
+class Bias(Effect):
+    """Constant output offset b (m/s^2 or rad/s per channel)."""
+
+    name: str = field(default="bias", init=False)
+    stage: int = field(default=ADDITIVE, init=False)
+
+    def specs(self, layout):
+        acc = self.sensor == "accel"
+        return [ParamSpec(self._key("bias"), (layout.n,), "m/s^2" if acc else "rad/s",
+                          0.05 if acc else 5e-3,
+                          display=_ACC_DISPLAY if acc else _GYR_DISPLAY)]
+
+    def apply(self, p, ctx):
+        ctx.y = ctx.y + p[self._key("bias")]
+
+
+@dataclass(frozen=True)
+class GSensitivity(Effect):
+    """Gyro g-sensitivity: W += D f, f the specific force at the triad's reference point."""
+
+    sensor: str = "gyro"
+    name: str = field(default="g_sensitivity", init=False)
+    stage: int = field(default=ADDITIVE, init=False)
+
+    def specs(self, layout):
+        return [ParamSpec("gyro_D", (layout.n, 3), "(rad/s)/(m/s^2)", 1e-4,
+                          display=(180 / np.pi * 3600 * 9.80665, "deg/h/g"))]
+
+    def apply(self, p, ctx):
+        ctx.y = ctx.y + ctx.f_ref @ p["gyro_D"].T
+
+
+# ---------------------------------------------------------------------------
+# transfer: input -> output
+
+
+def _k_mask(structure: str) -> np.ndarray | None:
+    if structure == "full":
+        return None
+    if structure == "lower":
+        return np.triu(np.ones((3, 3), bool), 1)
+    if structure == "diagonal":
+        return ~np.eye(3, dtype=bool)
+    raise ValueError(f"unknown K structure {structure!r}")
+
+
+@dataclass(frozen=True)
+class ScaleMisalignment(Effect):
+    """Triad transfer matrix K: y_i = sum_j K_ij F_ij (F_i the input vector at channel i).
+
+    structure: "full" (9 free), "lower" (the instrument frame fixed by the
+    sensor triad itself: upper triangle 0), "diagonal" (scale factors only).
+    """
+
+    structure: str = "full"
+    name: str = field(default="scale_misalignment", init=False)
+    stage: int = field(default=TRANSFER, init=False)
+
+    def specs(self, layout):
+        return [ParamSpec(self._key("K"), (3, 3), "-", 3e-3, identity=True,
+                          fixed=_k_mask(self.structure), display=(1.0, ""))]
+
+    def apply(self, p, ctx):
+        K = p[self._key("K")]
+        ctx.y = np.einsum("ij,nij->ni", K, ctx.F)
+
+
+@dataclass(frozen=True)
+class Installation(Effect):
+    """RIMU channel i: y_i = (1 + ks_i) S_i . x, S_i from El0 + dEl, Az0 - dAz."""
+
+    name: str = field(default="installation", init=False)
+    stage: int = field(default=TRANSFER, init=False)
+
+    def specs(self, layout):
+        return [ParamSpec(self._key("scale_error"), (layout.n,), "-", 5e-3, display=(1e6, "ppm")),
+                ParamSpec(self._key("dEl"), (layout.n,), "rad", 0.01, display=(1e3, "mrad")),
+                ParamSpec(self._key("dAz"), (layout.n,), "rad", 0.01, display=(1e3, "mrad"))]
+
+    def apply(self, p, ctx):
+        S = ctx.layout.axes(p[self._key("dEl")], p[self._key("dAz")])
+        scale = 1.0 + p[self._key("scale_error")]
+        ctx.y = np.einsum("ij,nij->ni", S, ctx.F) * scale
+
+
+# ---------------------------------------------------------------------------
+# corrections on the channel's own input u
+
+
+@dataclass(frozen=True)
+class Misalignment(Effect):
+    """Off-diagonal part of K for a model that starts from diagonal scale factors.
+
+    y_i += sum_{j != i} M_ij F_ij. structure "full" (6 terms) or "lower" (3).
+    """
+
+    structure: str = "full"
+    name: str = field(default="misalignment", init=False)
+    stage: int = field(default=CORRECTION, init=False)
+
+    def specs(self, layout):
+        fixed = np.eye(3, dtype=bool)
+        if self.structure == "lower":
+            fixed = fixed | np.triu(np.ones((3, 3), bool), 1)
+        return [ParamSpec(self._key("misalignment"), (3, 3), "-", 2e-3, fixed=fixed)]
+
+    def apply(self, p, ctx):
+        ctx.y = ctx.y + np.einsum("ij,nij->ni", p[self._key("misalignment")], ctx.F)
+
+
+@dataclass(frozen=True)
+class Nonlinearity(Effect):
+    """Quadratic scale term per channel: y_i += k2_i u_i^2 (k2 in 1/(input unit))."""
+
+    name: str = field(default="accel_nonlinearity", init=False)
+    stage: int = field(default=CORRECTION, init=False)
+
+    def specs(self, layout):
+        acc = self.sensor == "accel"
+        return [ParamSpec(self._key("nonlinearity"), (layout.n,),
+                          "1/(m/s^2)" if acc else "1/(rad/s)", 5e-5 if acc else 1e-3,
+                          display=(9.80665 * 1e6, "ug/g^2") if acc else (1.0, ""))]
+
+    def apply(self, p, ctx):
+        ctx.y = ctx.y + p[self._key("nonlinearity")] * ctx.u**2
+
+
+@dataclass(frozen=True)
+class ScaleAsymmetry(Effect):
+    """Different scale for positive and negative input: y_i += a_i |u_i|."""
+
+    name: str = field(default="scale_asymmetry", init=False)
+    stage: int = field(default=CORRECTION, init=False)
+
+    def specs(self, layout):
+        return [ParamSpec(self._key("scale_asymmetry"), (layout.n,), "-", 5e-4,
+                          display=(1e6, "ppm"))]
+
+    def apply(self, p, ctx):
+        ctx.y = ctx.y + p[self._key("scale_asymmetry")] * np.abs(ctx.u)
+
+
+@dataclass(frozen=True)
+class TemperatureDrift(Effect):
+    """Bias and scale linear in temperature about TEMP_REF_C:
+    y_i += bT_i (T - T0) + kT_i (T - T0) u_i."""
+
+    name: str = field(default="temperature_drift", init=False)
+    stage: int = field(default=CORRECTION, init=False)
+
+    def specs(self, layout):
+        acc = self.sensor == "accel"
+        return [ParamSpec(self._key("temp_bias"), (layout.n,),
+                          "m/s^2/degC" if acc else "rad/s/degC", 1e-3 if acc else 1e-4,
+                          display=(1e3 / 9.80665, "mg/degC") if acc else (180 / np.pi * 3600,
+                                                                          "deg/h/degC")),
+                ParamSpec(self._key("temp_scale"), (layout.n,), "1/degC", 1e-4,
+                          display=(1e6, "ppm/degC"))]
+
+    def apply(self, p, ctx):
+        if ctx.kin.temp is None:
+            return
+        dT = (ctx.kin.temp - TEMP_REF_C)[:, None]
+        ctx.y = ctx.y + dT * (p[self._key("temp_bias")] + p[self._key("temp_scale")] * ctx.u)
+
+
+# ---------------------------------------------------------------------------
+# inputs: where the proof masses sit, and when
+
+
+def lever_arm_per_sample(p: dict, kin: Kinematics) -> np.ndarray:
+    """(N, 3) lever arm s in force at each sample (zero outside rotating cycles)."""
+    s = np.asarray(p["lever_arm"], dtype=float)
+    out = np.zeros((len(kin), 3))
+    if kin.cycle is not None and len(s):
+        on = kin.cycle >= 0
+        out[on] = s[kin.cycle[on]]
+    return out
+
+
+@dataclass(frozen=True)
+class LeverArm(Effect):
+    """Offset s of the unit's reference point from the table axis, one row per
+    rotating cycle (body axes, m): f(r) = f + w x (w x r) + dw x r.
+
+    tangential: include the dw x r term (needs angular acceleration).
+    """
+
+    sensor: str = "accel"
+    tangential: bool = True
+    name: str = field(default="lever_arm", init=False)
+    stage: int = field(default=INPUT, init=False)
+
+    def specs(self, layout):
+        return [ParamSpec("lever_arm", (layout.n_cycles, 3), "m", 0.1,
+                          display=(1e3, "mm"))]
+
+    def apply(self, p, ctx):
+        s = lever_arm_per_sample(p, ctx.kin)
+        kin = ctx.kin if self.tangential else ctx.kin.with_(dw=np.zeros_like(ctx.kin.dw))
+        df = force_at(kin, s) - kin.f
+        ctx.F = ctx.F + df[:, None, :]
+        ctx.f_ref = ctx.f_ref + df
+
+
+@dataclass(frozen=True)
+class ProofMassOffsets(Effect):
+    """Position p_i of accelerometer i's proof mass relative to the triad's
+    reference point (row i, m; p_ii = 0 by convention: the size effect)."""
+
+    sensor: str = "accel"
+    tangential: bool = True
+    name: str = field(default="proof_mass_offsets", init=False)
+    stage: int = field(default=INPUT + 0, init=False)
+
+    def specs(self, layout):
+        return [ParamSpec("proof_mass_offsets", (3, 3), "m", 5e-3,
+                          fixed=np.eye(3, dtype=bool), display=(1e3, "mm"))]
+
+    def apply(self, p, ctx):
+        P = p["proof_mass_offsets"]
+        kin = ctx.kin if self.tangential else ctx.kin.with_(dw=np.zeros_like(ctx.kin.dw))
+        for i in range(3):
+            ctx.F[:, i, :] += np.cross(kin.w, np.cross(kin.w, P[i])) + np.cross(kin.dw, P[i])
+
+
+def shift_kinematics(kin: Kinematics, tau: float) -> Kinematics:
+    """The kinematics as seen by an IMU whose timestamps lag the truth by tau (s):
+    the sample stamped t holds the state at t - tau (linear interpolation)."""
+    if tau == 0.0:
+        return kin
+    tq = kin.t - tau
+
+    def interp(a):
+        return np.stack([np.interp(tq, kin.t, a[:, k]) for k in range(a.shape[1])], axis=1)
+
+    return kin.with_(f=interp(kin.f), w=interp(kin.w), dw=interp(kin.dw))
+
+
+@dataclass(frozen=True)
+class TimeOffset(Effect):
+    """IMU timestamps lag the table (the truth) by ``time_offset`` seconds."""
+
+    sensor: str = ""
+    name: str = field(default="time_offset", init=False)
+    stage: int = field(default=SHIFT, init=False)
+
+    def specs(self, layout):
+        return [ParamSpec("time_offset", (), "s", 2e-3, display=(1e3, "ms"))]
+
+
+# ---------------------------------------------------------------------------
+# stochastic bias processes (simulated, not in the deterministic prediction)
+
+
+@dataclass(frozen=True)
+class BiasRandomWalk(Effect):
+    """The bias integrates white noise of density q (unit/sqrt(s)); for gyros
+    this is rate random walk K."""
+
+    name: str = field(default="bias_random_walk", init=False)
+    stage: int = field(default=STOCHASTIC, init=False)
+
+    def specs(self, layout):
+        acc = self.sensor == "accel"
+        return [ParamSpec(self._key("bias_rw"), (layout.n,),
+                          "m/s^2/sqrt(s)" if acc else "rad/s/sqrt(s)", 1e-4 if acc else 1e-5)]
+
+    def realise(self, p, kin, layout, rng):
+        q = np.asarray(p[self._key("bias_rw")], dtype=float)
+        dt = np.diff(kin.t, prepend=kin.t[0])
+        steps = rng.standard_normal((len(kin), layout.n)) * np.sqrt(dt)[:, None] * q
+        return np.cumsum(steps, axis=0)
+
+
+# Time constants of the Gauss-Markov sum that imitates flicker (1/f) noise: one
+# per decade from 0.1 s to 1e4 s. Each process has variance sigma_k^2 equal
+# across decades, which gives a flat Allan floor; the scale is chosen so that
+# the Allan deviation minimum equals 0.664 B (IEEE 952 flicker floor).
+FLICKER_TAUS = np.logspace(-1, 4, 11)
+FLICKER_SCALE = 0.43  # sigma_k / B for the 11-process sum; see docs/model.md
+
+
+@dataclass(frozen=True)
+class BiasInstability(Effect):
+    """Flicker bias noise of Allan bias-instability figure B (unit of the
+    sensor), modelled as a sum of first-order Gauss-Markov processes whose
+    time constants span FLICKER_TAUS."""
+
+    name: str = field(default="bias_instability", init=False)
+    stage: int = field(default=STOCHASTIC, init=False)
+
+    def specs(self, layout):
+        acc = self.sensor == "accel"
+        return [ParamSpec(self._key("bias_instability"), (layout.n,),
+                          "m/s^2" if acc else "rad/s", 5e-4 if acc else 1e-4)]
+
+    def realise(self, p, kin, layout, rng):
+        B = np.asarray(p[self._key("bias_instability")], dtype=float)
+        n = len(kin)
+        dt = np.median(np.diff(kin.t)) if n > 1 else 1.0
+        out = np.zeros((n, layout.n))
+        from scipy.signal import lfilter
+
+        for tau in FLICKER_TAUS:
+            phi = np.exp(-dt / tau)
+            sig = FLICKER_SCALE * B
+            drive = rng.standard_normal((n, layout.n)) * sig * np.sqrt(1 - phi**2)
+            x0 = rng.standard_normal(layout.n) * sig
+            x = lfilter([1.0], [1.0, -phi], drive, axis=0)
+            out += x + np.outer(phi ** np.arange(1, n + 1), x0)
+        return out
+
+
+# ---------------------------------------------------------------------------
+# the catalogue
+
+CATALOGUE = {
+    "bias": Bias,
+    "scale_misalignment": ScaleMisalignment,
+    "installation": Installation,
+    "misalignment": Misalignment,
+    "g_sensitivity": GSensitivity,
+    "lever_arm": LeverArm,
+    "proof_mass_offsets": ProofMassOffsets,
+    "accel_nonlinearity": Nonlinearity,
+    "scale_asymmetry": ScaleAsymmetry,
+    "temperature_drift": TemperatureDrift,
+    "time_offset": TimeOffset,
+    "bias_random_walk": BiasRandomWalk,
+    "bias_instability": BiasInstability,
+}
+
+
+def make_effect(name: str, sensor: str = "accel", **options) -> Effect:
+    """An effect instance by catalogue name, e.g. make_effect("bias", "gyro")."""
+    try:
+        cls = CATALOGUE[name]
+    except KeyError:
+        raise ValueError(f"unknown effect {name!r}; known: {', '.join(CATALOGUE)}") from None
+    if cls in (GSensitivity, LeverArm, ProofMassOffsets, TimeOffset):
+        return cls(**options)
+    return cls(sensor=sensor, **options)

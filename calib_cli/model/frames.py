@@ -1,0 +1,40 @@
+"""Frames and attitudes (CONTRACT.md section 1).
+
+Navigation frame ENU; attitude [roll, pitch, yaw] is R = Rz(yaw) Ry(pitch) Rx(roll),
+mapping body vectors into ENU (v_enu = R v_body).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def attitude_to_rotation(rpy_rad) -> Rotation:
+    """[roll, pitch, yaw] (rad) -> Rotation body->ENU. Accepts (3,) or (N, 3)."""
+    rpy = np.asarray(rpy_rad, dtype=float)
+    return Rotation.from_euler("ZYX", rpy[..., ::-1])
+
+
+def rotation_to_attitude(rot: Rotation) -> np.ndarray:
+    """Rotation body->ENU -> [roll, pitch, yaw] (rad). At pitch +-90 deg roll
+    and yaw are not separable: yaw is set to 0 and roll takes their combination."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # gimbal lock: handled as documented
+        return rot.as_euler("ZYX")[..., ::-1]
+
+
+def axis_angle(axis, angle_rad) -> Rotation:
+    """Right-hand rotation by angle (rad) about a unit axis; angle may be an array."""
+    a = np.asarray(axis, dtype=float)
+    a = a / np.linalg.norm(a)
+    ang = np.asarray(angle_rad, dtype=float)
+    return Rotation.from_rotvec(np.multiply.outer(ang, a))
+
+
+def skew(v) -> np.ndarray:
+    """Cross-product matrix [v x] of a 3-vector."""
+    x, y, z = np.asarray(v, dtype=float)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])

@@ -1,0 +1,1 @@
+"""Turns a plan, a truth model and noise into raw samples, through model/ only."""

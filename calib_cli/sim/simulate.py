@@ -1,0 +1,195 @@
+"""Simulate a plan: the unit's motion, the true inputs, the sensor outputs.
+
+Timeline: the plan's segments in order, with a smooth turn (minimum-jerk,
+``transition_s``, default 4 s) between consecutive segments, recorded
+continuously (transition samples have segment index -1). Per segment kind:
+
+- static: held at ``attitude_deg``; with no attitude, ``sim_attitude_deg``,
+  else the attitude reached by a preceding turn segment, else a random one.
+  ``repeat = "auto"`` gives ``sim_repeat`` (default 12) random positions.
+- turn: ``rotation_angle_deg`` about ``rotation_axis_body``, minimum-jerk
+  over ``duration_s`` (default 10 s).
+- rotating: about ``table_axis_enu`` at ``table_rate_dps`` or along
+  ``rate_profile = [[t_s, rate_dps], ...]`` (piecewise linear knots from the
+  segment start; the duration is the last knot). Each rotating segment is a
+  lever-arm cycle.
+
+Top-level simulation keys: ``sample_rate_hz`` (100), ``transition_s`` (4),
+``temperature_c`` (constant) or ``temperature_profile = [[t_s, degC], ...]``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from calib_cli.data import Recording, Segment
+from calib_cli.errors import InputError
+from calib_cli.io.plan import Plan, PlanSegment
+from calib_cli.model import kinematics as kn
+from calib_cli.model.effects import Layout
+from calib_cli.model.frames import attitude_to_rotation, axis_angle, rotation_to_attitude
+from calib_cli.sim.truth import Truth, default_truth
+
+D2R = np.pi / 180.0
+
+
+def plan_layout(plan: Plan) -> Layout:
+    n_cycles = sum(1 for s in plan.segments if s.kind == "rotating")
+    if plan.kind == "rimu":
+        return Layout(n=len(plan.rimu_el0), el0=plan.rimu_el0, az0=plan.rimu_az0,
+                      n_cycles=n_cycles)
+    return Layout(n_cycles=n_cycles)
+
+
+def _times(t0: float, duration: float, fs: float) -> np.ndarray:
+    n = max(int(round(duration * fs)), 1)
+    return t0 + np.arange(n) / fs
+
+
+def _rate_profile(seg: PlanSegment, fs: float, t0: float):
+    """Table angle, rate and angular acceleration along a segment's profile."""
+    if "rate_profile" in seg.extra:
+        knots = np.asarray(seg.extra["rate_profile"], dtype=float)
+        if knots.ndim != 2 or knots.shape[1] != 2 or len(knots) < 2 or np.any(np.diff(knots[:, 0]) <= 0):
+            raise InputError(f"segment {seg.label!r}: rate_profile must be [[t_s, rate_dps], ...] "
+                             "with increasing times")
+        kt, kr = knots[:, 0] - knots[0, 0], knots[:, 1] * D2R
+    else:
+        dur = seg.duration or 36.0
+        kt, kr = np.array([0.0, dur]), np.full(2, seg.table_rate or 0.0)
+    t = _times(0.0, kt[-1], fs)
+    rate = np.interp(t, kt, kr)
+    slope = np.diff(kr) / np.diff(kt)
+    accel = slope[np.clip(np.searchsorted(kt, t, side="right") - 1, 0, len(slope) - 1)]
+    # exact integral of a piecewise-linear rate
+    seg_area = np.concatenate([[0.0], np.cumsum(np.diff(kt) * (kr[:-1] + kr[1:]) / 2)])
+    k = np.clip(np.searchsorted(kt, t, side="right") - 1, 0, len(kt) - 2)
+    dt = t - kt[k]
+    theta = seg_area[k] + kr[k] * dt + 0.5 * slope[k] * dt**2
+    return t0 + t, theta, rate, accel
+
+
+def _temperature(plan: Plan, t: np.ndarray):
+    if "temperature_profile" in plan.extra:
+        knots = np.asarray(plan.extra["temperature_profile"], dtype=float)
+        return np.interp(t, knots[:, 0], knots[:, 1])
+    if "temperature_c" in plan.extra:
+        return np.full(len(t), float(plan.extra["temperature_c"]))
+    return None
+
+
+def _random_rotation(rng) -> Rotation:
+    return Rotation.from_quat(rng.standard_normal(4))
+
+
+def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording:
+    """Raw samples of the plan's experiment from a truth model. Pure: no I/O."""
+    rng = np.random.default_rng(seed)
+    layout = plan_layout(plan)
+    truth = truth or default_truth(layout, rng)
+    if truth.model.layout != layout:
+        truth = Truth(truth.model.__class__(truth.model.effects, layout), truth.params,
+                      truth.noise, truth.counts, truth.quantize)
+    fs = plan.sample_rate
+    site = plan.site
+    trans_default = float(plan.extra.get("transition_s", 4.0))
+
+    parts: list[kn.Kinematics] = []
+    segments: list[Segment] = []
+    true_att: list[np.ndarray] = []
+    angle_parts, rate_parts = [], []
+    t_next = 0.0
+    current: Rotation | None = None
+    prev_was_turn = False
+    cycle = 0
+    n_samples = 0
+
+    def add(kin, seg_index, cyc, angle=None, rate=None):
+        nonlocal n_samples, t_next
+        m = len(kin)
+        kin = kin.with_(segment=np.full(m, seg_index), cycle=np.full(m, cyc))
+        parts.append(kin)
+        angle_parts.append(np.full(m, np.nan) if angle is None else angle)
+        rate_parts.append(np.zeros(m) if rate is None else rate)
+        n_samples += m
+        t_next = kin.t[-1] + 1.0 / fs
+
+    expanded: list[tuple[int, PlanSegment, str]] = []
+    for i, seg in enumerate(plan.segments):
+        if seg.repeat_auto:
+            reps = int(seg.extra.get("sim_repeat", 12))
+            expanded += [(i, seg, f"{seg.label}#{k + 1}") for k in range(reps)]
+        else:
+            expanded.append((i, seg, seg.label))
+
+    for plan_index, seg, label in expanded:
+        kind = seg.kind
+        # where this segment starts
+        if seg.attitude is not None:
+            start = attitude_to_rotation(seg.attitude)
+        elif "sim_attitude_deg" in seg.extra:
+            start = attitude_to_rotation(np.asarray(seg.extra["sim_attitude_deg"], float) * D2R)
+        elif (prev_was_turn or kind != "static") and current is not None:
+            start = current
+        else:
+            start = _random_rotation(rng)
+        if current is not None:
+            dur = float(seg.extra.get("transition_s", trans_default))
+            if dur > 0:
+                t = _times(t_next, dur, fs)
+                add(kn.slew_kinematics(t, current, start, site), -1, -1)
+        current = start
+        index = len(segments)
+        first = n_samples
+        if kind == "static":
+            t = _times(t_next, seg.duration or 10.0, fs)
+            rot = Rotation.from_quat(np.tile(start.as_quat(), (len(t), 1)))
+            add(kn.from_attitude(t, rot, site), index, -1)
+        elif kind == "turn":
+            t = _times(t_next, seg.duration or 10.0, fs)
+            phi = seg.rotation_axis_body * seg.rotation_angle
+            kin = kn.slew_kinematics(t, start, start * Rotation.from_rotvec(phi), site, phi=phi)
+            add(kin, index, -1)
+            current = start * Rotation.from_rotvec(phi)
+        else:  # rotating
+            t, theta, rate, acc = _rate_profile(seg, fs, t_next)
+            kin = kn.table_kinematics(t, seg.table_axis_enu, theta, rate, acc, start, site)
+            add(kin, index, cycle, theta, rate)
+            current = axis_angle(seg.table_axis_enu, theta[-1] - theta[0]) * start
+            cycle += 1
+        prev_was_turn = kind == "turn"
+        true_att.append(rotation_to_attitude(start))
+        segments.append(Segment(label=label, kind=kind, start=first, stop=n_samples,
+                                plan_index=plan_index, attitude=seg.attitude,
+                                attitude_sigma=seg.attitude_sigma,
+                                table_axis_enu=seg.table_axis_enu, table_rate=seg.table_rate,
+                                lever_arm=seg.lever_arm,
+                                rotation_axis_body=seg.rotation_axis_body,
+                                rotation_angle=seg.rotation_angle))
+
+    kin = kn.Kinematics.concatenate(parts)
+    kin = kin.with_(temp=_temperature(plan, kin.t))
+    out = truth.model.predict(truth.params, kin)
+    stoch = truth.model.realise_noise(truth.params, kin, rng)
+    noisy = {}
+    for s in ("accel", "gyro"):
+        white = np.asarray(truth.noise.get(f"{s}_white", 0.0), dtype=float)
+        if f"{s}_white_density" in truth.noise:
+            white = np.asarray(truth.noise[f"{s}_white_density"], float) * np.sqrt(fs)
+        y = out[s] + stoch[s] + rng.standard_normal(out[s].shape) * white
+        if truth.quantize:
+            y = np.round(y)
+        noisy[s] = y
+    rotating = any(s.kind == "rotating" for s in segments)
+    units = {"accel": "count", "gyro": "count"} if truth.counts else {"accel": "m/s^2",
+                                                                       "gyro": "rad/s"}
+    return Recording(
+        time=kin.t, accel=noisy["accel"], gyro=noisy["gyro"], segments=tuple(segments),
+        site=site, plan_kind=plan.kind, plan_text=plan.text, serial=plan.serial, units=units,
+        layout=layout, temp=kin.temp,
+        table_angle=np.concatenate(angle_parts) if rotating else None,
+        table_rate=np.concatenate(rate_parts) if rotating else None,
+        truth={"params": truth.params, "noise": truth.noise,
+               "attitudes": np.array(true_att), "effects": truth.effect_list()},
+    )

@@ -1,0 +1,139 @@
+"""Truth models for the simulator: a TOML file or documented random defaults.
+
+Truth TOML (docs/simulate.md):
+
+    [params]                 # contract keys; a unit suffix converts to SI
+    accel_bias_mg = [2.0, -1.5, 3.0]
+    accel_K = [[1.002, 0.001, 0.0], [0.0, 0.998, 0.0], [0.0, 0.0, 1.001]]
+    gyro_bias_dps = [0.2, -0.1, 0.05]
+    [noise]                  # white noise, 1-sigma per sample (or *_density per sqrt(Hz))
+    accel_white = 0.003      # m/s^2
+    gyro_white = 0.001       # rad/s
+    [output]
+    units = "si"             # or "count": params then in counts, outputs rounded
+    [options]
+    tangential = true        # lever-arm/proof-mass tangential term
+
+The effects in the truth model are the ones whose parameters appear.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from calib_cli.errors import InputError
+from calib_cli.model.effects import CATALOGUE, Effect, Layout, make_effect
+from calib_cli.model.imu_model import ImuModel
+from calib_cli.units import split_suffix
+
+DEFAULT_NOISE = {"accel_white": 3e-3, "gyro_white": 1e-3}  # m/s^2, rad/s per sample
+
+
+@dataclass(frozen=True)
+class Truth:
+    """A truth model: effects with parameter values, noise, output units."""
+
+    model: ImuModel
+    params: dict
+    noise: dict = field(default_factory=lambda: dict(DEFAULT_NOISE))
+    counts: bool = False
+    quantize: bool = False
+
+    def effect_list(self) -> list[dict]:
+        return [describe_effect(e) for e in self.model.effects]
+
+
+def describe_effect(e: Effect) -> dict:
+    d = {"name": e.name, "sensor": e.sensor}
+    for opt in ("structure", "tangential"):
+        if hasattr(e, opt):
+            d[opt] = getattr(e, opt)
+    return d
+
+
+def effect_from_description(d: dict) -> Effect:
+    opts = {k: v for k, v in d.items() if k not in ("name", "sensor")}
+    return make_effect(d["name"], d.get("sensor") or "accel", **opts)
+
+
+def _key_owner(layout: Layout, options: dict) -> dict[str, Effect]:
+    """param key -> the effect instance that owns it, for this layout."""
+    owners = {}
+    for name in CATALOGUE:
+        for sensor in ("accel", "gyro"):
+            if name == "scale_misalignment" and layout.redundant:
+                continue
+            if name == "installation" and not layout.redundant:
+                continue
+            opts = {}
+            if name in ("lever_arm", "proof_mass_offsets"):
+                opts["tangential"] = bool(options.get("tangential", True))
+            try:
+                e = make_effect(name, sensor, **opts)
+            except TypeError:
+                continue
+            for s in e.specs(layout):
+                owners.setdefault(s.key, e)
+    return owners
+
+
+def truth_from_dict(raw: dict, layout: Layout, path: str = "<truth>") -> Truth:
+    params_raw = raw.get("params", {})
+    options = raw.get("options", {})
+    owners = _key_owner(layout, options)
+    params, effects = {}, []
+    for key, value in params_raw.items():
+        base, factor = split_suffix(key)
+        if base not in owners:
+            raise InputError(f"unknown truth parameter {key!r}", path)
+        eff = owners[base]
+        spec = next(s for s in eff.specs(layout) if s.key == base)
+        try:
+            arr = np.asarray(value, dtype=float) * factor
+            arr = np.broadcast_to(arr, spec.shape).copy() if arr.ndim == 0 else arr
+        except (TypeError, ValueError):
+            raise InputError(f"{key}: not numeric", path) from None
+        if arr.shape != spec.shape:
+            raise InputError(f"{key}: shape {arr.shape}, expected {spec.shape}", path)
+        params[base] = arr
+        if eff not in effects:
+            effects.append(eff)
+    noise = dict(DEFAULT_NOISE)
+    for key, value in raw.get("noise", {}).items():
+        base, factor = split_suffix(key)
+        noise[base] = np.asarray(value, dtype=float) * factor
+    out = raw.get("output", {})
+    counts = out.get("units", "si") == "count"
+    return Truth(ImuModel(tuple(effects), layout), params, noise, counts,
+                 bool(out.get("quantize", counts)))
+
+
+def load_truth(path, layout: Layout) -> Truth:
+    p = str(path)
+    try:
+        raw = tomllib.loads(Path(p).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError("no such file", p) from None
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(f"cannot read truth file: {exc}", p) from None
+    return truth_from_dict(raw, layout, p)
+
+
+def default_truth(layout: Layout, rng: np.random.Generator) -> Truth:
+    """A random MEMS-grade unit: bias and K (or RIMU installation errors) for
+    both sensors, each entry drawn N(0, typical) from the catalogue's typical sizes."""
+    effects = []
+    for s in ("accel", "gyro"):
+        effects.append(make_effect("bias", s))
+        effects.append(make_effect("installation" if layout.redundant else "scale_misalignment", s))
+    model = ImuModel(tuple(effects), layout)
+    params = {}
+    for spec in model.specs():
+        free = ~spec.fixed_mask()
+        draw = rng.standard_normal(spec.shape) * spec.typical * free
+        params[spec.key] = spec.neutral() + draw
+    return Truth(model, params, dict(DEFAULT_NOISE))
