@@ -29,8 +29,16 @@ def cli(debug: bool, quiet: bool) -> None:
 
 
 def _register() -> None:
-    # each command lives in its own module; importing it registers it on `cli`
-    from calib_cli.cli import cmd_apply, cmd_fit, cmd_import, cmd_show, cmd_simulate  # noqa: F401
+    """Each command lives in its own module ``cli/cmd_*.py``; importing it
+    registers it on ``cli`` (no central list to edit when adding a command)."""
+    import importlib
+    import pkgutil
+
+    import calib_cli.cli as pkg
+
+    for mod in sorted(m.name for m in pkgutil.iter_modules(pkg.__path__)):
+        if mod.startswith("cmd_"):
+            importlib.import_module(f"calib_cli.cli.{mod}")
 
 
 _register()
