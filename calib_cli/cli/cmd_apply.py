@@ -40,7 +40,7 @@ def apply_cmd(cal, raw, out):
                 if name in src:
                     src.copy(name, dst)
             out_s = dst.create_group("samples")
-            for k, v in smp.items():
+            for k in smp:
                 if k not in ("accel", "gyro"):
                     smp.copy(k, out_s)
             acc = out_s.create_dataset("accel", shape=smp["accel"].shape, dtype="f8",

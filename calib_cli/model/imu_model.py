@@ -12,7 +12,6 @@ from calib_cli.model.effects import (
     ADDITIVE,
     CORRECTION,
     INPUT,
-    SHIFT,
     STOCHASTIC,
     TRANSFER,
     Effect,

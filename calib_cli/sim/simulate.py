@@ -4,8 +4,9 @@ Timeline: the plan's segments in order, with a smooth turn (minimum-jerk,
 ``transition_s``, default 4 s) between consecutive segments, recorded
 continuously (transition samples have segment index -1). Per segment kind:
 
-- static: held at ``attitude_deg``; with no attitude, ``sim_attitude_deg``,
-  else the attitude reached by a preceding turn segment, else a random one.
+- static: held at ``sim_attitude_deg`` (the true attitude, where the plan's
+  ``attitude_deg`` is nominal or absent), else ``attitude_deg``, else the
+  attitude reached by a preceding turn segment, else a random one.
   ``repeat = "auto"`` gives ``sim_repeat`` (default 12) random positions.
 - turn: ``rotation_angle_deg`` about ``rotation_axis_body``, minimum-jerk
   over ``duration_s`` (default 10 s).
@@ -126,10 +127,10 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
     for plan_index, seg, label in expanded:
         kind = seg.kind
         # where this segment starts
-        if seg.attitude is not None:
-            start = attitude_to_rotation(seg.attitude)
-        elif "sim_attitude_deg" in seg.extra:
+        if "sim_attitude_deg" in seg.extra:  # the true attitude (a fixture error, or unknown)
             start = attitude_to_rotation(np.asarray(seg.extra["sim_attitude_deg"], float) * D2R)
+        elif seg.attitude is not None:
+            start = attitude_to_rotation(seg.attitude)
         elif (prev_was_turn or kind != "static") and current is not None:
             start = current
         else:

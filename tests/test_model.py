@@ -1,0 +1,140 @@
+"""The model layer: frames, gravity, earth rate, kinematics, effects, packing."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from calib_cli.model import kinematics as kn
+from calib_cli.model.earth import EARTH_RATE, Site, normal_gravity
+from calib_cli.model.effects import Bias, Layout, ScaleMisalignment
+from calib_cli.model.frames import attitude_to_rotation, rotation_to_attitude
+from calib_cli.model.imu_model import ImuModel, Packing, base_model
+
+D2R = np.pi / 180
+
+
+def test_contract_attitude_convention():
+    # [0, -90, 0] deg puts body +x up: an ideal accelerometer reads +g on x
+    site = Site(latitude=0.0, g=9.8)
+    for rpy, axis in (([0, -90, 0], 0), ([90, 0, 0], 1), ([0, 0, 0], 2)):
+        rot = attitude_to_rotation(np.array(rpy) * D2R)
+        f = rot.inv().apply(site.specific_force_enu)
+        assert np.allclose(f, np.eye(3)[axis] * 9.8, atol=1e-12)
+    # yaw turns counter-clockwise from East: yaw 90 puts body x North
+    rot = attitude_to_rotation(np.array([0, 0, 90]) * D2R)
+    assert np.allclose(rot.apply([1, 0, 0]), [0, 1, 0], atol=1e-12)
+    # scipy form of the contract
+    rpy = np.array([0.1, -0.2, 0.3])
+    assert np.allclose(attitude_to_rotation(rpy).as_matrix(),
+                       Rotation.from_euler("ZYX", rpy[::-1]).as_matrix())
+    assert np.allclose(rotation_to_attitude(attitude_to_rotation(rpy)), rpy)
+
+
+def test_normal_gravity_wgs84_reference_values():
+    assert abs(normal_gravity(0.0) - 9.7803253359) < 1e-9
+    assert abs(normal_gravity(np.pi / 2) - 9.8321849378) < 1e-8
+    # free-air gradient about -3.086e-6 /s^2 per m
+    assert abs((normal_gravity(0.8, 1000.0) - normal_gravity(0.8)) / 1000 + 3.086e-6) < 2e-8
+
+
+def test_earth_rate_enu():
+    s = Site(latitude=0.5)
+    assert np.allclose(s.earth_rate_enu, EARTH_RATE * np.array([0, np.cos(0.5), np.sin(0.5)]))
+    assert Site(g=9.81).gravity == 9.81
+
+
+def test_table_kinematics_match_numerical_derivatives():
+    site = Site(latitude=0.7)
+    t = np.arange(0, 4, 1e-3)
+    theta = 2.0 * t**2 + 0.5 * np.sin(3 * t)
+    rate = 4.0 * t + 1.5 * np.cos(3 * t)
+    acc = 4.0 - 4.5 * np.sin(3 * t)
+    rot0 = attitude_to_rotation(np.array([10, 20, 30]) * D2R)
+    axis = np.array([1.0, 0.0, 0.2])
+    kin = kn.table_kinematics(t, axis, theta, rate, acc, rot0, site)
+    rot = kn.table_attitude(axis, theta, rot0)
+    # body rate relative to ENU from finite differences of the attitude
+    drot = (rot[:-1].inv() * rot[1:]).as_rotvec() / 1e-3
+    w_rel = kin.w - rot.inv().apply(np.tile(site.earth_rate_enu, (len(t), 1)))
+    assert np.allclose(drot, 0.5 * (w_rel[:-1] + w_rel[1:]), atol=1e-5)
+    dw_num = np.gradient(kin.w, t, axis=0)
+    assert np.allclose(dw_num[5:-5], kin.dw[5:-5], atol=1e-4)
+    assert np.allclose(np.linalg.norm(kin.f, axis=1), site.gravity)
+
+
+def test_slew_reaches_target_with_zero_end_rates():
+    site = Site()
+    a = attitude_to_rotation([0.1, 0.2, 0.3])
+    b = attitude_to_rotation([-0.5, 0.4, 2.0])
+    t = np.linspace(0, 3, 301)
+    kin = kn.slew_kinematics(t, a, b, site)
+    w_rel_end = kin.w[-1] - b.inv().apply(site.earth_rate_enu)
+    assert np.allclose(w_rel_end, 0, atol=1e-12)
+    assert np.allclose(kin.f[-1], b.inv().apply(site.specific_force_enu), atol=1e-9)
+
+
+def test_lever_arm_centripetal_by_hand():
+    kin = kn.Kinematics(np.zeros(1), np.zeros((1, 3)), np.array([[0, 0, 2.0]]), np.zeros((1, 3)))
+    # w = 2 rad/s about z, r = 0.3 m along x: centripetal -w^2 r = -1.2 m/s^2 along x
+    assert np.allclose(kn.force_at(kin, [0.3, 0, 0]), [[-1.2, 0, 0]])
+
+
+def test_bias_and_K_forward():
+    model = ImuModel((Bias("accel"), ScaleMisalignment("accel")), Layout())
+    K = np.array([[1.01, 0.002, 0], [0, 0.99, 0], [0.003, 0, 1.0]])
+    b = np.array([0.1, 0.2, 0.3])
+    f = np.array([[1.0, 2.0, 9.8]])
+    kin = kn.Kinematics(np.zeros(1), f, np.zeros((1, 3)), np.zeros((1, 3)))
+    y = model.predict({"accel_bias": b, "accel_K": K}, kin, sensors=("accel",))["accel"]
+    assert np.allclose(y, b + f @ K.T)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from(["full", "lower", "diagonal"]))
+def test_packing_round_trip(seed, structure):
+    rng = np.random.default_rng(seed)
+    model = base_model(accel_structure=structure)
+    pk = Packing.for_model(model)
+    theta = rng.standard_normal(pk.size)
+    params = pk.unpack(theta, model.neutral_params())
+    assert np.allclose(pk.pack(params), theta)
+    K = params["accel_K"]
+    if structure == "lower":
+        assert np.all(np.triu(K, 1) == 0)
+    if structure == "diagonal":
+        assert np.all(K[~np.eye(3, dtype=bool)] == 0)
+    assert len(pk.labels()) == pk.size
+
+
+def test_flicker_sum_allan_floor_is_0664_B():
+    """The Gauss-Markov sum behind bias_instability has Allan minimum 0.664 B
+    (closed-form Allan variance of each process)."""
+    from calib_cli.model.effects import FLICKER_SCALE, FLICKER_TAUS
+
+    taus = np.logspace(0, np.log10(3000), 200)
+    x = taus[:, None] / FLICKER_TAUS[None, :]
+    q2 = FLICKER_SCALE**2
+    avar = (q2 * FLICKER_TAUS**2 / taus[:, None] ** 2
+            * (2 * x - 3 + 4 * np.exp(-x) - np.exp(-2 * x))).sum(axis=1)
+    adev = np.sqrt(avar)
+    assert abs(adev.min() - 0.664) < 0.002
+    assert adev.max() / adev.min() < 1.04  # flat: a flicker floor over 3.5 decades
+
+
+def test_flicker_realisation_variance():
+    """A realisation has the variance the process sum states."""
+    from calib_cli.model.effects import FLICKER_SCALE, FLICKER_TAUS, BiasInstability
+    from calib_cli.model.kinematics import Kinematics
+
+    n = 20000
+    kin = Kinematics(np.arange(n) * 0.01, np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)))
+    e = BiasInstability("gyro")
+    x = np.concatenate([e.realise({"gyro_bias_instability": np.ones(3)}, kin, Layout(),
+                                  np.random.default_rng(s)) for s in range(10)])
+    # the short-time-constant processes dominate the within-record variance
+    fast = FLICKER_TAUS[FLICKER_TAUS < 20]
+    assert np.var(np.diff(x, axis=0)) == pytest.approx(
+        sum(2 * (1 - np.exp(-0.01 / T)) * FLICKER_SCALE**2 for T in FLICKER_TAUS), rel=0.1)
+    assert len(fast) > 0
