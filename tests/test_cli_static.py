@@ -161,3 +161,29 @@ def test_too_few_and_degenerate_exit_4(tmp_path, run_cli):
 def test_usage_error_exit_2(run_cli):
     code, _, _ = run_cli("fit", "accel")
     assert code == 2
+
+
+def test_repeat_auto_absorbs_hand_placed_positions(tmp_path, run_cli):
+    """An initial static period plus any number of hand-placed positions,
+    detected without a segment column, then fitted by the scalar method."""
+    plan = tmp_path / "hand.toml"
+    plan.write_text("kind = 'static'\nsample_rate_hz = 100\ntransition_s = 2.5\n"
+                    "[site]\nlatitude_deg = 45\n"
+                    "[[segment]]\nlabel = 'init'\nduration_s = 20\nsim_attitude_deg = [1, 2, 3]\n"
+                    "[[segment]]\nlabel = 'hand'\nrepeat = 'auto'\nsim_repeat = 15\nduration_s = 4\n")
+    csv = tmp_path / "log.csv"
+    assert run_cli("simulate", plan, "--out", csv, "--seed", "3")[0] == 0
+    lines = csv.read_text().splitlines()
+    csv.write_text("\n".join(",".join(ln.split(",")[:-1]) if not ln.startswith("#") else ln
+                             for ln in lines) + "\n")
+    raw, cal = tmp_path / "raw.h5", tmp_path / "cal.h5"
+    code, _, err = run_cli("import", "csv", csv, "--plan", plan, "--out", raw)
+    assert code == 0, err
+    code, out, _ = run_cli("show", raw, "--json")
+    segs = json.loads(out)["segments"]
+    assert [s["label"] for s in segs] == ["init"] + [f"hand#{k}" for k in range(1, 16)]
+    assert all(s["attitude"] is None for s in segs)
+    code, _, err = run_cli("fit", "accel", raw, "--out", cal)
+    assert code == 0, err
+    code, out, _ = run_cli("show", cal, "--json")
+    assert json.loads(out)["method"] == "scalar"
