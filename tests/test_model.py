@@ -138,3 +138,26 @@ def test_flicker_realisation_variance():
     assert np.var(np.diff(x, axis=0)) == pytest.approx(
         sum(2 * (1 - np.exp(-0.01 / T)) * FLICKER_SCALE**2 for T in FLICKER_TAUS), rel=0.1)
     assert len(fast) > 0
+
+
+def test_covariance_flags_null_directions_with_fewer_equations_than_unknowns():
+    from calib_cli.methods.lsq import covariance
+
+    J = np.array([[1.0, 1.0, 0.0]])  # one equation, three unknowns
+    cov, unobs = covariance(J, np.ones(3))
+    assert unobs.all() or unobs.sum() >= 2
+
+
+def test_simulate_accepts_truth_with_other_cycle_count():
+    from calib_cli.io.plan import parse_plan
+    from calib_cli.sim.simulate import plan_layout, simulate
+    from calib_cli.sim.truth import default_truth
+
+    plan = parse_plan("kind='rimu'\n[rimu]\nel0_deg=[0,0,90,45]\naz0_deg=[0,90,0,45]\n"
+                      "[[segment]]\nlabel='a'\nduration_s=1\ntable_axis_enu=[0,0,1]\n"
+                      "table_rate_dps=10\n")
+    lay = plan_layout(plan)
+    truth = default_truth(Layout(n=4, el0=lay.el0, az0=lay.az0, n_cycles=0),
+                          np.random.default_rng(0))
+    rec = simulate(plan, truth, 0)
+    assert rec.accel.shape[1] == 4

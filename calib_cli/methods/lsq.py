@@ -57,7 +57,10 @@ def covariance(jac: np.ndarray, scales: np.ndarray, fixed=None) -> tuple[np.ndar
         Js = jac[:, keep] * scales[keep]
         if Js.shape[1] == 0:
             break
-        _, s, vt = np.linalg.svd(Js, full_matrices=False)
+        # full V when there are fewer equations than unknowns: the reduced SVD
+        # would hide the null directions beyond the number of rows
+        _, s, vt = np.linalg.svd(Js, full_matrices=Js.shape[0] < Js.shape[1])
+        s = np.concatenate([s, np.zeros(vt.shape[0] - len(s))])
         null = s < RANK_TOL * (s[0] if len(s) and s[0] > 0 else 1.0)
         if not null.any():
             break

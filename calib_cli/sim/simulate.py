@@ -43,6 +43,14 @@ def plan_layout(plan: Plan) -> Layout:
     return Layout(n_cycles=n_cycles)
 
 
+def same_layout(a: Layout, b: Layout) -> bool:
+    """Equal channel geometry and cycle count (Layout holds arrays, so == is ambiguous)."""
+    def eq(x, y):
+        return (x is None and y is None) or (x is not None and y is not None
+                                             and np.array_equal(x, y))
+    return a.n == b.n and a.n_cycles == b.n_cycles and eq(a.el0, b.el0) and eq(a.az0, b.az0)
+
+
 def _times(t0: float, duration: float, fs: float) -> np.ndarray:
     n = max(int(round(duration * fs)), 1)
     return t0 + np.arange(n) / fs
@@ -89,7 +97,7 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
     rng = np.random.default_rng(seed)
     layout = plan_layout(plan)
     truth = truth or default_truth(layout, rng)
-    if truth.model.layout != layout:
+    if not same_layout(truth.model.layout, layout):
         truth = Truth(truth.model.__class__(truth.model.effects, layout), truth.params,
                       truth.noise, truth.counts, truth.quantize)
     fs = plan.sample_rate
