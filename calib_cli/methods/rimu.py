@@ -73,9 +73,9 @@ def angles_of(S, el0: float, az0: float) -> tuple[float, float]:
     Where cos El0 >= 0 (including the poles El0 = +-90 deg) the branch is
     |El| <= 90 deg, so at El0 = +90 deg dEl <= 0 and Az is the tilt's direction.
     """
-    sz = float(np.clip(S[2], -1.0, 1.0))
     s = -1.0 if np.cos(el0) < -1e-6 else 1.0
-    el = np.arcsin(sz) if s > 0 else np.pi - np.arcsin(sz)
+    # atan2, not asin: exact for tiny tilts next to a pole
+    el = np.arctan2(S[2], s * np.hypot(S[0], S[1]))
     az = np.arctan2(s * S[1], s * S[0])
     return float(_wrap(el - el0)), float(_wrap(az0 - az))
 
@@ -226,7 +226,8 @@ def fit_sensor(sensor: str, el0: float, az0: float, means, kin, sig_mean):
         tp[k] += h
         tm[k] -= h
         J0[:, k] = (resid_full(tp) - resid_full(tm)) / (2 * h)
-    _, unobs = lsq.covariance(J0, scales)
+    # (zero rows keep J^T J and let the rank test see all 4 directions with < 4 positions)
+    _, unobs = lsq.covariance(np.vstack([J0, np.zeros((4, 4))]), scales)
     free = ~unobs
     if not free.any():
         return (_to_contract(theta0, el0, az0), np.full((4, 4), np.nan), np.ones(4, bool),
