@@ -4,8 +4,6 @@ observability, apply and the CLI (fast tests)."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -175,24 +173,42 @@ def test_apply_body_estimate_matches_truth():
 # -- CLI ---------------------------------------------------------------------------
 
 
-def calib(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "calib_cli", *map(str, args)], cwd=cwd,
-                          capture_output=True, text=True,
-                          env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+class Run:
+    def __init__(self, code, out, err):
+        self.returncode, self.stdout, self.stderr = code, out, err
 
 
-def test_cli_fit_apply_show(tmp_path):
-    assert calib("simulate", PLAN, "--out", "raw.h5", "--seed", "2", cwd=tmp_path).returncode == 0
-    r = calib("fit", "rimu", "raw.h5", "--out", "cal.h5", cwd=tmp_path)
+@pytest.fixture
+def calib(capsys, monkeypatch, tmp_path):
+    """Run the CLI in-process (as `calib ARGS` in tmp_path): exit code, stdout, stderr."""
+    from calib_cli.cli.main import main
+
+    monkeypatch.chdir(tmp_path)
+
+    def run(*args):
+        capsys.readouterr()
+        try:
+            main([str(a) for a in args])
+            code = 0
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 0
+        out, err = capsys.readouterr()
+        return Run(code, out, err)
+    return run
+
+
+def test_cli_fit_apply_show(tmp_path, calib):
+    assert calib("simulate", PLAN, "--out", "raw.h5", "--seed", "2").returncode == 0
+    r = calib("fit", "rimu", "raw.h5", "--out", "cal.h5")
     assert r.returncode == 0, r.stderr
-    js = json.loads(calib("show", "cal.h5", "--json", cwd=tmp_path).stdout)
+    js = json.loads(calib("show", "cal.h5", "--json").stdout)
     assert js["method"] == "rimu"
     for s in ("accel", "gyro"):
         for k in ("bias", "scale_error", "dEl", "dAz"):
             assert len(js["params"][f"{s}_{k}"]) == 9 and len(js["sigma"][f"{s}_{k}"]) == 9
     assert js["units"]["gyro_bias"] == "rad/s" and js["stats"]["unobservable"] == []
     assert "gyro_residual_rms" in js["stats"] and "accel_residual_rms" in js["stats"]
-    r = calib("apply", "cal.h5", "raw.h5", "--out", "cor.h5", cwd=tmp_path)
+    r = calib("apply", "cal.h5", "raw.h5", "--out", "cor.h5")
     assert r.returncode == 0, r.stderr
     import h5py
 
@@ -201,12 +217,12 @@ def test_cli_fit_apply_show(tmp_path):
         assert h5.attrs["kind"] == "corrected"
 
 
-def test_cli_wrong_kinds(tmp_path):
+def test_cli_wrong_kinds(tmp_path, calib):
     (tmp_path / "static.toml").write_text(
         'kind = "static"\n[[segment]]\nlabel="a"\nattitude_deg=[0,0,0]\n'
         '[[segment]]\nlabel="b"\nattitude_deg=[180,0,0]\n')
-    calib("simulate", "static.toml", "--out", "tri.h5", cwd=tmp_path)
-    r = calib("fit", "rimu", "tri.h5", "--out", "cal.h5", cwd=tmp_path)
+    calib("simulate", "static.toml", "--out", "tri.h5")
+    r = calib("fit", "rimu", "tri.h5", "--out", "cal.h5")
     assert r.returncode == 3 and "tri.h5" in r.stderr and not (tmp_path / "cal.h5").exists()
-    r = calib("fit", "rimu", "missing.h5", "--out", "cal.h5", cwd=tmp_path)
+    r = calib("fit", "rimu", "missing.h5", "--out", "cal.h5")
     assert r.returncode == 3
