@@ -88,7 +88,6 @@ def _to_contract(theta, el0, az0) -> np.ndarray:
 
 def _conversion_jacobian(theta, el0, az0) -> np.ndarray:
     J = np.eye(4)
-    base = _to_contract(theta, el0, az0)
     for k in (2, 3):
         h = 1e-7
         tp, tm = theta.copy(), theta.copy()
@@ -98,16 +97,7 @@ def _conversion_jacobian(theta, el0, az0) -> np.ndarray:
         d[2:] = _wrap(d[2:])
         J[:, k] = d / (2 * h)
         J[0:2, k] = 0.0
-    del base
     return J
-
-
-def _from_contract(p, el0, az0) -> np.ndarray:
-    """Contract (b, ks, dEl, dAz) -> fit vector (b, ks, u1, u2) (start values)."""
-    s = Layout(1, np.array([el0]), np.array([az0])).axes(np.array([p[2]]), np.array([p[3]]))[0]
-    s0, e1, e2 = tangent_basis(el0, az0)
-    c = s @ s0
-    return np.array([p[0], p[1], (s @ e1) / c, (s @ e2) / c])
 
 
 def sensor_model(sensor: str, el0: float, az0: float) -> ImuModel:
@@ -325,6 +315,13 @@ def fit_rimu(rec: Recording) -> CalibrationResult:
         stats[f"{sensor}_chi2"] = chi2
         stats[f"{sensor}_dof"] = dof
         stats[f"{sensor}_sigma_inflation"] = infl
+        blocks = np.array([C for s_, i_, C in cov_blocks if s_ == sensor])
+        mag = rec.site.gravity if sensor == "accel" else float(
+            np.max(np.linalg.norm(kin.w, axis=1)))
+        tmp = {f"{sensor}_{nm}": vals[k] for k, nm in enumerate(NAMES)}
+        stats[f"{sensor}_body_error_input"] = mag
+        stats[f"{sensor}_body_error_predicted"] = predicted_body_error(
+            tmp, lay, sensor, blocks, mag).tolist()
     if not any_estimated:
         raise EstimationError(
             f"the {len(segs)} positions determine none of the sensors' parameters: the inputs "
@@ -387,6 +384,36 @@ def apply_rimu(cal: CalibrationResult, accel: np.ndarray, gyro: np.ndarray | Non
         out[sensor] = c
         out[f"{sensor}_body"] = body_estimate(measurement_matrix(cal.params, cal.layout, sensor), c)
     return out
+
+
+def calibration_variance(params: dict, layout: Layout, sensor: str, x: np.ndarray,
+                         cov: np.ndarray) -> np.ndarray:
+    """(K, n) variance of each corrected output's calibration error at body
+    inputs x (K, 3): J_i C_i J_i^T with J_i = d(b + (1+ks) S.x)/d(b, ks, dEl, dAz)."""
+    d_el = np.asarray(params[f"{sensor}_dEl"], float)
+    d_az = np.asarray(params[f"{sensor}_dAz"], float)
+    ks = np.asarray(params[f"{sensor}_scale_error"], float)
+    el = layout.el0 + d_el
+    az = layout.az0 - d_az
+    S = layout.axes(d_el, d_az)
+    dS_el = np.stack([-np.sin(el) * np.cos(az), -np.sin(el) * np.sin(az), np.cos(el)], axis=1)
+    dS_daz = np.stack([np.cos(el) * np.sin(az), -np.cos(el) * np.cos(az), np.zeros_like(el)],
+                      axis=1)
+    J = np.stack([np.ones((len(x), layout.n)), x @ S.T, (1 + ks) * (x @ dS_el.T),
+                  (1 + ks) * (x @ dS_daz.T)], axis=2)  # (K, n, 4)
+    return np.einsum("kia,iab,kib->ki", J, cov, J) / (1 + ks) ** 2
+
+
+def predicted_body_error(params: dict, layout: Layout, sensor: str, cov: np.ndarray,
+                         magnitude: float, k: int = 500) -> np.ndarray:
+    """Expected RMS per body axis (3,) of the body-frame error that the
+    calibration's uncertainty (cov: (n, 4, 4) per sensor) leaves, for inputs of
+    the given magnitude over the sphere of directions (the covariance's
+    prediction of ``body_error_rms``)."""
+    d = fibonacci_sphere(k) * magnitude
+    var = calibration_variance(params, layout, sensor, d, np.nan_to_num(cov))  # (k, n)
+    Hp = np.linalg.pinv(measurement_matrix(params, layout, sensor))  # (3, n)
+    return np.sqrt(np.mean(var @ (Hp.T ** 2), axis=0))
 
 
 def fibonacci_sphere(k: int = 2000) -> np.ndarray:

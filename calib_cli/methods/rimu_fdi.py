@@ -36,7 +36,12 @@ import numpy as np
 from scipy import stats
 
 from calib_cli.errors import EstimationError
-from calib_cli.methods.rimu import body_estimate, corrected_outputs, measurement_matrix
+from calib_cli.methods.rimu import (
+    body_estimate,
+    calibration_variance,
+    corrected_outputs,
+    measurement_matrix,
+)
 from calib_cli.model.effects import Layout
 
 DEFAULT_WINDOW_S = 0.5
@@ -141,24 +146,6 @@ def sensor_cov_blocks(cal, sensor: str) -> np.ndarray | None:
             return None
         out[i] = np.nan_to_num(np.asarray(cal.covariance)[np.ix_(idx, idx)])
     return out
-
-
-def calibration_variance(params: dict, layout: Layout, sensor: str, x: np.ndarray,
-                         cov: np.ndarray) -> np.ndarray:
-    """(K, n) variance of each corrected output's calibration error at body
-    inputs x (K, 3): J_i C_i J_i^T with J_i = d(b + (1+ks) S.x)/d(b, ks, dEl, dAz)."""
-    d_el = np.asarray(params[f"{sensor}_dEl"], float)
-    d_az = np.asarray(params[f"{sensor}_dAz"], float)
-    ks = np.asarray(params[f"{sensor}_scale_error"], float)
-    el = layout.el0 + d_el
-    az = layout.az0 - d_az
-    S = layout.axes(d_el, d_az)
-    dS_el = np.stack([-np.sin(el) * np.cos(az), -np.sin(el) * np.sin(az), np.cos(el)], axis=1)
-    dS_daz = np.stack([np.cos(el) * np.sin(az), -np.cos(el) * np.cos(az), np.zeros_like(el)],
-                      axis=1)
-    J = np.stack([np.ones((len(x), layout.n)), x @ S.T, (1 + ks) * (x @ dS_el.T),
-                  (1 + ks) * (x @ dS_daz.T)], axis=2)  # (K, n, 4)
-    return np.einsum("kia,iab,kib->ki", J, cov, J) / (1 + ks) ** 2
 
 
 def parity_check(params: dict, layout: Layout, sensor: str, time: np.ndarray, m: np.ndarray,
