@@ -44,12 +44,14 @@ def plan_for(el, az, duration=3.0):
     return parse_plan(text, "<random>")
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=12, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow])
 @given(n=st.integers(4, 12), seed=st.integers(0, 2**31 - 1))
 def test_fit_random_geometry_within_sigma(n, seed):
     el, az = geometry(seed, n)
     plan = plan_for(el, az)
-    truth = rimu_truth(plan_layout(plan), np.random.default_rng(seed + 1))
+    # a pole sensor's (dEl, dAz) is Gaussian only for tilts well above sigma (~0.1 deg here)
+    truth = rimu_truth(plan_layout(plan), np.random.default_rng(seed + 1), pole_tilt_min_deg=1.0)
     res = fit_rimu(simulate(plan, truth, seed % 1000))
     assert res.stats["unobservable"] == []
     for k, v in res.params.items():
@@ -62,7 +64,8 @@ def test_fit_random_geometry_within_sigma(n, seed):
     assert np.all(res.params["gyro_dEl"][pole] * np.sign(el[pole]) <= 0)
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=12, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow])
 @given(n=st.integers(4, 12), seed=st.integers(0, 2**31 - 1), data=st.data())
 def test_fdi_random_geometry(n, seed, data):
     el, az = geometry(seed, n)

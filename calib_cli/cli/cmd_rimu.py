@@ -76,7 +76,7 @@ def rimu_check_cmd(raw, cal, window_s, rate, sensor, cal_uncertainty, as_json):
     c = read_calibration(cal)
     if not c.layout.redundant:
         raise InputError("not a redundant-unit calibration (calib fit rimu)", cal)
-    rec = read_raw(raw)
+    rec = read_raw(raw, kinds=("raw",))  # a corrected file would be corrected twice
     if rec.layout.n != c.layout.n:
         raise InputError(f"the recording has {rec.layout.n} sensors, the calibration "
                          f"{c.layout.n}", raw)

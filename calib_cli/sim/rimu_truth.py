@@ -26,8 +26,12 @@ ACCEL_DENSITY = 0.5e-3 * G0  # m/s^2/sqrt(Hz)
 def rimu_truth(layout: Layout, rng: np.random.Generator, angle_max_deg: float = 3.0,
                scale_sigma: float = 5e-3, gyro_bias_max_dps: float = 1.0,
                accel_bias_max_mg: float = 50.0, gyro_density: float = GYRO_DENSITY,
-               accel_density: float = ACCEL_DENSITY) -> Truth:
-    """Bias + installation errors of both sensor kinds, uniform within the limits."""
+               accel_density: float = ACCEL_DENSITY, pole_tilt_min_deg: float = 0.0) -> Truth:
+    """Bias + installation errors of both sensor kinds, uniform within the limits.
+
+    pole_tilt_min_deg: smallest tilt of a sensor at El0 = +-90 deg (its
+    polar (dEl, dAz) pair is far from Gaussian when the tilt is not much
+    larger than its sigma; property tests keep clear of that)."""
     n = layout.n
     params = {}
     pole = np.abs(np.cos(layout.el0)) < 1e-6
@@ -36,7 +40,8 @@ def rimu_truth(layout: Layout, rng: np.random.Generator, angle_max_deg: float = 
         params[f"{s}_bias"] = rng.uniform(-1, 1, n) * bmax
         params[f"{s}_scale_error"] = rng.normal(0.0, scale_sigma, n)
         d_el = rng.uniform(-1, 1, n) * angle_max_deg * D2R
-        d_el[pole] = -np.abs(d_el[pole]) * np.sign(np.sin(layout.el0[pole]))
+        tilt = np.maximum(np.abs(d_el[pole]), pole_tilt_min_deg * D2R)
+        d_el[pole] = -tilt * np.sign(np.sin(layout.el0[pole]))
         params[f"{s}_dEl"] = d_el
         params[f"{s}_dAz"] = rng.uniform(-1, 1, n) * angle_max_deg * D2R
     noise = {"gyro_white_density": np.full(n, gyro_density),
