@@ -198,10 +198,17 @@ def calib(capsys, monkeypatch, tmp_path):
 
 
 def test_cli_fit_apply_show(tmp_path, calib):
-    assert calib("simulate", PLAN, "--out", "raw.h5", "--seed", "2").returncode == 0
+    truth = ROOT / "sample_data" / "rimu_truth_adis16405.toml"
+    r = calib("simulate", PLAN, "--out", "raw.h5", "--seed", "2", "--truth", truth)
+    assert r.returncode == 0, r.stderr
     r = calib("fit", "rimu", "raw.h5", "--out", "cal.h5")
     assert r.returncode == 0, r.stderr
     js = json.loads(calib("show", "cal.h5", "--json").stdout)
+    from calib_cli.io.h5 import read_calibration, read_raw
+
+    z = normalized_errors(read_calibration(tmp_path / "cal.h5"),
+                          read_raw(tmp_path / "raw.h5").truth["params"])
+    assert np.max(np.abs(z)) < 4.5
     assert js["method"] == "rimu"
     for s in ("accel", "gyro"):
         for k in ("bias", "scale_error", "dEl", "dAz"):
