@@ -80,6 +80,10 @@ def rimu_check_cmd(raw, cal, window_s, rate, sensor, cal_uncertainty, as_json):
     if rec.layout.n != c.layout.n:
         raise InputError(f"the recording has {rec.layout.n} sensors, the calibration "
                          f"{c.layout.n}", raw)
+    if rec.layout.redundant and not (np.allclose(rec.layout.el0, c.layout.el0)
+                                     and np.allclose(rec.layout.az0, c.layout.az0)):
+        raise InputError("the recording's nominal geometry (el0/az0) differs from the "
+                         "calibration's", raw)
     for s in ("accel", "gyro"):
         if rec.units.get(s) != c.raw_units.get(s, rec.units.get(s)):
             raise InputError(f"{s} data is in {rec.units.get(s)!r} but the calibration was "
