@@ -8,9 +8,10 @@ import numpy as np
 
 from calib_cli.cli.common import info
 from calib_cli.cli.main import cli
-from calib_cli.errors import EstimationError
+from calib_cli.errors import InputError
 from calib_cli.io.h5 import atomic_path, open_checked, read_calibration, write_provenance
 from calib_cli.methods.apply import apply_triad, check_units, corrected_channels
+from calib_cli.methods.rimu import apply_rimu
 
 CHUNK = 262144  # samples per chunk: memory stays flat for long recordings
 
@@ -20,10 +21,13 @@ CHUNK = 262144  # samples per chunk: memory stays flat for long recordings
 @click.argument("raw", type=click.Path(dir_okay=False))
 @click.option("--out", required=True, type=click.Path(dir_okay=False))
 def apply_cmd(cal, raw, out):
-    """Correct a recording with a calibration: f = K^-1 (A - b), w = G^-1 (W - d - D f)."""
+    """Correct a recording with a calibration: f = K^-1 (A - b), w = G^-1 (W - d - D f).
+
+    A redundant-unit (RIMU) calibration gives the corrected single-axis outputs
+    (m - b) / (1 + ks) and the body-frame estimates samples/accel_body and
+    samples/gyro_body, x = (H^T H)^-1 H^T c (docs/rimu.md)."""
     c = read_calibration(cal)
-    if c.layout.redundant:
-        raise EstimationError("redundant-unit calibrations are applied by the RIMU module")
+    rimu = c.layout.redundant
     with open_checked(raw, ("raw",)) as src:
         smp = src["samples"]
         units = {s: (smp.attrs.get(f"{s}_units", "") or "") for s in ("accel", "gyro")}
@@ -47,10 +51,25 @@ def apply_cmd(cal, raw, out):
                                        chunks=True)
             gyr = (out_s.create_dataset("gyro", shape=smp["gyro"].shape, dtype="f8", chunks=True)
                    if "gyro" in smp else None)
+            body = {}
+            if smp["accel"].shape[1] != c.layout.n:
+                raise InputError(f"the recording has {smp['accel'].shape[1]} channels per "
+                                 f"sensor, the calibration {c.layout.n}", raw)
+            if rimu:  # a redundant unit also gets the body-frame estimate (docs/rimu.md)
+                for s in chans:
+                    if s in smp:
+                        body[s] = out_s.create_dataset(f"{s}_body", shape=(n, 3), dtype="f8",
+                                                       chunks=True)
             for a in range(0, n, CHUNK):
                 b = min(n, a + CHUNK)
                 g_in = smp["gyro"][a:b] if gyr is not None else None
-                f, w = apply_triad(c, smp["accel"][a:b], g_in)
+                if rimu:
+                    res = apply_rimu(c, smp["accel"][a:b], g_in)
+                    f, w = res["accel"], res["gyro"]
+                    for s, ds in body.items():
+                        ds[a:b] = res[f"{s}_body"]
+                else:
+                    f, w = apply_triad(c, smp["accel"][a:b], g_in)
                 acc[a:b] = f
                 if gyr is not None:
                     gyr[a:b] = w

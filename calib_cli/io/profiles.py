@@ -1,0 +1,60 @@
+"""Geometry profiles of redundant units (``profiles/rimu/NAME.toml``).
+
+A plan of kind "rimu" may write ``[rimu] profile = "tetrahedron"`` instead of
+its own ``el0_deg``/``az0_deg`` lists. The name is looked up as
+
+1. a path (absolute, or relative to the plan file's directory), when it
+   names an existing file or ends in ``.toml``;
+2. ``profiles/rimu/NAME.toml`` in the project's top-level ``profiles``
+   directory (beside the ``calib_cli`` package).
+
+A profile file holds ``el0_deg`` and ``az0_deg`` (degrees, one entry per
+sensor, taken modulo 360) and optional ``name``/``description``/``sensors``.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+from calib_cli.errors import InputError
+
+PROFILE_DIR = Path(__file__).resolve().parents[2] / "profiles" / "rimu"
+
+
+def _candidates(name: str, plan_path: str) -> list[Path]:
+    out = []
+    base = Path(plan_path).parent if plan_path and not plan_path.startswith("<") else Path(".")
+    p = Path(name)
+    out.append(p if p.is_absolute() else base / p)
+    if not name.endswith(".toml") and "/" not in name and "\\" not in name:
+        out.append(PROFILE_DIR / f"{name}.toml")
+    return out
+
+
+def list_rimu_profiles() -> list[str]:
+    """Names of the profiles shipped in profiles/rimu/."""
+    return sorted(p.stem for p in PROFILE_DIR.glob("*.toml")) if PROFILE_DIR.is_dir() else []
+
+
+def load_rimu_profile(name, plan_path: str = "<plan>") -> dict:
+    """The ``[rimu]`` table (el0_deg, az0_deg lists) of profile ``name``.
+
+    Raises InputError naming the plan when the profile is not found, or the
+    profile file when it is malformed.
+    """
+    if not isinstance(name, str) or not name:
+        raise InputError(f"rimu.profile must be a non-empty string, got {name!r}", plan_path)
+    found = next((c for c in _candidates(name, plan_path) if c.is_file()), None)
+    if found is None:
+        known = ", ".join(list_rimu_profiles()) or "none"
+        raise InputError(f"rimu profile {name!r} not found (shipped profiles: {known}; or give "
+                         "a path relative to the plan)", plan_path)
+    try:
+        raw = tomllib.loads(found.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(f"cannot read rimu profile: {exc}", str(found)) from None
+    table = raw.get("rimu", raw)
+    if not isinstance(table, dict) or "el0_deg" not in table or "az0_deg" not in table:
+        raise InputError("a rimu profile needs el0_deg and az0_deg lists", str(found))
+    return {"el0_deg": table["el0_deg"], "az0_deg": table["az0_deg"]}
