@@ -168,6 +168,13 @@ class _Problem:
             if b - a < 2:
                 self.skipped.append((statics[k].label, statics[k + 1].label, "no samples between"))
                 continue
+            inside = [s.label for s in rec.segments if s.kind != "static"
+                      and s.start < b and s.stop > a + 1]
+            if inside:
+                # integrating through it would trust that nothing was cut out around it
+                self.skipped.append((statics[k].label, statics[k + 1].label,
+                                     f"segment {inside[0]!r} lies between"))
+                continue
             dts = np.diff(t[a:b + 1])
             if np.any(dts > GAP_FACTOR * self.dt_med):
                 self.skipped.append((statics[k].label, statics[k + 1].label, "time gap"))
@@ -317,16 +324,17 @@ def _start(prob: _Problem, model: ImuModel, base: dict, counts: bool) -> dict:
                      for _, a, b in prob.transitions])
     ok = ang > 0.2
     s_hi = float(np.min(path[ok] / ang[ok])) if ok.any() else float(np.max(path) / 0.2 + 1e-9)
-    grid = s_hi * np.exp(np.linspace(np.log(0.1), np.log(1.05), 120))
-    sig = (np.ones_like(prob.W_static), np.ones(len(prob.transitions)), np.ones(len(prob.turns)))
     ntr = len(prob.transitions)
-    best, best_cost = grid[-1], np.inf
-    for s in grid:
-        p = dict(start, gyro_K=np.eye(3) * s)
-        pred = prob.transition_pred(prob.rates(model, p)[:ntr])
-        cost = float(np.sum(np.einsum("mkj,mj->mk", prob.tr_basis, pred) ** 2))
-        if cost < best_cost:
-            best, best_cost = s, cost
+
+    def cost(s):
+        pred = prob.transition_pred(prob.rates(model, dict(start, gyro_K=np.eye(3) * s))[:ntr])
+        return float(np.sum(np.einsum("mkj,mj->mk", prob.tr_basis, pred) ** 2))
+
+    # coarse grid (4 % steps), then a fine one (0.5 %) around its best
+    grid = s_hi * np.exp(np.arange(np.log(0.1), np.log(1.05), 0.04))
+    best = grid[int(np.argmin([cost(s) for s in grid]))]
+    fine = best * np.exp(np.arange(-0.04, 0.0401, 0.005))
+    best = fine[int(np.argmin([cost(s) for s in fine]))]
     return dict(start, gyro_K=np.eye(3) * best)
 
 
@@ -382,7 +390,7 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
                               "more static positions and rotations between them")
     theta = packing.pack(p0)
     fit = None
-    for _ in range(3):  # weights from the current estimate
+    for _ in range(2):  # weights from the start, then from the estimate
         p = packing.unpack(theta, base)
         sig = prob.sigmas(model, p)
         fit = lsq.fit(lambda th: prob.residuals(model, packing.unpack(th, base), sig), theta,

@@ -1,0 +1,58 @@
+"""Shared helpers for the gyro simulated-truth tests."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calib_cli.io.plan import parse_plan
+from calib_cli.model.imu_model import base_model
+from calib_cli.sim.simulate import simulate
+from calib_cli.sim.truth import Truth
+
+ATTITUDES = [[0, 0, 0], [180, 0, 0], [90, 0, 0], [-90, 0, 0], [0, -90, 0], [0, 90, 0],
+             [45, 30, 10], [-30, 60, 100], [120, -40, 200], [-150, 20, 300],
+             [60, -70, 45], [10, 45, 250]]
+
+
+def plan_text(turns: bool = True, static_s: float = 8.0, rate: float = 100.0,
+              counts: bool = False) -> str:
+    lines = ['name = "gyro-sim"', 'kind = "static"', f"sample_rate_hz = {rate}",
+             "transition_s = 4.0", "[site]", "latitude_deg = 48.0", "height_m = 300.0"]
+    for i, a in enumerate(ATTITUDES):
+        lines += ["[[segment]]", f'label = "p{i}"', f"attitude_deg = {a}",
+                  f"duration_s = {static_s}"]
+    if turns:
+        for ax, att in (([1, 0, 0], [0, -90, 0]), ([0, 1, 0], [90, 0, 0]), ([0, 0, 1], [0, 0, 0])):
+            lines += ["[[segment]]", f'label = "q{ax}"', f"attitude_deg = {att}",
+                      f"duration_s = {static_s}"]
+            lines += ["[[segment]]", f'label = "turn{ax}"', f"attitude_deg = {att}",
+                      f"rotation_axis_body = {ax}", "rotation_angle_deg = 360.0",
+                      "duration_s = 8.0"]
+    return "\n".join(lines) + "\n"
+
+
+def truth(rng, g_sensitivity: bool = True) -> Truth:
+    model = base_model(g_sensitivity=g_sensitivity)
+    params = {}
+    for spec in model.specs():
+        free = ~spec.fixed_mask()
+        params[spec.key] = spec.neutral() + rng.standard_normal(spec.shape) * spec.typical * free
+    return Truth(model, params, {"accel_white": 3e-3, "gyro_white": 1e-3})
+
+
+def simulated(seed: int, turns: bool = True, g_sensitivity: bool = True):
+    plan = parse_plan(plan_text(turns))
+    rng = np.random.default_rng(1000 + seed)
+    tr = truth(rng, g_sensitivity)
+    return simulate(plan, tr, seed), tr
+
+
+def normalized_errors(res, tr) -> np.ndarray:
+    out = []
+    for key in ("gyro_bias", "gyro_K", "gyro_D"):
+        if key not in res.params or key not in tr.params:
+            continue
+        est, sig = np.asarray(res.params[key]), np.asarray(res.sigma[key])
+        ok = np.isfinite(sig) & (sig > 0)
+        out.append(((est - tr.params[key])[ok] / sig[ok]).ravel())
+    return np.concatenate(out)
