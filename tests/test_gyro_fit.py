@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from dataclasses import replace
 
 import numpy as np
@@ -114,34 +112,45 @@ def test_counts_scale_and_units():
     assert np.max(np.abs(zK)) < 4.5 and np.max(np.abs(zb)) < 4.5
 
 
-def test_cli_fit_gyro(tmp_path):
-    rec, _ = simulated(5, True)
+def run_cli(argv, capsys):
+    """The CLI in-process: (exit code, stdout, stderr)."""
+    from calib_cli.cli.main import main
+
+    try:
+        main(argv)
+        code = 0
+    except SystemExit as exc:
+        code = exc.code or 0
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_cli_fit_gyro(tmp_path, capsys):
+    rec, _ = simulated(5, False)
     raw = tmp_path / "raw.h5"
     write_raw(raw, rec)
     cal = tmp_path / "cal.h5"
-    env_py = [sys.executable, "-m", "calib_cli"]
-    r = subprocess.run(env_py + ["-q", "fit", "gyro", str(raw), "--out", str(cal)],
-                       capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    r = subprocess.run(env_py + ["show", str(cal), "--json"], capture_output=True, text=True)
-    d = json.loads(r.stdout)
-    assert {"gyro_bias", "gyro_K", "gyro_D"} <= set(d["params"])
+    code, _, err = run_cli(["-q", "fit", "gyro", str(raw), "--out", str(cal)], capsys)
+    assert code == 0, err
+    code, out, _ = run_cli(["show", str(cal), "--json"], capsys)
+    d = json.loads(out)
+    assert {"gyro_bias", "gyro_K", "gyro_D", "accel_K"} <= set(d["params"])
     assert d["units"]["gyro_K"] == "-" and "gyro_residual_rms" in d["stats"]
-    # with a separate accelerometer calibration
+    # with a separate accelerometer calibration, no g-sensitivity
     acal = tmp_path / "acc.h5"
-    subprocess.run(env_py + ["-q", "fit", "accel", str(raw), "--out", str(acal)], check=True)
-    r = subprocess.run(env_py + ["-q", "fit", "gyro", str(raw), "--out", str(cal), "--accel",
-                                 str(acal), "--g-sensitivity", "off"], capture_output=True,
-                       text=True)
-    assert r.returncode == 0, r.stderr
-    # a gyro calibration is not an accelerometer calibration... but it carries accel_K;
-    # a raw file is not a calibration at all: exit 3
-    r = subprocess.run(env_py + ["fit", "gyro", str(raw), "--out", str(tmp_path / "x.h5"),
-                                 "--accel", str(raw)], capture_output=True, text=True)
-    assert r.returncode == 3 and not (tmp_path / "x.h5").exists()
+    assert run_cli(["-q", "fit", "accel", str(raw), "--out", str(acal)], capsys)[0] == 0
+    code, _, err = run_cli(["-q", "fit", "gyro", str(raw), "--out", str(cal), "--accel",
+                            str(acal), "--g-sensitivity", "off"], capsys)
+    assert code == 0, err
+    code, out, _ = run_cli(["show", str(cal), "--json"], capsys)
+    assert "gyro_D" not in json.loads(out)["params"]
+    # a raw file given as the accelerometer calibration: exit 3, no output left behind
+    code, _, err = run_cli(["fit", "gyro", str(raw), "--out", str(tmp_path / "x.h5"), "--accel",
+                            str(raw)], capsys)
+    assert code == 3 and str(raw) in err and not (tmp_path / "x.h5").exists()
 
 
-def test_cli_no_rotations_exit_4(tmp_path):
+def test_cli_no_rotations_exit_4(tmp_path, capsys):
     plan = parse_plan(plan_text(turns=False))
     rec, _ = simulated(6, False)
     statics = rec.static_segments()[:10]
@@ -153,10 +162,9 @@ def test_cli_no_rotations_exit_4(tmp_path):
     raw = tmp_path / "raw.h5"
     write_raw(raw, rec.with_(time=np.arange(len(keep)) / plan.sample_rate, accel=rec.accel[keep],
                              gyro=rec.gyro[keep], segments=tuple(segs)))
-    r = subprocess.run([sys.executable, "-m", "calib_cli", "fit", "gyro", str(raw), "--out",
-                        str(tmp_path / "c.h5")], capture_output=True, text=True)
-    assert r.returncode == 4, r.stderr
-    assert "no rotations" in r.stderr and "Traceback" not in r.stderr
+    code, _, err = run_cli(["fit", "gyro", str(raw), "--out", str(tmp_path / "c.h5")], capsys)
+    assert code == 4, err
+    assert "no rotations" in err and "Traceback" not in err
     assert not (tmp_path / "c.h5").exists()
 
 
