@@ -248,7 +248,8 @@ def markdown(root: Path) -> str:
           f"| RMS of mean |f| - g over the {len(x['windows'])} windows, m/s^2 | "
           f"**{x['g_rms_ours']:.4g}** | {x['g_rms_imutk']:.4g} on the same windows "
           f"({IMUTK_G_RMS_README:.3g} on the README's windows) | - |",
-          f"| mean |f| over the windows, m/s^2 | {x['g_mean_ours']:.6f} | {x['g_mean_imutk']:.6f} | - |",
+          f"| mean |f| over the windows, m/s^2 | {x['g_mean_ours']:.6f} | "
+          f"{x['g_mean_imutk']:.6f} | - |",
           f"| scale factors, counts/(m/s^2) | {_v(x['acc_scale'], '{:.3f}')} | "
           f"{_v(IMUTK_ACC_INV_SCALE, '{:.3f}')} | {_v(XSENS_ACC_SCALE, '{:.0f}')} |",
           f"| scale vs manufacturer | {_v(100 * x['acc_scale_rel'], '{:+.3f}')} % | "
@@ -308,7 +309,8 @@ def markdown(root: Path) -> str:
           f"| accel scale factors, counts/(m/s^2) | {_v(fa['acc_scale'], '{:.3f}')} | "
           f"{_v(fa['acc_scale_ref'], '{:.3f}')} | {_v(100 * fa['acc_scale_rel'], '{:+.3f}')} % |",
           f"| gyro scale factors, counts/(deg/s) | {_v(fa['gyro_scale_dps'], '{:.3f}')} | "
-          f"{_v(fa['gyro_scale_ref_dps'], '{:.3f}')} | {_v(100 * fa['gyro_scale_rel'], '{:+.3f}')} % |",
+          f"{_v(fa['gyro_scale_ref_dps'], '{:.3f}')} | "
+          f"{_v(100 * fa['gyro_scale_rel'], '{:+.3f}')} % |",
           f"| accel K vs K_a R_a, counts/(m/s^2) | {_m(fa['accel_K'], '{:.3f}')} | "
           f"{_m(fa['accel_K_ref'], '{:.3f}')} | |",
           f"| accel bias, counts | {_v(fa['accel_bias'], '{:.2f}')} | "
@@ -369,7 +371,8 @@ def markdown(root: Path) -> str:
           f"{p['stats']['transition_residual_rms_rad'] * R2D:.1f} |",
           f"| turn residual RMS, deg | {m['stats']['turn_residual_rms_rad'] * R2D:.3f} | "
           f"{p['stats']['turn_residual_rms_rad'] * R2D:.2f} |",
-          f"| raw turn angles (W - d)/G_ii, deg | {_v(list(m['raw_turn_deg'].values()), '{:+.2f}')} "
+          "| raw turn angles (W - d)/G_ii, deg | "
+          f"{_v(list(m['raw_turn_deg'].values()), '{:+.2f}')} "
           "| |", "",
           "With -360 deg (imucal's default) the transitions and the turns agree (G close to "
           "the identity, as expected of data already in deg/s); with +360 deg they contradict "

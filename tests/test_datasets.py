@@ -91,7 +91,8 @@ def test_ferraris_example_session_sign_from_transitions():
     assert m["stats"]["n_transitions"] == 5 and m["stats"]["n_turns"] == 3
     assert np.all(np.abs(np.diag(m["gyro_K"]) - 1) < 0.05)
     # the wrong sign contradicts the recorded transitions
-    assert p["stats"]["transition_residual_rms_rad"] > 20 * m["stats"]["transition_residual_rms_rad"]
+    wrong, right = (x["stats"]["transition_residual_rms_rad"] for x in (p, m))
+    assert wrong > 20 * right
 
 
 @pytest.mark.slow

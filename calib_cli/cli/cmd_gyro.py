@@ -32,6 +32,9 @@ def fit_gyro_cmd(raw, out, accel_path, g_sensitivity):
     res = fit_gyro(rec, acc, g_sensitivity)
     save(res, raw, out, [accel_path] if accel_path else [])
     st = res.stats
+    for w in st.get("warnings", []):
+        info(f"[yellow]warning:[/] {w}")
+    tr = st["transition_residual_rms_rad"]
     info(f"{st['n_transitions']} transitions, {st['n_turns']} turns, {st['n_positions']} "
          f"static positions; transition residual RMS "
-         f"{(st['transition_residual_rms_rad'] or 0) * 180 / 3.141592653589793:.3f} deg")
+         f"{'n/a' if tr is None else f'{tr * 180 / 3.141592653589793:.3f} deg'}")

@@ -47,7 +47,8 @@ def convert_units(accel, gyro, accel_units: str, gyro_units: str, path: str = ""
         raise InputError(f"unknown gyro unit {gyro_units!r}; use one of "
                          f"{', '.join(GYRO_UNITS)}", path)
     fa, fg = ACCEL_UNITS[accel_units], GYRO_UNITS[gyro_units]
-    units = {"accel": "count" if fa is None else "m/s^2", "gyro": "count" if fg is None else "rad/s"}
+    units = {"accel": "count" if fa is None else "m/s^2",
+             "gyro": "count" if fg is None else "rad/s"}
     accel = accel if fa is None else accel * fa
     gyro = None if gyro is None else (gyro if fg is None else gyro * fg)
     return accel, gyro, units
@@ -149,7 +150,8 @@ def _default_map(names, k: int, role: str) -> dict:
                 out.update({pre + ax: n for ax, n in zip("xyz", rest)})
         return out
     layouts = {
-        "both": {7: ("time", "ax", "ay", "az", "gx", "gy", "gz"), 6: ("ax", "ay", "az", "gx", "gy", "gz"),
+        "both": {7: ("time", "ax", "ay", "az", "gx", "gy", "gz"),
+                 6: ("ax", "ay", "az", "gx", "gy", "gz"),
                  4: ("time", "ax", "ay", "az"), 3: ("ax", "ay", "az")},
         "accel": {4: ("time", "ax", "ay", "az"), 3: ("ax", "ay", "az")},
         "gyro": {4: ("time", "gx", "gy", "gz"), 3: ("gx", "gy", "gz")},

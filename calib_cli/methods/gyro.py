@@ -147,8 +147,10 @@ class _Problem:
         self.W_static = np.array([rec.gyro[s.slice].mean(axis=0) for s in statics]).reshape(-1, 3)
         self.n_static = np.array([s.n for s in statics], dtype=float)
         self.f_static = np.array([self.f_all[s.slice].mean(axis=0) for s in statics]).reshape(-1, 3)
-        ss_g = sum(((rec.gyro[s.slice] - m) ** 2).sum(axis=0) for s, m in zip(statics, self.W_static))
-        ss_f = sum(((self.f_all[s.slice] - m) ** 2).sum(axis=0) for s, m in zip(statics, self.f_static))
+        ss_g = sum(((rec.gyro[s.slice] - m) ** 2).sum(axis=0)
+                   for s, m in zip(statics, self.W_static))
+        ss_f = sum(((self.f_all[s.slice] - m) ** 2).sum(axis=0)
+                   for s, m in zip(statics, self.f_static))
         dof = max(int(self.n_static.sum()) - len(statics), 1)
         self.sig_gyro = np.sqrt(np.asarray(ss_g) / dof) * np.ones(3)  # per sample, data units
         self.sig_f = float(np.sqrt(np.mean(np.asarray(ss_f) / dof)))  # per sample, m/s^2
@@ -262,7 +264,8 @@ class _Problem:
         # static means: white noise plus the unknown horizontal earth rate
         var_e = np.where(self.known_att, 0.0, self.w_h**2 / 2.0)
         g_row2 = (G**2).sum(axis=1)  # per output axis, for an isotropic rate error
-        var_s = self.sig_gyro[None, :] ** 2 / self.n_static[:, None] + var_e[:, None] * g_row2[None, :] / 3.0
+        var_s = (self.sig_gyro[None, :] ** 2 / self.n_static[:, None]
+                 + var_e[:, None] * g_row2[None, :] / 3.0)
         # transitions: both directions' noise, integrated gyro noise, unknown earth rate
         var_tr = []
         for (k, a, b), dt, T in zip(self.transitions, self.tr_dt, self.tr_T):
@@ -290,7 +293,8 @@ class _Problem:
         pred = self.transition_pred(pieces[:ntr])
         r_tr = -np.einsum("mkj,mj->mk", self.tr_basis, pred) / sig_tr[:, None]
         ints = self.turn_integrals(pieces[ntr:])
-        want = np.array([s.rotation_axis_body * s.rotation_angle for s in self.turns]).reshape(-1, 3)
+        want = np.array([s.rotation_axis_body * s.rotation_angle
+                         for s in self.turns]).reshape(-1, 3)
         r_turn = (ints - want) / sig_turn[:, None] if len(self.turns) else np.zeros((0, 3))
         return np.concatenate([r_s.ravel(), r_tr.ravel(), r_turn.ravel()])
 
@@ -439,11 +443,24 @@ def _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D):
         "g_sensitivity": bool(use_D),
         "accel_method": accel.method,
         "chi2_dof": fit.chi2_dof, "sigma_inflation": inflation,
+        "warnings": _warnings(p, prob),
     }
     res = build_result("gyro", model, packing, fit, base, rec.units, stats, serial=rec.serial,
                        residuals={"transition_angle": tr_err, "turn_angle": turn_err,
                                   "static_gyro": r_static})
     return with_accel(res, accel)
+
+
+def _warnings(p: dict, prob: _Problem) -> list[str]:
+    out = []
+    if np.any(np.diag(p["gyro_K"]) < 0):
+        out.append("gyro_K has a negative scale factor: the sign of a turn's rotation_angle_deg "
+                   "(right-hand rule about rotation_axis_body) may be wrong, or an axis is "
+                   "wired reversed")
+    if prob.skipped and not prob.transitions:
+        out.append("no transition between static positions could be integrated (spliced or "
+                   "gapped recording): G rests on the turns alone")
+    return out
 
 
 def with_accel(res: CalibrationResult, accel: CalibrationResult) -> CalibrationResult:
