@@ -260,8 +260,8 @@ def markdown(root: Path) -> str:
           f"own frame): {_m(IMUTK_ACC_T)} | lower factor: {_m(x['acc_mis_man'])} |", "",
           f"Largest misalignment difference to the manufacturer: **{x['acc_mis_maxdiff']:.4f}** "
           "(the manufacturer gives its matrices to 0.01).", "",
-          "### Gyro (`calib fit gyro`: 37 transitions between the static positions, "
-          "full G, bias and g-sensitivity D)", "",
+          f"### Gyro (`calib fit gyro`: {x['gyro_stats']['n_transitions']} transitions between "
+          "the static positions, full G, bias and g-sensitivity D)", "",
           "| quantity | calib | imu_tk (published) | manufacturer |", "|---|---|---|---|",
           f"| scale factors, counts/(rad/s) | {_v(x['gyro_scale'], '{:.1f}')} | "
           f"{_v(IMUTK_GYRO_INV_SCALE, '{:.1f}')} | {_v(XSENS_GYRO_SCALE, '{:.0f}')} |",

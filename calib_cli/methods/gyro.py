@@ -369,6 +369,9 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
         raise EstimationError(f"the accelerometer calibration was fitted on data in "
                               f"{accel.raw_units.get('accel')}, this recording is in "
                               f"{rec.units.get('accel')}")
+    if len(rec.static_segments()) < 2:
+        raise EstimationError(f"the gyro fit needs static positions (bias, noise, gravity "
+                              f"directions); the recording has {len(rec.static_segments())}")
     prob = _Problem(rec, accel)
     if prob.n_rot == 0:
         why = "; ".join(f"{a} -> {b}: {r}" for a, b, r in prob.skipped[:3])
