@@ -348,8 +348,20 @@ def markdown(root: Path) -> str:
           "corrected rates of the two calibrations differ in sign. In the unsegmented example "
           "session below, where the motions between positions are recorded, the gravity "
           "directions do decide the sign.",
+          "- **Estimators.** imucal follows Ferraris's closed forms: the bias of each "
+          "accelerometer axis from the two positions along that axis only ((U_p + U_a)/2, "
+          "eq. 20), K_a and R_a from the differences of opposite positions, the gyro bias as "
+          "the mean of all static samples, K_ga from the differences of opposite positions "
+          "(eq. 9), and the turn integrals as sample sums / rate. calib fits bias and K by "
+          "weighted least squares over all six positions (so each accelerometer bias also "
+          "uses the four positions where that axis is horizontal: the x reading averaged over "
+          "z up and z down is -12 counts, over x up and x down -6 counts; that "
+          "inconsistency of the hand-held positions is the 1-8 count difference in the "
+          "accelerometer bias), bias and D of the gyro jointly from the six static means, and "
+          "integrates the turns with the trapezoidal rule.",
           "- **g-sensitivity.** Both fit a full 3x3 g-sensitivity from the six static "
-          "positions (imucal K_ga, calib gyro_D); they agree to a few 1e-3 counts per m/s^2.",
+          "positions (imucal K_ga, calib gyro_D); they agree within the noise of the static "
+          "gyro means (~0.1 count, i.e. 0.005 count per m/s^2 in D).",
           "- **Earth rate.** imucal ignores it; calib includes it in the static gyro means "
           "using the plan's attitudes (yaw 0 assumed here, so it is approximate; 0.07 "
           "counts, below the noise of the means).", ""]

@@ -105,3 +105,23 @@ def test_write_validation_md():
     text = vd.markdown(ROOT)
     out.write_text(text, encoding="utf-8")
     assert "Xsens" in text and "imucal" in text
+
+
+@needs_xsens
+def test_xsens_import_text_cli(tmp_path, capsys):
+    """The documented command line (docs/import.md) on imu_tk's files."""
+    from test_gyro_fit import run_cli
+
+    from calib_cli.io.h5 import read_raw
+
+    d = ROOT / "imu_tk_xsens_mti"
+    plan = tmp_path / "xsens.toml"
+    plan.write_text(vd.XSENS_PLAN)
+    code, _, err = run_cli(["-q", "import", "text", str(d / "xsens_acc.mat"),
+                            str(d / "xsens_gyro.mat"), "--plan", str(plan), "--out",
+                            str(tmp_path / "xs.h5"), "--accel-units", "count", "--gyro-units",
+                            "count"], capsys)
+    assert code == 0, err
+    rec = read_raw(tmp_path / "xs.h5")
+    assert rec.units == {"accel": "count", "gyro": "count"}
+    assert len(rec.static_segments()) == 38 and len(rec) == 51175
