@@ -190,3 +190,17 @@ def test_detect_command(tmp_path, sim, capsys):
     assert code == 0
     d = json.loads(out)
     assert len(d["intervals"]) == 12 and "finds 12" in d["explain"]
+
+
+def test_fit_too_few_positions_says_which_threshold(sim):
+    """A recording segmented with only 5 positions: the scalar fit's error says
+    what detection finds in it and the threshold that finds >= 9."""
+    from calib_cli.errors import EstimationError
+    from calib_cli.methods.accel_lsq import fit_accel
+
+    few = sim.with_(segments=tuple(s if i < 5 else s.__class__(s.label, "turn", s.start, s.stop)
+                                   for i, s in enumerate(sim.segments)))
+    with pytest.raises(EstimationError) as exc:
+        fit_accel(few, "scalar")
+    msg = str(exc.value)
+    assert "the recording has 5" in msg and "--threshold 3 finds 12" in msg

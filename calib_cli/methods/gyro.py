@@ -35,6 +35,7 @@ from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError, InputError
 from calib_cli.methods import lsq
 from calib_cli.methods.result import build_result
+from calib_cli.methods.static_detect import too_few_hint
 from calib_cli.model.correction import correct
 from calib_cli.model.earth import EARTH_RATE
 from calib_cli.model.effects import Bias, GSensitivity, Layout, ScaleMisalignment
@@ -371,7 +372,8 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
                               f"{rec.units.get('accel')}")
     if len(rec.static_segments()) < 2:
         raise EstimationError(f"the gyro fit needs static positions (bias, noise, gravity "
-                              f"directions); the recording has {len(rec.static_segments())}")
+                              f"directions); the recording has {len(rec.static_segments())}"
+                              f"{too_few_hint(rec, 2)}")
     prob = _Problem(rec, accel)
     if prob.n_rot == 0:
         why = "; ".join(f"{a} -> {b}: {r}" for a, b, r in prob.skipped[:3])

@@ -134,3 +134,18 @@ def detect_static(t, accel, gyro=None, window_s: float = 1.0, multiplier: float 
                            short_runs=len(short), longest_short_s=max(short, default=0.0),
                            static_fraction=float(np.mean(quiet(multiplier))) if len(t) else
                            float("nan"))
+
+
+def too_few_hint(rec, needed: int) -> str:
+    """For an estimator that has too few static positions: what the detector
+    finds in this recording and which threshold would find ``needed`` or more
+    (import with --threshold/--min-static, or `calib detect RAW`)."""
+    if rec is None or len(rec.time) < 3:
+        return ""
+    try:
+        rep = detect_static(rec.time, rec.accel, rec.gyro)
+    except (ValueError, FloatingPointError):
+        return ""
+    return (f" (static detection with the defaults on this recording: "
+            f"{rep.explain(needed, at_least=True)}; re-import with those options, or see "
+            "`calib detect RAW`)")
