@@ -361,7 +361,7 @@ def markdown(root: Path) -> str:
           "integrates the turns with the trapezoidal rule.",
           "- **g-sensitivity.** Both fit a full 3x3 g-sensitivity from the six static "
           "positions (imucal K_ga, calib gyro_D); they agree within the noise of the static "
-          "gyro means (~0.1 count, i.e. 0.005 count per m/s^2 in D).",
+          "gyro means (~0.1 count per mean, i.e. up to ~0.01 count per m/s^2 in D).",
           "- **Earth rate.** imucal ignores it; calib includes it in the static gyro means "
           "using the plan's attitudes (yaw 0 assumed here, so it is approximate; 0.07 "
           "counts, below the noise of the means).", ""]
