@@ -83,9 +83,11 @@ def test_segment_labels_and_sort(tmp_path):
     rec = import_text(tmp_path / "s.csv", plan, columns=cmap, rate=10, time_unit="sample",
                       sort=True, accel_units="count", gyro_units="count")
     assert [(s.label, s.start, s.stop) for s in rec.segments] == [("a", 0, 5), ("b", 5, 10)]
-    # the default map finds these names too
-    rec2 = import_text(tmp_path / "s.csv", plan, rate=10, time_unit="sample", sort=True)
-    assert np.array_equal(rec2.accel, rec.accel)
+    # the default map finds these names too, and takes `samples` for a sample counter
+    rec2 = import_text(tmp_path / "s.csv", plan, rate=10, sort=True)
+    assert np.array_equal(rec2.accel, rec.accel) and np.allclose(rec2.time, rec.time)
+    with pytest.raises(InputError, match="time in samples: give the sample rate"):
+        import_text(tmp_path / "s.csv", plan, sort=True)
 
 
 def test_segments_json(tmp_path, sim):

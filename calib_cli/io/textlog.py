@@ -27,9 +27,10 @@ G0 = 9.80665
 ACCEL_UNITS = {"count": None, "m/s^2": 1.0, "g": G0}
 GYRO_UNITS = {"count": None, "rad/s": 1.0, "deg/s": np.pi / 180.0}
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9, "sample": None}
+SAMPLE_COUNTERS = ("samples", "n_samples", "sample", "index")
 FIELDS = ("time", "ax", "ay", "az", "gx", "gy", "gz", "temp", "segment")
 ALIASES = {
-    "time": ("time", "t", "timestamp", "time_s", "samples", "n_samples"),
+    "time": ("time", "t", "timestamp", "time_s"),
     "ax": ("ax", "acc_x", "accx", "accel_x"), "ay": ("ay", "acc_y", "accy", "accel_y"),
     "az": ("az", "acc_z", "accz", "accel_z"),
     "gx": ("gx", "gyr_x", "gyro_x", "gyrx"), "gy": ("gy", "gyr_y", "gyro_y", "gyry"),
@@ -142,6 +143,11 @@ def _default_map(names, k: int, role: str) -> dict:
             hit = next((a for a in al if a in low), None)
             if hit is not None:
                 out[field] = names[low.index(hit)]
+        if "time" not in out:  # a sample counter: time = counter / --rate
+            hit = next((a for a in SAMPLE_COUNTERS if a in low), None)
+            if hit is not None:
+                out["time"] = names[low.index(hit)]
+                out["_time_unit"] = "sample"
         if role in ("accel", "gyro") and not any(f in out for f in ("ax", "gx")):
             # a separate file with generic names: time + three axes
             pre = "a" if role == "accel" else "g"
@@ -243,6 +249,8 @@ def import_text(acc_path, plan: Plan, gyro_path=None, columns: str | None = None
         raise InputError(f"cannot tell which columns hold ax, ay, az ({cells.shape[1]} columns"
                          f"{', header ' + ' '.join(names) if names else ', no header'}): give "
                          "--columns, e.g. time=1,ax=2,ay=3,az=4", acc_path)
+    if cmap.pop("_time_unit", None) == "sample" and time_unit == "s":
+        time_unit = "sample"  # the default map found a sample counter, not a time
     n = len(cells)
 
     def get(f, **kw):
