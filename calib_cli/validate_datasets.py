@@ -158,7 +158,8 @@ def _raw_turn_angles(rec, res) -> dict:
         if s.kind == "turn":
             i = int(np.argmax(np.abs(s.rotation_axis_body)))
             x = rec.gyro[s.slice, i] - d[i]
-            out[s.label] = float(np.trapezoid(x, rec.time[s.slice]) / abs(G[i, i]) * R2D)
+            area = float(np.sum(0.5 * (x[1:] + x[:-1]) * np.diff(rec.time[s.slice])))
+            out[s.label] = area / abs(G[i, i]) * R2D  # trapezoid (numpy 1.26 has no trapezoid)
     return out
 
 
