@@ -56,3 +56,28 @@ def normalized_errors(res, tr) -> np.ndarray:
         ok = np.isfinite(sig) & (sig > 0)
         out.append(((est - tr.params[key])[ok] / sig[ok]).ravel())
     return np.concatenate(out)
+
+
+HAND_PLAN = ('name = "hand"\nkind = "static"\nsample_rate_hz = 100.0\ntransition_s = 3.0\n'
+             '[site]\nlatitude_deg = 45.0\n[[segment]]\nlabel = "pos"\nrepeat = "auto"\n'
+             'sim_repeat = 20\nduration_s = 6.0\n')
+
+
+def hand_placed(seed: int):
+    """A hand-placed session: 20 positions of unknown attitude (scalar
+    accelerometer fit, lower-triangular K), transitions between them."""
+    plan = parse_plan(HAND_PLAN)
+    tr = truth(np.random.default_rng(2000 + seed), True)
+    return simulate(plan, tr, seed), tr
+
+
+def normalized_errors_hand(res, tr) -> np.ndarray:
+    """As normalized_errors, with the truth expressed in the frame the
+    accelerometers fix (truth accel K = L Q: G and D in that frame are G Q^T, D Q^T)."""
+    from calib_cli.validate_datasets import lower_times_rotation
+
+    _, Q = lower_times_rotation(tr.params["accel_K"])
+    want = {"gyro_bias": tr.params["gyro_bias"], "gyro_K": tr.params["gyro_K"] @ Q.T,
+            "gyro_D": tr.params["gyro_D"] @ Q.T}
+    return np.concatenate([((np.asarray(res.params[k]) - v) / res.sigma[k]).ravel()
+                           for k, v in want.items()])
