@@ -206,3 +206,15 @@ def test_fit_too_few_positions_says_which_threshold(sim):
         fit_accel(few, "scalar")
     msg = str(exc.value)
     assert "the recording has 5" in msg and "--threshold 3 finds 12" in msg
+
+
+def test_detect_command_on_text_logs(tmp_path, sim, capsys):
+    """Separate whitespace files without header, as `import text` reads them."""
+    from test_gyro_fit import run_cli
+
+    _write(tmp_path / "acc.txt", [sim.time, sim.accel])
+    _write(tmp_path / "gyr.txt", [sim.time, sim.gyro])
+    code, out, err = run_cli(["detect", str(tmp_path / "acc.txt"), str(tmp_path / "gyr.txt"),
+                              "--json"], capsys)
+    assert code == 0, err
+    assert len(json.loads(out)["intervals"]) == 12
