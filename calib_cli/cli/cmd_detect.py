@@ -9,7 +9,6 @@ from rich.table import Table
 from calib_cli.cli.common import Ctx, err_console, out_console, print_json
 from calib_cli.cli.main import cli
 
-
 AUTO_PLAN = 'name = "detect"\nkind = "static"\n[[segment]]\nlabel = "pos"\nrepeat = "auto"\n'
 
 
