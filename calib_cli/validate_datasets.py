@@ -296,7 +296,7 @@ def markdown(root: Path) -> str:
           "recomputed above from its published bias, K and T on calib's windows.", "",
           "Static windows used (start - end, s; samples):", "",
           ", ".join(f"{a:.2f}-{b:.2f} ({int(n)})" for (a, b), n in
-                    zip(x["windows"], x["window_samples"])), ""]
+                    zip(x["windows"], x["window_samples"], strict=False)), ""]
     # Ferraris annotated
     L += ["## 2. imucal Ferraris, annotated_session.csv (raw counts, 204.8 Hz)", "",
           "Import: `calib import text annotated_session.csv --plan ferraris.toml --columns "

@@ -153,7 +153,7 @@ def _default_map(names, k: int, role: str) -> dict:
             pre = "a" if role == "accel" else "g"
             rest = [n for n in names if n != out.get("time")]
             if len(rest) == 3:
-                out.update({pre + ax: n for ax, n in zip("xyz", rest)})
+                out.update({pre + ax: n for ax, n in zip("xyz", rest, strict=False)})
         return out
     layouts = {
         "both": {7: ("time", "ax", "ay", "az", "gx", "gy", "gz"),

@@ -149,9 +149,9 @@ class _Problem:
         self.n_static = np.array([s.n for s in statics], dtype=float)
         self.f_static = np.array([self.f_all[s.slice].mean(axis=0) for s in statics]).reshape(-1, 3)
         ss_g = sum(((rec.gyro[s.slice] - m) ** 2).sum(axis=0)
-                   for s, m in zip(statics, self.W_static))
+                   for s, m in zip(statics, self.W_static, strict=False))
         ss_f = sum(((self.f_all[s.slice] - m) ** 2).sum(axis=0)
-                   for s, m in zip(statics, self.f_static))
+                   for s, m in zip(statics, self.f_static, strict=False))
         dof = max(int(self.n_static.sum()) - len(statics), 1)
         self.sig_gyro = np.sqrt(np.asarray(ss_g) / dof) * np.ones(3)  # per sample, data units
         self.sig_f = float(np.sqrt(np.mean(np.asarray(ss_f) / dof)))  # per sample, m/s^2
@@ -196,7 +196,7 @@ class _Problem:
         self.tr_earth = np.array(self.tr_earth).reshape(-1, 3, 3)
         # tangent bases of the destination directions
         self.tr_basis = []
-        for k, a, b in self.transitions:
+        for k, _, _ in self.transitions:
             u = self.u[k + 1]
             e1 = np.cross(u, [1.0, 0, 0] if abs(u[0]) < 0.9 else [0, 1.0, 0])
             e1 /= np.linalg.norm(e1)
@@ -237,7 +237,7 @@ class _Problem:
         """Predicted destination gravity directions (m, 3)."""
         if not self.transitions:
             return np.zeros((0, 3))
-        phis = [increments(w, dt) for w, dt in zip(pieces, self.tr_dt)]
+        phis = [increments(w, dt) for w, dt in zip(pieces, self.tr_dt, strict=False)]
         C = integrate(phis)
         src = np.array([self.u[k] for k, _, _ in self.transitions])
         src = np.einsum("mij,mj->mi", self.tr_earth, src)
@@ -246,7 +246,7 @@ class _Problem:
     def turn_integrals(self, pieces):
         """Integral of the corrected rate over each turn, minus the earth rate (m, 3), rad."""
         out = []
-        for s, w, dt, we in zip(self.turns, pieces, self.turn_dt, self.turn_we):
+        for s, w, dt, we in zip(self.turns, pieces, self.turn_dt, self.turn_we, strict=False):
             total = (0.5 * (w[:-1] + w[1:]) * dt[:, None]).sum(axis=0)
             if we is not None:
                 a = s.rotation_axis_body
@@ -269,14 +269,14 @@ class _Problem:
                  + var_e[:, None] * g_row2[None, :] / 3.0)
         # transitions: both directions' noise, integrated gyro noise, unknown earth rate
         var_tr = []
-        for (k, a, b), dt, T in zip(self.transitions, self.tr_dt, self.tr_T):
+        for (k, _a, _b), dt, T in zip(self.transitions, self.tr_dt, self.tr_T, strict=False):
             v = (self.sig_f / self.g) ** 2 * (1 / self.n_static[k] + 1 / self.n_static[k + 1])
             v += sig_w**2 * float(np.sum(dt**2))
             if not self.known_att[k]:
                 v += (self.w_h * T) ** 2 / 2.0
             var_tr.append(v)
         var_turn = []
-        for s, dt, we, T in zip(self.turns, self.turn_dt, self.turn_we, self.turn_T):
+        for _s, dt, we, T in zip(self.turns, self.turn_dt, self.turn_we, self.turn_T, strict=False):
             v = sig_w**2 * float(np.sum(dt**2))
             if we is None:
                 v += (EARTH_RATE * T) ** 2 / 3.0
@@ -311,7 +311,7 @@ def _start(prob: _Problem, model: ImuModel, base: dict, counts: bool) -> dict:
     start = dict(base, gyro_bias=d0)
     if prob.turns:
         ratios = []
-        for s, dt in zip(prob.turns, prob.turn_dt):
+        for s, dt in zip(prob.turns, prob.turn_dt, strict=False):
             x = W[s.slice] - d0
             tot = (0.5 * (x[:-1] + x[1:]) * dt[:, None]).sum(axis=0)
             ratios.append(tot @ s.rotation_axis_body / s.rotation_angle)
@@ -392,7 +392,7 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
     unit = abs(float(np.mean(np.diag(p0["gyro_K"]))))
     g_unit = unit  # data units per rad/s
     scales = np.concatenate([np.full(int(m.sum()), spec.typical * g_unit)
-                             for spec, m in zip(packing.specs, packing.masks)])
+                             for spec, m in zip(packing.specs, packing.masks, strict=False)])
     n_eq = 3 * len(prob.statics) + 2 * len(prob.transitions) + 3 * len(prob.turns)
     if n_eq < packing.size:
         raise EstimationError(f"{n_eq} equations for {packing.size} unknowns: the gyro fit needs "
@@ -402,10 +402,10 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
     for _ in range(2):  # weights from the start, then from the estimate
         p = packing.unpack(theta, base)
         sig = prob.sigmas(model, p)
-        fit = lsq.fit(lambda th: prob.residuals(model, packing.unpack(th, base), sig), theta,
-                      scales, what="gyro fit")
+        fit = lsq.fit(lambda th, sig=sig: prob.residuals(model, packing.unpack(th, base), sig),
+                      theta, scales, what="gyro fit")
         theta = fit.theta
-    unobs_G = [lab for lab, u in zip(packing.labels(), fit.unobservable)
+    unobs_G = [lab for lab, u in zip(packing.labels(), fit.unobservable, strict=False)
                if u and lab[0] != "gyro_D"]
     if unobs_G:
         raise EstimationError(
@@ -425,12 +425,13 @@ def _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D):
     ntr = len(prob.transitions)
     pred = prob.transition_pred(pieces[:ntr])
     tr_err = np.array([np.arccos(np.clip(x @ prob.u[k + 1] / np.linalg.norm(x), -1, 1))
-                       for x, (k, _, _) in zip(pred, prob.transitions)])
+                       for x, (k, _, _) in zip(pred, prob.transitions, strict=False)])
     ints = prob.turn_integrals(pieces[ntr:])
     want = np.array([s.rotation_axis_body * s.rotation_angle for s in prob.turns]).reshape(-1, 3)
     turn_err = np.linalg.norm(ints - want, axis=1) if len(prob.turns) else np.zeros(0)
-    # angle found by the raw gyro about each turn's axis (bias removed, scale of G only)
-    turn_angles = [float(a @ s.rotation_axis_body) * 180 / np.pi for a, s in zip(ints, prob.turns)]
+    # angle the calibrated gyro integrates about each turn's axis
+    turn_angles = [float(a @ s.rotation_axis_body) * 180 / np.pi
+                   for a, s in zip(ints, prob.turns, strict=True)]
     n = len(prob.statics)
     kin = Kinematics(np.zeros(n), prob.f_static, prob.we_static, np.zeros((n, 3)))
     r_static = prob.W_static - model.predict(p, kin, sensors=("gyro",))["gyro"]
@@ -443,7 +444,7 @@ def _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D):
         "static_residual_rms": float(np.sqrt(np.mean(r_static**2))) if n else None,
         "n_positions": n, "n_transitions": ntr, "n_turns": len(prob.turns),
         "transitions_skipped": [f"{a} -> {b}: {r}" for a, b, r in prob.skipped],
-        "turn_angles_deg": {s.label: ang for s, ang in zip(prob.turns, turn_angles)},
+        "turn_angles_deg": {s.label: ang for s, ang in zip(prob.turns, turn_angles, strict=False)},
         "gyro_noise_sigma": prob.sig_gyro.tolist(),
         "g_sensitivity": bool(use_D),
         "accel_method": accel.method,
