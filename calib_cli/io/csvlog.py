@@ -154,7 +154,7 @@ def segments_from_detection(report: DetectionReport, plan: Plan, n: int, path: s
     if (found != fixed and not auto) or (auto and found < fixed):
         expect = f"{fixed}" + (" or more" if auto else "")
         raise InputError(f"detected {found} static intervals but the plan has {expect} static "
-                         f"segments; {report.explain(fixed if not auto else None)}", path)
+                         f"segments; {report.explain(fixed, at_least=auto)}", path)
     n_auto = found - fixed
     # static plan segments expanded to one entry per detected interval
     assigned: list[tuple[int, PlanSegment, str]] = []

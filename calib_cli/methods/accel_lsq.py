@@ -23,6 +23,7 @@ from calib_cli.errors import EstimationError
 from calib_cli.methods import lsq
 from calib_cli.methods.result import build_result
 from calib_cli.methods.segstats import StaticStats, static_stats
+from calib_cli.methods.static_detect import too_few_hint
 from calib_cli.model.correction import correct
 from calib_cli.model.effects import Bias, Layout, ScaleMisalignment
 from calib_cli.model.frames import attitude_to_rotation, skew
@@ -103,7 +104,7 @@ def fit_vector(rec: Recording) -> CalibrationResult:
                               f"{' ...' if len(missing) > 5 else ''} (use --method scalar)")
     if m < MIN_VECTOR:
         raise EstimationError(f"the vector method needs >= {MIN_VECTOR} static positions; "
-                              f"the recording has {m}")
+                              f"the recording has {m}{too_few_hint(rec, MIN_VECTOR)}")
     g = rec.site.gravity
     rots = attitude_to_rotation(np.array([s.attitude for s in st.segments]))
     kin = from_attitude(np.zeros(m), rots, rec.site)
@@ -209,7 +210,8 @@ def fit_scalar(rec: Recording, start: str = "ellipsoid") -> CalibrationResult:
     m = len(st.segments)
     if m < MIN_SCALAR:
         raise EstimationError(f"the scalar method needs >= {MIN_SCALAR} static positions "
-                              f"(9 unknowns); the recording has {m}")
+                              f"(9 unknowns); the recording has {m}"
+                              f"{too_few_hint(rec, MIN_SCALAR)}")
     g = rec.site.gravity
     model = accel_model("lower")
     packing = Packing.for_model(model)

@@ -36,20 +36,43 @@ class DetectionReport:
     floor_accel: np.ndarray  # per-axis noise floor (std), data units
     floor_gyro: np.ndarray | None
     counts: dict  # multiplier -> number of intervals it would find
+    short_runs: int = 0  # quiet runs at this threshold rejected as shorter than min_duration_s
+    longest_short_s: float = 0.0  # the longest of them, s
+    static_fraction: float = float("nan")  # share of samples below the threshold
 
-    def explain(self, expected: int | None = None) -> str:
+    def explain(self, expected: int | None = None, at_least: bool = False) -> str:
+        """Why this many intervals, and which threshold would find the expected
+        number (``at_least``: that many or more)."""
         n = len(self.intervals)
         parts = [f"found {n} static interval{'s' * (n != 1)} of >= {self.min_duration_s:g} s "
                  f"(window {self.window_s:g} s, threshold {self.multiplier:g} x the noise floor)"]
+        if self.short_runs:
+            parts.append(f"{self.short_runs} more quiet span{'s' * (self.short_runs != 1)} "
+                         f"{'were' if self.short_runs != 1 else 'was'} shorter than --min-static "
+                         f"{self.min_duration_s:g} s (longest {self.longest_short_s:.2f} s)")
+        if np.isfinite(self.static_fraction) and self.static_fraction < 0.15:
+            parts.append(f"only {100 * self.static_fraction:.0f} % of the samples are quiet: the "
+                         "noise floor (10th percentile of the moving std) needs >= ~10 % of the "
+                         "record static")
         alts = ", ".join(f"{k:g}x: {c}" for k, c in sorted(self.counts.items()))
         parts.append(f"other thresholds would find {alts}")
         if expected is not None:
-            hits = [k for k, c in sorted(self.counts.items()) if c == expected]
-            if hits:
-                parts.append(f"--threshold {hits[0]:g} finds {expected}")
+            ok = [k for k, c in sorted(self.counts.items())
+                  if (c >= expected if at_least else c == expected)]
+            if ok:
+                best = min(ok, key=lambda k: abs(k - self.multiplier))
+                parts.append(f"--threshold {best:g} finds {self.counts[best]}")
             else:
-                parts.append("no threshold finds that many: check --min-static "
-                             "(shorter positions) or the plan's segment count")
+                more = [k for k, c in sorted(self.counts.items()) if c > n]
+                hint = f"--threshold {more[0]:g} finds {self.counts[more[0]]}; " if more else ""
+                parts.append(f"no threshold finds {'that many' if not at_least else expected}: "
+                             f"{hint}check --min-static (shorter positions), --window, or the "
+                             "plan's segment count")
+        elif n == 0 or any(c > n for c in self.counts.values()):
+            more = [(k, c) for k, c in sorted(self.counts.items()) if c > n]
+            if more:
+                k, c = max(more, key=lambda kc: kc[1])
+                parts.append(f"--threshold {k:g} finds the most ({c})")
         return "; ".join(parts)
 
 
@@ -85,17 +108,44 @@ def detect_static(t, accel, gyro=None, window_s: float = 1.0, multiplier: float 
         sg = moving_std(gyro, w)
         fg = np.maximum(np.percentile(sg, FLOOR_QUANTILE, axis=0), 1e-300)
 
-    def find(k):
+    def quiet(k):
         ok = np.all(sa < k * fa, axis=1)
         if sg is not None:
             ok &= np.all(sg < k * fg, axis=1)
+        return ok
+
+    def find(k, short=None):
         out = []
         half = w // 2
-        for a, b in _runs(ok):
+        for a, b in _runs(quiet(k)):
             a2, b2 = a + half, b - half
-            if b2 > a2 and (t[b2 - 1] - t[a2]) + dt >= min_duration_s:
+            span = (t[b2 - 1] - t[a2]) + dt if b2 > a2 else 0.0
+            if b2 > a2 and span >= min_duration_s:
                 out.append((int(a2), int(b2)))
+            elif short is not None:
+                short.append(float((t[b - 1] - t[a]) + dt - 2 * half * dt))
         return out
 
     counts = {k: len(find(k)) for k in sorted(set(MULTIPLIERS) | {multiplier})}
-    return DetectionReport(find(multiplier), multiplier, window_s, min_duration_s, fa, fg, counts)
+    short: list[float] = []
+    intervals = find(multiplier, short)
+    short = [x for x in short if x > 0]
+    return DetectionReport(intervals, multiplier, window_s, min_duration_s, fa, fg, counts,
+                           short_runs=len(short), longest_short_s=max(short, default=0.0),
+                           static_fraction=float(np.mean(quiet(multiplier))) if len(t) else
+                           float("nan"))
+
+
+def too_few_hint(rec, needed: int) -> str:
+    """For an estimator that has too few static positions: what the detector
+    finds in this recording and which threshold would find ``needed`` or more
+    (import with --threshold/--min-static, or `calib detect RAW`)."""
+    if rec is None or len(rec.time) < 3:
+        return ""
+    try:
+        rep = detect_static(rec.time, rec.accel, rec.gyro)
+    except (ValueError, FloatingPointError):
+        return ""
+    return (f" (static detection with the defaults on this recording: "
+            f"{rep.explain(needed, at_least=True)}; re-import with those options, or see "
+            "`calib detect RAW`)")

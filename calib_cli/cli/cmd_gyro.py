@@ -1,0 +1,40 @@
+"""calib fit gyro RAW --out CAL [--accel ACCEL_CAL]"""
+
+from __future__ import annotations
+
+import click
+
+from calib_cli.cli.cmd_fit import fit_group, save
+from calib_cli.cli.common import info
+from calib_cli.io.h5 import read_calibration, read_raw
+
+
+@fit_group.command("gyro")
+@click.argument("raw", type=click.Path(dir_okay=False))
+@click.option("--out", required=True, type=click.Path(dir_okay=False))
+@click.option("--accel", "accel_path", type=click.Path(dir_okay=False),
+              help="Accelerometer calibration to take the gravity directions from "
+                   "(default: fit it from RAW, `fit accel --method auto`).")
+@click.option("--g-sensitivity", type=click.Choice(["auto", "on", "off"]), default="auto",
+              show_default=True, help="Fit gyro_D (auto: when the static positions make it "
+                                      "observable).")
+def fit_gyro_cmd(raw, out, accel_path, g_sensitivity):
+    """Gyro bias, scale factors and misalignments (and g-sensitivity) from the
+    rotations between static positions and turns of known angle (docs/gyro.md)."""
+    from calib_cli.methods.gyro import fit_gyro
+
+    rec = read_raw(raw)
+    acc = read_calibration(accel_path) if accel_path else None
+    if acc is not None and "accel_K" not in acc.params:
+        from calib_cli.errors import InputError
+
+        raise InputError("not an accelerometer calibration (no accel_K)", accel_path)
+    res = fit_gyro(rec, acc, g_sensitivity)
+    save(res, raw, out, [accel_path] if accel_path else [])
+    st = res.stats
+    for w in st.get("warnings", []):
+        info(f"[yellow]warning:[/] {w}")
+    tr = st["transition_residual_rms_rad"]
+    info(f"{st['n_transitions']} transitions, {st['n_turns']} turns, {st['n_positions']} "
+         f"static positions; transition residual RMS "
+         f"{'n/a' if tr is None else f'{tr * 180 / 3.141592653589793:.3f} deg'}")

@@ -1,0 +1,343 @@
+"""Foreign-layout text logs: whitespace or CSV, with or without a header, a
+column map, declared units, and separate accelerometer and gyro files that
+share timestamps (docs/import.md).
+
+Units declared at import: the accelerometer in ``count``, ``m/s^2`` or ``g``
+(1 g = 9.80665 m/s^2, standard gravity, not the site's g), the gyro in
+``count``, ``rad/s`` or ``deg/s``. Data in g or deg/s is converted to SI
+here; counts stay counts (the fit then reports K in counts per SI unit and
+biases in counts).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from calib_cli.data import Recording
+from calib_cli.errors import InputError
+from calib_cli.io.csvlog import segments_from_column, segments_from_detection
+from calib_cli.io.plan import Plan
+from calib_cli.methods.static_detect import detect_static
+from calib_cli.model.effects import Layout
+
+G0 = 9.80665
+ACCEL_UNITS = {"count": None, "m/s^2": 1.0, "g": G0}
+GYRO_UNITS = {"count": None, "rad/s": 1.0, "deg/s": np.pi / 180.0}
+TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9, "sample": None}
+SAMPLE_COUNTERS = ("samples", "n_samples", "sample", "index")
+FIELDS = ("time", "ax", "ay", "az", "gx", "gy", "gz", "temp", "segment")
+ALIASES = {
+    "time": ("time", "t", "timestamp", "time_s"),
+    "ax": ("ax", "acc_x", "accx", "accel_x"), "ay": ("ay", "acc_y", "accy", "accel_y"),
+    "az": ("az", "acc_z", "accz", "accel_z"),
+    "gx": ("gx", "gyr_x", "gyro_x", "gyrx"), "gy": ("gy", "gyr_y", "gyro_y", "gyry"),
+    "gz": ("gz", "gyr_z", "gyro_z", "gyrz"),
+    "temp": ("temp", "temperature"), "segment": ("segment", "part"),
+}
+
+
+def convert_units(accel, gyro, accel_units: str, gyro_units: str, path: str = ""):
+    """(accel, gyro, units dict): g -> m/s^2 and deg/s -> rad/s; counts kept."""
+    if accel_units not in ACCEL_UNITS:
+        raise InputError(f"unknown accelerometer unit {accel_units!r}; use one of "
+                         f"{', '.join(ACCEL_UNITS)}", path)
+    if gyro_units not in GYRO_UNITS:
+        raise InputError(f"unknown gyro unit {gyro_units!r}; use one of "
+                         f"{', '.join(GYRO_UNITS)}", path)
+    fa, fg = ACCEL_UNITS[accel_units], GYRO_UNITS[gyro_units]
+    units = {"accel": "count" if fa is None else "m/s^2",
+             "gyro": "count" if fg is None else "rad/s"}
+    accel = accel if fa is None else accel * fa
+    gyro = None if gyro is None else (gyro if fg is None else gyro * fg)
+    return accel, gyro, units
+
+
+def read_text(path: str, delimiter: str = "auto", header: str = "auto"):
+    """(column names or None, cells (N, k) array of str, line numbers (N,)).
+
+    delimiter: auto (comma, semicolon or tab if the first data line has one,
+    else whitespace), comma, semicolon, tab, whitespace. header: auto (the
+    first non-comment line is a header when any cell is not a number), yes, no.
+    """
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError("no such file", path) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read: {exc}", path) from None
+    lines = [(i + 1, ln.strip()) for i, ln in enumerate(text.splitlines())]
+    lines = [(i, ln) for i, ln in lines if ln and not ln.startswith(("#", "%"))]
+    if not lines:
+        raise InputError("no data lines", path)
+    first = lines[0][1]
+    seps = {"comma": ",", "semicolon": ";", "tab": "\t", "whitespace": None}
+    if delimiter == "auto":
+        sep = next((s for s in (",", ";", "\t") if s in first), None)
+    elif delimiter in seps:
+        sep = seps[delimiter]
+    else:
+        raise InputError(f"unknown delimiter {delimiter!r}; use auto, comma, semicolon, tab "
+                         "or whitespace", path)
+
+    def split(ln):
+        return [c.strip() for c in ln.split(sep)] if sep else ln.split()
+
+    cells0 = split(first)
+    if header == "auto":
+        has_header = any(not _is_number(c) for c in cells0)
+    else:
+        has_header = header == "yes"
+    names = cells0 if has_header else None
+    body = lines[1:] if has_header else lines
+    if not body:
+        raise InputError("no data rows", path)
+    k = len(cells0)
+    rows = []
+    for lineno, ln in body:
+        c = split(ln)
+        if len(c) != k:
+            raise InputError(f"line {lineno}: {len(c)} cells, expected {k}", path)
+        rows.append(c)
+    if names is not None and len(set(names)) != len(names):
+        raise InputError(f"duplicate column names in header: {names}", path)
+    return names, np.array(rows, dtype=object), np.array([i for i, _ in body])
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def parse_column_map(spec: str | None, path: str = "") -> dict:
+    """"time=t,ax=acc_x,ay=3" -> {"time": "t", "ax": "acc_x", "ay": 3}; a
+    number is a column position counting from 1."""
+    out = {}
+    if not spec:
+        return out
+    for part in spec.split(","):
+        if not part.strip():
+            continue
+        if "=" not in part:
+            raise InputError(f"column map entry {part.strip()!r} must be FIELD=COLUMN "
+                             f"(fields: {', '.join(FIELDS)})", path)
+        key, val = (x.strip() for x in part.split("=", 1))
+        if key not in FIELDS:
+            raise InputError(f"unknown field {key!r} in the column map; fields: "
+                             f"{', '.join(FIELDS)}", path)
+        out[key] = int(val) if val.isdigit() else val
+    return out
+
+
+def _default_map(names, k: int, role: str) -> dict:
+    """Field -> column for a file without a column map."""
+    if names is not None:
+        low = [n.lower() for n in names]
+        out = {}
+        for field, al in ALIASES.items():
+            hit = next((a for a in al if a in low), None)
+            if hit is not None:
+                out[field] = names[low.index(hit)]
+        if "time" not in out:  # a sample counter: time = counter / --rate
+            hit = next((a for a in SAMPLE_COUNTERS if a in low), None)
+            if hit is not None:
+                out["time"] = names[low.index(hit)]
+                out["_time_unit"] = "sample"
+        if role in ("accel", "gyro") and not any(f in out for f in ("ax", "gx")):
+            # a separate file with generic names: time + three axes
+            pre = "a" if role == "accel" else "g"
+            rest = [n for n in names if n != out.get("time")]
+            if len(rest) == 3:
+                out.update({pre + ax: n for ax, n in zip("xyz", rest, strict=False)})
+        return out
+    layouts = {
+        "both": {7: ("time", "ax", "ay", "az", "gx", "gy", "gz"),
+                 6: ("ax", "ay", "az", "gx", "gy", "gz"),
+                 4: ("time", "ax", "ay", "az"), 3: ("ax", "ay", "az")},
+        "accel": {4: ("time", "ax", "ay", "az"), 3: ("ax", "ay", "az")},
+        "gyro": {4: ("time", "gx", "gy", "gz"), 3: ("gx", "gy", "gz")},
+    }[role]
+    if k not in layouts:
+        return {}
+    return {f: i + 1 for i, f in enumerate(layouts[k])}
+
+
+def _column(names, cells, lines, ref, field, path, numeric=True):
+    if isinstance(ref, int):
+        if not 1 <= ref <= cells.shape[1]:
+            raise InputError(f"column {ref} for {field!r} does not exist: the file has "
+                             f"{cells.shape[1]} columns", path)
+        j = ref - 1
+    else:
+        if names is None or ref not in names:
+            have = f"columns: {', '.join(names)}" if names else "the file has no header"
+            raise InputError(f"no column {ref!r} for {field!r} ({have})", path)
+        j = names.index(ref)
+    col = cells[:, j]
+    if not numeric:
+        return col
+    try:
+        out = col.astype(float)
+    except ValueError:
+        for i, c in enumerate(col):
+            if not _is_number(c):
+                raise InputError(f"line {lines[i]}, column {ref!r}: not a number: {c!r}",
+                                 path) from None
+        raise
+    if not np.all(np.isfinite(out)):
+        i = int(np.flatnonzero(~np.isfinite(out))[0])
+        raise InputError(f"line {lines[i]}, column {ref!r}: {col[i]} (NaN or infinite values "
+                         "are not allowed)", path)
+    return out
+
+
+def read_segments_json(path: str, plan: Plan, n: int) -> np.ndarray:
+    """Per-sample plan segment index from {label: {"start": i, "end": j}} or
+    {label: [i, j]} (sample indices, end exclusive; imucal's session lists)."""
+    try:
+        raw = json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError("no such file", path) from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read segment list: {exc}", path) from None
+    labels = [s.label for s in plan.segments]
+    seg = np.full(n, -1)
+    if not isinstance(raw, dict):
+        raise InputError("segment list must be a JSON object {label: {start, end}}", path)
+    for label, v in raw.items():
+        if label not in labels:
+            raise InputError(f"segment {label!r} is not in the plan (plan labels: "
+                             f"{', '.join(labels)})", path)
+        try:
+            a, b = (v["start"], v["end"]) if isinstance(v, dict) else v
+            a, b = int(a), int(b)
+        except (KeyError, TypeError, ValueError):
+            raise InputError(f"segment {label!r}: expected {{\"start\": i, \"end\": j}}",
+                             path) from None
+        if not 0 <= a < b <= n:
+            raise InputError(f"segment {label!r}: [{a}, {b}) outside the {n} samples", path)
+        seg[a:b] = labels.index(label)
+    return seg
+
+
+def import_text(acc_path, plan: Plan, gyro_path=None, columns: str | None = None,
+                gyro_columns: str | None = None, accel_units: str = "m/s^2",
+                gyro_units: str = "rad/s", rate: float | None = None, time_unit: str = "s",
+                delimiter: str = "auto", header: str = "auto", sort: bool = False,
+                segments_json: str | None = None, window_s: float = 1.0,
+                multiplier: float = 3.0, min_static_s: float = 1.0) -> Recording:
+    """A foreign-layout text log (one file, or accelerometer + gyro files) -> Recording."""
+    acc_path = str(acc_path)
+    from calib_cli.sim.simulate import plan_layout
+
+    layout = plan_layout(plan)
+    if layout.redundant:
+        raise InputError("text import handles triads; a redundant unit needs the contract CSV",
+                         acc_path)
+    if time_unit not in TIME_UNITS:
+        raise InputError(f"unknown time unit {time_unit!r}; use one of {', '.join(TIME_UNITS)}",
+                         acc_path)
+    names, cells, lines = read_text(acc_path, delimiter, header)
+    cmap = parse_column_map(columns, acc_path) or _default_map(
+        names, cells.shape[1], "accel" if gyro_path else "both")
+    if not all(f in cmap for f in ("ax", "ay", "az")):
+        raise InputError(f"cannot tell which columns hold ax, ay, az ({cells.shape[1]} columns"
+                         f"{', header ' + ' '.join(names) if names else ', no header'}): give "
+                         "--columns, e.g. time=1,ax=2,ay=3,az=4", acc_path)
+    if cmap.pop("_time_unit", None) == "sample" and time_unit == "s":
+        time_unit = "sample"  # the default map found a sample counter, not a time
+    n = len(cells)
+
+    def get(f, **kw):
+        return _column(names, cells, lines, cmap[f], f, acc_path, **kw) if f in cmap else None
+
+    accel = np.column_stack([get(f) for f in ("ax", "ay", "az")])
+    t = get("time")
+    temp = get("temp")
+    seg_col = get("segment", numeric=False)
+    gyro = None
+    if all(f in cmap for f in ("gx", "gy", "gz")):
+        gyro = np.column_stack([get(f) for f in ("gx", "gy", "gz")])
+    if gyro_path is not None:
+        gyro_path = str(gyro_path)
+        gnames, gcells, glines = read_text(gyro_path, delimiter, header)
+        gmap = parse_column_map(gyro_columns, gyro_path) or _default_map(
+            gnames, gcells.shape[1], "gyro")
+        if not all(f in gmap for f in ("gx", "gy", "gz")):
+            raise InputError("cannot tell which columns hold gx, gy, gz: give --gyro-columns, "
+                             "e.g. time=1,gx=2,gy=3,gz=4", gyro_path)
+        if len(gcells) != n:
+            raise InputError(f"{len(gcells)} rows, but the accelerometer file {acc_path} has {n}: "
+                             "separate files must share their timestamps row by row", gyro_path)
+        gyro = np.column_stack([_column(gnames, gcells, glines, gmap[f], f, gyro_path)
+                                for f in ("gx", "gy", "gz")])
+        if "time" in gmap and t is not None:
+            gt = _column(gnames, gcells, glines, gmap["time"], "time", gyro_path)
+            tol = 1e-6 * max(1.0, float(np.max(np.abs(t))))
+            bad = np.flatnonzero(np.abs(gt - t) > tol)
+            if len(bad):
+                i = int(bad[0])
+                raise InputError(f"line {glines[i]}: time {gt[i]!r} differs from the "
+                                 f"accelerometer file's {t[i]!r}: the files must share "
+                                 "timestamps", gyro_path)
+    # time in seconds
+    scale = TIME_UNITS[time_unit]
+    if t is None or scale is None:
+        if not rate or rate <= 0:
+            what = "no time column" if t is None else "time in samples"
+            raise InputError(f"{what}: give the sample rate with --rate HZ", acc_path)
+        t = (np.arange(n, dtype=float) if t is None else t) / rate
+    else:
+        t = t * scale
+    if n > 1 and np.any(np.diff(t) <= 0):
+        if sort:
+            order = np.argsort(t, kind="stable")
+            t, accel = t[order], accel[order]
+            gyro = None if gyro is None else gyro[order]
+            temp = None if temp is None else temp[order]
+            seg_col = None if seg_col is None else seg_col[order]
+            lines = lines[order]
+        if np.any(np.diff(t) <= 0):
+            i = int(np.flatnonzero(np.diff(t) <= 0)[0])
+            hint = "" if sort else " (--sort orders the rows by time)"
+            raise InputError(f"time is not increasing at line {lines[i + 1]} ({t[i]!r} then "
+                             f"{t[i + 1]!r}){hint}", acc_path)
+    accel, gyro, units = convert_units(accel, gyro, accel_units, gyro_units, acc_path)
+
+    if segments_json is not None:
+        seg = read_segments_json(str(segments_json), plan, n)
+        segments = segments_from_column(seg, plan, str(segments_json))
+    elif seg_col is not None:
+        segments = segments_from_column(_segment_indices(seg_col, plan, lines, acc_path), plan,
+                                        acc_path)
+    else:
+        report = detect_static(t, accel, gyro, window_s, multiplier, min_static_s)
+        segments = segments_from_detection(report, plan, n, acc_path)
+    if not segments:
+        raise InputError("no segments found in the data", acc_path)
+    return Recording(time=t, accel=accel, gyro=gyro, segments=tuple(segments), site=plan.site,
+                     plan_kind=plan.kind, plan_text=plan.text, serial=plan.serial, units=units,
+                     layout=Layout(), temp=temp)
+
+
+def _segment_indices(col, plan: Plan, lines, path) -> np.ndarray:
+    """A segment column of plan indices or plan labels (empty or -1: between)."""
+    labels = {s.label: i for i, s in enumerate(plan.segments)}
+    out = np.empty(len(col), dtype=int)
+    for i, c in enumerate(col):
+        if c in labels:
+            out[i] = labels[c]
+        elif c in ("", "-1"):
+            out[i] = -1
+        else:
+            try:
+                out[i] = int(c)
+            except ValueError:
+                raise InputError(f"line {lines[i]}: segment {c!r} is neither a plan label nor "
+                                 f"an index (plan labels: {', '.join(labels)})", path) from None
+    return out

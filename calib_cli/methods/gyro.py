@@ -1,0 +1,498 @@
+"""Gyro calibration from the rotations between static positions.
+
+Model (CONTRACT.md section 2): W = d + G w + D f + noise, through the effect
+catalogue (Bias, ScaleMisalignment "full", GSensitivity) and corrected with
+``model.correction.correct``; the frame is the one the accelerometer
+calibration fixes (the gravity directions come from it).
+
+Three kinds of equations, each whitened by its own noise:
+
+- static positions: the mean gyro output equals d + G w_e + D f, with w_e
+  the earth rate in body axes (exact where the plan gives the attitude; only
+  its vertical part otherwise, the unknown horizontal part added to the
+  variance).
+- transitions between consecutive static positions that are recorded without
+  a gap: the corrected gyro output, integrated as a quaternion from the last
+  sample of one position to the first of the next, must carry the gravity
+  direction measured (by the calibrated accelerometer) at the first onto the
+  one measured at the second. Two residuals per transition (the tangent
+  plane of the measured direction).
+- turns of known angle (plan segments with rotation_axis_body and
+  rotation_angle_deg, e.g. 360 deg by hand): the integral of the corrected
+  rate over the segment equals axis * angle (plus the earth rate).
+
+Integration: per sample interval the rotation vector
+phi = (w_n + w_n+1) dt / 2 + (w_n x w_n+1) dt^2 / 12 (exact to third order
+for a rate that varies linearly over the interval, the coning correction),
+quaternions composed in body order by a pairwise (tree) product.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calib_cli.data import CalibrationResult, Recording
+from calib_cli.errors import EstimationError, InputError
+from calib_cli.methods import lsq
+from calib_cli.methods.result import build_result
+from calib_cli.methods.static_detect import too_few_hint
+from calib_cli.model.correction import correct
+from calib_cli.model.earth import EARTH_RATE
+from calib_cli.model.effects import Bias, GSensitivity, Layout, ScaleMisalignment
+from calib_cli.model.frames import attitude_to_rotation
+from calib_cli.model.imu_model import ImuModel, Packing
+from calib_cli.model.kinematics import Kinematics
+from calib_cli.sim.truth import effect_from_description
+
+GAP_FACTOR = 1.5  # a sample interval > 1.5 x the median is a gap: no integration across it
+
+
+def gyro_model(g_sensitivity: bool) -> ImuModel:
+    eff = (Bias("gyro"), ScaleMisalignment("gyro", "full"))
+    return ImuModel(eff + ((GSensitivity(),) if g_sensitivity else ()), Layout())
+
+
+# ---------------------------------------------------------------------------
+# quaternion helpers (scalar first, body-order composition)
+
+
+def _qmul(p, q):
+    pw, px, py, pz = np.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
+    return np.stack([pw * qw - px * qx - py * qy - pz * qz,
+                     pw * qx + px * qw + py * qz - pz * qy,
+                     pw * qy - px * qz + py * qw + pz * qx,
+                     pw * qz + px * qy - py * qx + pz * qw], axis=-1)
+
+
+def _qexp(phi):
+    ang = np.linalg.norm(phi, axis=-1)
+    half = 0.5 * ang
+    # sin(x/2)/x with its series near 0
+    k = np.where(ang > 1e-8, np.sin(half) / np.where(ang > 0, ang, 1.0), 0.5 - ang**2 / 48.0)
+    return np.concatenate([np.cos(half)[..., None], phi * k[..., None]], axis=-1)
+
+
+def _qmat(q):
+    """Rotation matrices (..., 3, 3) of unit quaternions (scalar first)."""
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def increments(w, dt):
+    """Rotation vectors (n-1, 3) of the sample intervals from rates w (n, 3), rad/s."""
+    w0, w1 = w[:-1], w[1:]
+    return 0.5 * (w0 + w1) * dt[:, None] + np.cross(w0, w1) * (dt[:, None] ** 2 / 12.0)
+
+
+def integrate(phi_list) -> np.ndarray:
+    """Total rotation (as matrices (m, 3, 3), body start -> body end: v_start = C v_end)
+    of each list of increments, by a pairwise product that keeps the order."""
+    m = len(phi_list)
+    L = max(1, max(len(p) for p in phi_list))
+    L2 = 1 << int(np.ceil(np.log2(L)))
+    q = np.zeros((m, L2, 4))
+    q[..., 0] = 1.0
+    for i, p in enumerate(phi_list):
+        if len(p):
+            q[i, :len(p)] = _qexp(p)
+    while q.shape[1] > 1:
+        q = _qmul(q[:, 0::2], q[:, 1::2])
+    return _qmat(q[:, 0])
+
+
+def _rodrigues(axis, angle, v):
+    """Rotate v (3,) about unit axis (3,) by angles (n,) -> (n, 3)."""
+    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    return v * c + np.cross(axis, v) * s + np.outer(1 - np.cos(angle), axis) * (axis @ v)
+
+
+def _rotvec_matrix(v):
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(v).as_matrix()
+
+
+# ---------------------------------------------------------------------------
+# the experiment, reduced to what the fit needs
+
+
+def _accel_model(acc: CalibrationResult) -> ImuModel:
+    effects = tuple(effect_from_description(d) for d in acc.model if d.get("sensor") == "accel")
+    return ImuModel(effects, Layout())
+
+
+class _Problem:
+    """Static means, transitions and turns of a recording, with their noise."""
+
+    def __init__(self, rec: Recording, acc: CalibrationResult):
+        self.rec = rec
+        t = rec.time
+        self.dt_med = float(np.median(np.diff(t)))
+        site = rec.site
+        self.g = site.gravity
+        w_enu = site.earth_rate_enu
+        self.w_h = EARTH_RATE * np.cos(site.latitude)  # horizontal earth rate, rad/s
+        amodel = _accel_model(acc)
+        self.f_all = correct(amodel, acc.params, "accel", rec.accel)  # m/s^2, every sample
+        statics = sorted(rec.static_segments(), key=lambda s: s.start)
+        self.statics = statics
+        if not statics:
+            self.f_static = np.zeros((0, 3))
+        # static means (gyro in the data's units, accel corrected, SI)
+        self.W_static = np.array([rec.gyro[s.slice].mean(axis=0) for s in statics]).reshape(-1, 3)
+        self.n_static = np.array([s.n for s in statics], dtype=float)
+        self.f_static = np.array([self.f_all[s.slice].mean(axis=0) for s in statics]).reshape(-1, 3)
+        ss_g = sum(((rec.gyro[s.slice] - m) ** 2).sum(axis=0)
+                   for s, m in zip(statics, self.W_static, strict=False))
+        ss_f = sum(((self.f_all[s.slice] - m) ** 2).sum(axis=0)
+                   for s, m in zip(statics, self.f_static, strict=False))
+        dof = max(int(self.n_static.sum()) - len(statics), 1)
+        self.sig_gyro = np.sqrt(np.asarray(ss_g) / dof) * np.ones(3)  # per sample, data units
+        self.sig_f = float(np.sqrt(np.mean(np.asarray(ss_f) / dof)))  # per sample, m/s^2
+        self.u = self.f_static / np.linalg.norm(self.f_static, axis=1)[:, None]
+        # earth rate in body axes at each static position
+        self.we_static = np.zeros((len(statics), 3))
+        self.known_att = np.array([s.attitude is not None for s in statics], bool)
+        for k, s in enumerate(statics):
+            if s.attitude is not None:
+                self.we_static[k] = attitude_to_rotation(s.attitude).inv().apply(w_enu)
+            else:
+                self.we_static[k] = EARTH_RATE * np.sin(site.latitude) * self.u[k]
+        # transitions between consecutive static positions
+        self.transitions, self.skipped = [], []
+        for k in range(len(statics) - 1):
+            a, b = statics[k].stop - 1, statics[k + 1].start
+            if b - a < 2:
+                self.skipped.append((statics[k].label, statics[k + 1].label, "no samples between"))
+                continue
+            inside = [s.label for s in rec.segments if s.kind != "static"
+                      and s.start < b and s.stop > a + 1]
+            if inside:
+                # integrating through it would trust that nothing was cut out around it
+                self.skipped.append((statics[k].label, statics[k + 1].label,
+                                     f"segment {inside[0]!r} lies between"))
+                continue
+            dts = np.diff(t[a:b + 1])
+            if np.any(dts > GAP_FACTOR * self.dt_med):
+                self.skipped.append((statics[k].label, statics[k + 1].label, "time gap"))
+                continue
+            self.transitions.append((k, a, b))
+        self.tr_dt = [np.diff(t[a:b + 1]) for _, a, b in self.transitions]
+        self.tr_T = np.array([t[b] - t[a] for _, a, b in self.transitions])
+        # earth-rate rotation of the level frame over each transition, in body axes at a
+        self.tr_earth = []
+        for k, a, b in self.transitions:
+            T = t[b] - t[a]
+            if self.known_att[k]:
+                self.tr_earth.append(_rotvec_matrix(self.we_static[k] * T))
+            else:
+                self.tr_earth.append(np.eye(3))
+        self.tr_earth = np.array(self.tr_earth).reshape(-1, 3, 3)
+        # tangent bases of the destination directions
+        self.tr_basis = []
+        for k, _, _ in self.transitions:
+            u = self.u[k + 1]
+            e1 = np.cross(u, [1.0, 0, 0] if abs(u[0]) < 0.9 else [0, 1.0, 0])
+            e1 /= np.linalg.norm(e1)
+            self.tr_basis.append(np.stack([e1, np.cross(u, e1)]))
+        self.tr_basis = np.array(self.tr_basis).reshape(-1, 2, 3)
+        # turns of known angle
+        self.turns = [s for s in rec.segments if s.kind == "turn"]
+        for s in self.turns:
+            if s.n < 3:
+                raise EstimationError(f"turn segment {s.label!r} has {s.n} samples: too short "
+                                      "to integrate")
+            if np.any(np.diff(t[s.slice]) > GAP_FACTOR * self.dt_med):
+                raise InputError(f"turn segment {s.label!r} has a time gap: it cannot be "
+                                 "integrated", None)
+        self.turn_dt = [np.diff(t[s.slice]) for s in self.turns]
+        self.turn_we = [None if s.attitude is None else
+                        attitude_to_rotation(s.attitude).inv().apply(w_enu) for s in self.turns]
+        self.turn_T = np.array([t[s.stop - 1] - t[s.start] for s in self.turns])
+        # samples to correct in each evaluation
+        idx = [np.arange(a, b + 1) for _, a, b in self.transitions] + \
+              [np.arange(s.start, s.stop) for s in self.turns]
+        self.idx = np.concatenate(idx) if idx else np.zeros(0, int)
+        self.bounds = np.cumsum([0] + [len(i) for i in idx])
+
+    @property
+    def n_rot(self) -> int:
+        return len(self.transitions) + len(self.turns)
+
+    # -- predictions ------------------------------------------------------
+    def rates(self, model, p):
+        """Corrected rates (rad/s) over the transition and turn samples, per piece."""
+        if not len(self.idx):
+            return []
+        w = correct(model, p, "gyro", self.rec.gyro[self.idx], other=self.f_all[self.idx])
+        return [w[self.bounds[i]:self.bounds[i + 1]] for i in range(len(self.bounds) - 1)]
+
+    def transition_pred(self, pieces):
+        """Predicted destination gravity directions (m, 3)."""
+        if not self.transitions:
+            return np.zeros((0, 3))
+        phis = [increments(w, dt) for w, dt in zip(pieces, self.tr_dt, strict=False)]
+        C = integrate(phis)
+        src = np.array([self.u[k] for k, _, _ in self.transitions])
+        src = np.einsum("mij,mj->mi", self.tr_earth, src)
+        return np.einsum("mji,mj->mi", C, src)  # C^T u_k
+
+    def turn_integrals(self, pieces):
+        """Integral of the corrected rate over each turn, minus the earth rate (m, 3), rad."""
+        out = []
+        for s, w, dt, we in zip(self.turns, pieces, self.turn_dt, self.turn_we, strict=False):
+            total = (0.5 * (w[:-1] + w[1:]) * dt[:, None]).sum(axis=0)
+            if we is not None:
+                a = s.rotation_axis_body
+                theta = np.concatenate([[0.0], np.cumsum(0.5 * (w[:-1] + w[1:]) @ a * dt)])
+                e = _rodrigues(a, -theta, we)
+                total = total - (0.5 * (e[:-1] + e[1:]) * dt[:, None]).sum(axis=0)
+            out.append(total)
+        return np.array(out).reshape(-1, 3)
+
+    def sigmas(self, model, p):
+        """1-sigma of the static, transition (per tangent component) and turn
+        (per axis) equations at the parameters p."""
+        G = p["gyro_K"]
+        Ginv = np.linalg.inv(G)
+        sig_w = float(np.sqrt(np.mean(np.diag(Ginv @ np.diag(self.sig_gyro**2) @ Ginv.T))))
+        # static means: white noise plus the unknown horizontal earth rate
+        var_e = np.where(self.known_att, 0.0, self.w_h**2 / 2.0)
+        g_row2 = (G**2).sum(axis=1)  # per output axis, for an isotropic rate error
+        var_s = (self.sig_gyro[None, :] ** 2 / self.n_static[:, None]
+                 + var_e[:, None] * g_row2[None, :] / 3.0)
+        # transitions: both directions' noise, integrated gyro noise, unknown earth rate
+        var_tr = []
+        for (k, _a, _b), dt, T in zip(self.transitions, self.tr_dt, self.tr_T, strict=False):
+            v = (self.sig_f / self.g) ** 2 * (1 / self.n_static[k] + 1 / self.n_static[k + 1])
+            v += sig_w**2 * float(np.sum(dt**2))
+            if not self.known_att[k]:
+                v += (self.w_h * T) ** 2 / 2.0
+            var_tr.append(v)
+        var_turn = []
+        for _s, dt, we, T in zip(self.turns, self.turn_dt, self.turn_we, self.turn_T, strict=False):
+            v = sig_w**2 * float(np.sum(dt**2))
+            if we is None:
+                v += (EARTH_RATE * T) ** 2 / 3.0
+            var_turn.append(v)
+        return np.sqrt(var_s), np.sqrt(np.array(var_tr)), np.sqrt(np.array(var_turn))
+
+    def residuals(self, model, p, sig):
+        """Whitened residuals [static (3 each), transitions (2 each), turns (3 each)]."""
+        sig_s, sig_tr, sig_turn = sig
+        n = len(self.statics)
+        kin = Kinematics(np.zeros(n), self.f_static, self.we_static, np.zeros((n, 3)))
+        r_s = (self.W_static - model.predict(p, kin, sensors=("gyro",))["gyro"]) / sig_s
+        pieces = self.rates(model, p)
+        ntr = len(self.transitions)
+        pred = self.transition_pred(pieces[:ntr])
+        r_tr = -np.einsum("mkj,mj->mk", self.tr_basis, pred) / sig_tr[:, None]
+        ints = self.turn_integrals(pieces[ntr:])
+        want = np.array([s.rotation_axis_body * s.rotation_angle
+                         for s in self.turns]).reshape(-1, 3)
+        r_turn = (ints - want) / sig_turn[:, None] if len(self.turns) else np.zeros((0, 3))
+        return np.concatenate([r_s.ravel(), r_tr.ravel(), r_turn.ravel()])
+
+
+# ---------------------------------------------------------------------------
+# the fit
+
+
+def _start(prob: _Problem, model: ImuModel, base: dict, counts: bool) -> dict:
+    """Bias from the static means; G = s I with s from the turns or a search."""
+    W = prob.rec.gyro
+    d0 = np.median(prob.W_static, axis=0) if len(prob.statics) else np.zeros(3)
+    start = dict(base, gyro_bias=d0)
+    if prob.turns:
+        ratios = []
+        for s, dt in zip(prob.turns, prob.turn_dt, strict=False):
+            x = W[s.slice] - d0
+            tot = (0.5 * (x[:-1] + x[1:]) * dt[:, None]).sum(axis=0)
+            ratios.append(tot @ s.rotation_axis_body / s.rotation_angle)
+        s0 = float(np.median(ratios))
+        if s0 == 0:
+            s0 = 1.0
+        return dict(start, gyro_K=np.eye(3) * s0)
+    if not counts:
+        return dict(start, gyro_K=np.eye(3))
+    # counts and transitions only: 1-D search of the scale. The path length of
+    # the raw rate bounds it from above (gravity turns by no more than the body).
+    ang = np.arccos(np.clip(np.einsum("ij,ij->i", prob.u[[k for k, _, _ in prob.transitions]],
+                                      prob.u[[k + 1 for k, _, _ in prob.transitions]]), -1, 1))
+    path = np.array([np.sum(np.linalg.norm(W[a:b] - d0, axis=1) * np.diff(prob.rec.time[a:b + 1]))
+                     for _, a, b in prob.transitions])
+    ok = ang > 0.2
+    s_hi = float(np.min(path[ok] / ang[ok])) if ok.any() else float(np.max(path) / 0.2 + 1e-9)
+    ntr = len(prob.transitions)
+
+    def cost(s):
+        pred = prob.transition_pred(prob.rates(model, dict(start, gyro_K=np.eye(3) * s))[:ntr])
+        return float(np.sum(np.einsum("mkj,mj->mk", prob.tr_basis, pred) ** 2))
+
+    # coarse grid (4 % steps), then a fine one (0.5 %) around its best
+    grid = s_hi * np.exp(np.arange(np.log(0.1), np.log(1.05), 0.04))
+    best = grid[int(np.argmin([cost(s) for s in grid]))]
+    fine = best * np.exp(np.arange(-0.04, 0.0401, 0.005))
+    best = fine[int(np.argmin([cost(s) for s in fine]))]
+    return dict(start, gyro_K=np.eye(3) * best)
+
+
+def _observable_D(prob: _Problem) -> bool:
+    """g-sensitivity is observable from the static positions when their specific
+    forces span 3-D (with the bias: rank 4 of [1, f])."""
+    if len(prob.statics) < 4:
+        return False
+    H = np.column_stack([np.ones(len(prob.f_static)), prob.f_static / prob.g])
+    s = np.linalg.svd(H, compute_uv=False)
+    return bool(s[-1] > 0.05 * s[0])
+
+
+def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
+             g_sensitivity: str = "auto") -> CalibrationResult:
+    """The contract's ``fit gyro``. accel: the accelerometer calibration (fitted
+    here from the same recording when None). g_sensitivity: auto (fit gyro_D
+    when the static positions make it observable), on, off."""
+    if rec.gyro is None:
+        raise EstimationError("the recording has no gyro data")
+    if rec.layout.redundant:
+        raise EstimationError("this is a redundant-unit recording: use `calib fit rimu`")
+    if accel is None:
+        from calib_cli.methods.accel_lsq import fit_accel
+
+        accel = fit_accel(rec)
+    if accel.raw_units.get("accel") != rec.units.get("accel"):
+        raise EstimationError(f"the accelerometer calibration was fitted on data in "
+                              f"{accel.raw_units.get('accel')}, this recording is in "
+                              f"{rec.units.get('accel')}")
+    if len(rec.static_segments()) < 2:
+        raise EstimationError(f"the gyro fit needs static positions (bias, noise, gravity "
+                              f"directions); the recording has {len(rec.static_segments())}"
+                              f"{too_few_hint(rec, 2)}")
+    prob = _Problem(rec, accel)
+    if prob.n_rot == 0:
+        why = "; ".join(f"{a} -> {b}: {r}" for a, b, r in prob.skipped[:3])
+        raise EstimationError(
+            "no rotations to integrate: the gyro fit needs static positions recorded "
+            "continuously with the motions between them, or turn segments of known angle "
+            f"(rotation_angle_deg){' (skipped: ' + why + ')' if why else ''}")
+    counts = rec.in_counts("gyro")
+    use_D = {"on": True, "off": False}.get(g_sensitivity, None)
+    if use_D is None:
+        use_D = _observable_D(prob)
+    model = gyro_model(use_D)
+    packing = Packing.for_model(model)
+    base = model.neutral_params()
+    p0 = _start(prob, model, base, counts)
+    unit = abs(float(np.mean(np.diag(p0["gyro_K"]))))
+    g_unit = unit  # data units per rad/s
+    scales = np.concatenate([np.full(int(m.sum()), spec.typical * g_unit)
+                             for spec, m in zip(packing.specs, packing.masks, strict=False)])
+    n_eq = 3 * len(prob.statics) + 2 * len(prob.transitions) + 3 * len(prob.turns)
+    if n_eq < packing.size:
+        raise EstimationError(f"{n_eq} equations for {packing.size} unknowns: the gyro fit needs "
+                              "more static positions and rotations between them")
+    theta = packing.pack(p0)
+    fit = None
+    for _ in range(2):  # weights from the start, then from the estimate
+        p = packing.unpack(theta, base)
+        sig = prob.sigmas(model, p)
+        fit = lsq.fit(lambda th, sig=sig: prob.residuals(model, packing.unpack(th, base), sig),
+                      theta, scales, what="gyro fit")
+        theta = fit.theta
+    unobs_G = [lab for lab, u in zip(packing.labels(), fit.unobservable, strict=False)
+               if u and lab[0] != "gyro_D"]
+    if unobs_G:
+        raise EstimationError(
+            f"the rotations do not determine {', '.join(f'{k}[{i}]' for k, i in unobs_G[:4])}: "
+            f"the experiment needs rotations about all three axes ({len(prob.transitions)} "
+            f"transitions, {len(prob.turns)} turns used)")
+    if use_D and g_sensitivity == "auto" and fit.unobservable.any():
+        return fit_gyro(rec, accel, "off")
+    fit, inflation = fit.inflated()
+    p = packing.unpack(fit.theta, base)
+    return _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D)
+
+
+def _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D):
+    rec = prob.rec
+    pieces = prob.rates(model, p)
+    ntr = len(prob.transitions)
+    pred = prob.transition_pred(pieces[:ntr])
+    tr_err = np.array([np.arccos(np.clip(x @ prob.u[k + 1] / np.linalg.norm(x), -1, 1))
+                       for x, (k, _, _) in zip(pred, prob.transitions, strict=False)])
+    ints = prob.turn_integrals(pieces[ntr:])
+    want = np.array([s.rotation_axis_body * s.rotation_angle for s in prob.turns]).reshape(-1, 3)
+    turn_err = np.linalg.norm(ints - want, axis=1) if len(prob.turns) else np.zeros(0)
+    # angle the calibrated gyro integrates about each turn's axis
+    turn_angles = [float(a @ s.rotation_axis_body) * 180 / np.pi
+                   for a, s in zip(ints, prob.turns, strict=True)]
+    n = len(prob.statics)
+    kin = Kinematics(np.zeros(n), prob.f_static, prob.we_static, np.zeros((n, 3)))
+    r_static = prob.W_static - model.predict(p, kin, sensors=("gyro",))["gyro"]
+    allr = np.concatenate([tr_err, turn_err])
+    stats = {
+        "method": "gyro",
+        "gyro_residual_rms": float(np.sqrt(np.mean(allr**2))) if len(allr) else None,
+        "transition_residual_rms_rad": float(np.sqrt(np.mean(tr_err**2))) if ntr else None,
+        "turn_residual_rms_rad": float(np.sqrt(np.mean(turn_err**2))) if len(turn_err) else None,
+        "static_residual_rms": float(np.sqrt(np.mean(r_static**2))) if n else None,
+        "n_positions": n, "n_transitions": ntr, "n_turns": len(prob.turns),
+        "transitions_skipped": [f"{a} -> {b}: {r}" for a, b, r in prob.skipped],
+        "turn_angles_deg": {s.label: ang for s, ang in zip(prob.turns, turn_angles, strict=False)},
+        "gyro_noise_sigma": prob.sig_gyro.tolist(),
+        "g_sensitivity": bool(use_D),
+        "accel_method": accel.method,
+        "chi2_dof": fit.chi2_dof, "sigma_inflation": inflation,
+        "warnings": _warnings(p, prob),
+    }
+    res = build_result("gyro", model, packing, fit, base, rec.units, stats, serial=rec.serial,
+                       residuals={"transition_angle": tr_err, "turn_angle": turn_err,
+                                  "static_gyro": r_static})
+    return with_accel(res, accel)
+
+
+def _warnings(p: dict, prob: _Problem) -> list[str]:
+    out = []
+    if np.any(np.diag(p["gyro_K"]) < 0):
+        out.append("gyro_K has a negative scale factor: the sign of a turn's rotation_angle_deg "
+                   "(right-hand rule about rotation_axis_body) may be wrong, or an axis is "
+                   "wired reversed")
+    if prob.skipped and not prob.transitions:
+        out.append("no transition between static positions could be integrated (spliced or "
+                   "gapped recording): G rests on the turns alone")
+    return out
+
+
+def with_accel(res: CalibrationResult, accel: CalibrationResult) -> CalibrationResult:
+    """The gyro result with the accelerometer calibration it used, so the file
+    corrects both sensors (the gyro's D needs the corrected specific force).
+    The covariance is block-diagonal: the gyro fit takes the accelerometer's
+    parameters as known."""
+    from dataclasses import replace
+
+    from scipy.linalg import block_diag
+
+    akeys = [k for k in accel.params if k.startswith("accel_")]
+    params = {**{k: accel.params[k] for k in akeys}, **res.params}
+    sigma = {**{k: accel.sigma[k] for k in akeys}, **res.sigma}
+    units = {**{k: accel.units[k] for k in akeys}, **res.units}
+    aorder = [(k, i) for k, i in accel.cov_order if k.startswith("accel_")]
+    aidx = [j for j, (k, _) in enumerate(accel.cov_order) if k.startswith("accel_")]
+    acov = np.asarray(accel.covariance)[np.ix_(aidx, aidx)]
+    stats = dict(res.stats)
+    for k in ("g_reference", "g_error_rms_before", "g_error_rms_after", "accel_residual_rms"):
+        if k in accel.stats:
+            stats[k] = accel.stats[k]
+    stats["unobservable"] = [u for u in accel.stats.get("unobservable", [])
+                             if u.startswith("accel_")] + list(res.stats["unobservable"])
+    return replace(res, params=params, sigma=sigma, units=units,
+                   covariance=block_diag(acov, res.covariance), cov_order=aorder + res.cov_order,
+                   stats=stats, model=[d for d in accel.model if d.get("sensor") == "accel"]
+                   + res.model, raw_units=dict(res.raw_units), tables={**accel.tables,
+                                                                         **res.tables})
