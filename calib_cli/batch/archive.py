@@ -1,7 +1,7 @@
 """Simulated test archives for the batch tests and the benchmark.
 
 make_archive(root, n, n_broken) writes ROOT/archive/<serial>/plan.toml and
-recordings rec-NN.csv (or rec-NN.h5, every third one) of several units: even
+recordings rec-NN.csv (or rec-NN.h5, every third one, raw already imported) of several units: even
 units run a six-position plan with known attitudes (vector fit), odd units
 hand-placed positions of unknown attitude (scalar fit). Each unit has one
 fixed truth; every recording has its own noise. Broken files, in order:
@@ -106,7 +106,7 @@ def make_archive(root, n: int = 50, n_broken: int = 3, n_units: int = 4) -> dict
         d = arch / unit_serial(u)
         j = k // n_units
         kind_broken = k - (n - n_broken) if k >= n - n_broken else None
-        ext = ".h5" if (j % 3 == 2 or kind_broken in (1, 2)) else ".csv"
+        ext = ".h5" if (j % 3 == 1 or kind_broken in (1, 2)) else ".csv"
         if kind_broken == 0:
             ext = ".csv"
         path = d / f"rec-{j + 1:02d}{ext}"

@@ -1,7 +1,8 @@
 """Inputs and output paths.
 
 Each input (a file, or every file under a directory that matches the
-pipeline's globs) gets a key: its path relative to the directory given (or
+pipeline's globs) gets a key: its path relative to the directory given (a
+file given by itself: relative to the working directory when below it, else
 its name), made safe. Its outputs go to OUT/<key>/<step output>. Keys are
 deterministic and can never leave OUT: every component is reduced to
 [A-Za-z0-9._-], may not start with a dot, "." and ".." cannot survive, and
@@ -73,8 +74,12 @@ def discover(inputs, globs, exclude: str | None = None) -> list[BatchInput]:
                         continue
                     matches.add(rel.as_posix())
             found += [(str(p / r), r) for r in sorted(matches)]
-        else:
-            found.append((str(p), p.name))
+        else:  # a file: its path below the working directory, else its name
+            try:
+                rel = p.resolve().relative_to(Path.cwd().resolve()).as_posix()
+            except ValueError:
+                rel = p.name
+            found.append((str(p), rel))
     out, seen = [], {}
     for path, rel in found:
         key = output_key(rel)
