@@ -328,3 +328,37 @@ def test_missing_input_fails_alone(arch, tmp_path):
     assert code == 1
     assert [r["status"] for r in obj["inputs"]] == ["done", "failed"]
     assert "nope.csv: no such file" in obj["inputs"][1]["error"]
+
+
+# ---------------------------------------------------------------------------
+# the archive: 50 recordings, 3 broken (make validate)
+
+
+@pytest.mark.slow
+def test_archive_of_50(tmp_path):
+    import time
+
+    a = make_archive(tmp_path, n=50, n_broken=3)
+    out = tmp_path / "out"
+    t0 = time.monotonic()
+    code, obj, se = batch_json(a["pipeline"], [a["archive"]], out, "--workers", "2")
+    first_s = time.monotonic() - t0
+    assert code == 1
+    s = obj["summary"]
+    assert (s["inputs"], s["ok"], s["failed"]) == (50, 47, 3)
+    errors = sorted(r["error"] for r in obj["inputs"] if r["status"] == "failed")
+    assert len(errors) == 3 and all(e for e in errors)
+    assert len({r["serial"] for r in obj["inputs"] if r["serial"]}) == 4
+    code, so, se = run_cli("batch", a["pipeline"], a["archive"], "--out", out)
+    assert code == 1 and "nothing to do: 0 steps executed" in se
+    target = Path(a["good"][17])
+    write_recording(target, (target.parent / "plan.toml").read_text(), 17 % 4, seed=4242)
+    code, obj, _ = batch_json(a["pipeline"], [a["archive"]], out)
+    ran = {r["input"]: r["steps_run"] for r in obj["inputs"] if r["steps_run"]}
+    n_steps = 3 if target.suffix == ".h5" else 4
+    assert ran == {str(target): n_steps}
+    tol = tmp_path / "tol.toml"
+    tol.write_text("[param.accel_bias]\nmin_mg = -1\nmax_mg = 1\n")
+    code, obj, se = batch_json(a["pipeline"], [a["archive"]], out, "--tolerances", tol)
+    assert code == 5 and "fail" in obj["units"].values()
+    print(f"50 files, 2 workers: first run {first_s:.1f} s")

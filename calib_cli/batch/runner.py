@@ -236,7 +236,7 @@ def _run_dask(tasks, scheduler):
     except ImportError:
         raise InputError("--scheduler needs Dask: pip install 'calib-cli[dask]'") from None
     try:
-        client = Client(scheduler, timeout="15s", set_as_default=False)
+        client = Client(scheduler, timeout="15s")
     except (OSError, TimeoutError) as exc:
         raise InputError(f"cannot reach the Dask scheduler: {exc}", scheduler) from None
     try:
