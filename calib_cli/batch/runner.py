@@ -21,6 +21,7 @@ import fcntl
 import json
 import os
 import time
+import uuid
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -240,9 +241,10 @@ def _run_dask(tasks, scheduler):
     except (OSError, TimeoutError) as exc:
         raise InputError(f"cannot reach the Dask scheduler: {exc}", scheduler) from None
     try:
+        run_id = uuid.uuid4().hex[:12]  # keys unique per run: runs may share a cluster
         futs = client.map(run_chain, tasks, pure=False,
-                          key=[f"calib-batch-{i}" for i in range(len(tasks))])
-        index = {f.key: t for f, t in zip(futs, tasks)}
+                          key=[f"calib-batch-{run_id}-{i}" for i in range(len(tasks))])
+        index = {f.key: t for f, t in zip(futs, tasks, strict=True)}
         for f in as_completed(futs):
             try:
                 yield f.result()

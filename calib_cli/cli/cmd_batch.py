@@ -86,8 +86,9 @@ def _render(results, summary, units, tty: bool) -> None:
     has_tol = units is not None
     if tty:
         t = Table(title="calib batch")
-        for col in ("input", "unit", "status", "steps") + (("tolerance",) if has_tol else ()):
-            t.add_column(col)
+        t.add_column("input", overflow="fold")
+        for col in ("unit", "status", "steps") + (("tolerance",) if has_tol else ()):
+            t.add_column(col, no_wrap=True)
         for r in results:
             style = {"failed": "red", "done": "green"}.get(r["status"], "")
             row = [r["input"], r.get("serial") or "-", f"[{style}]{r['status']}[/]" if style

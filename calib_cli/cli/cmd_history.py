@@ -32,7 +32,7 @@ def _plot(entries, keys, path) -> None:
     fig, axes = plt.subplots(len(keys), 1, figsize=(8, 2.6 * len(keys)), squeeze=False,
                              sharex=True)
     x = np.arange(len(entries))
-    for ax, key in zip(axes[:, 0], keys):
+    for ax, key in zip(axes[:, 0], keys, strict=True):
         have = [i for i, e in enumerate(entries) if key in e.params]
         first = entries[have[0]]
         matrix = np.ndim(first.params[key]) == 2
