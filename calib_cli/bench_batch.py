@@ -58,11 +58,13 @@ def main(argv=None) -> None:
         rows.append({"workers": 1, "files": obj["summary"]["ok"], "seconds": round(dt, 3),
                      "files_per_minute": round(60.0 * obj["summary"]["ok"] / dt, 1),
                      "steps": obj["summary"]["steps_run"], "note": "re-run, all up to date"})
+    load = round(os.getloadavg()[0], 2)  # the machine's other work skews the figures
     if a.json:
-        print(json.dumps({"cpus": os.cpu_count(), "runs": rows}, indent=2))
+        print(json.dumps({"cpus": os.cpu_count(), "load_average_1min": load, "runs": rows},
+                         indent=2))
         return
-    print(f"calib batch benchmark ({os.cpu_count()} CPUs, {a.files} recordings, "
-          "import + fit accel + apply + export)")
+    print(f"calib batch benchmark ({os.cpu_count()} CPUs, load average {load}, {a.files} "
+          "recordings, import + fit accel + apply + export)")
     for r in rows:
         print(f"  workers {r['workers']}: {r['files']} files in {r['seconds']:.2f} s = "
               f"{r['files_per_minute']:.0f} files/min ({r['steps']} steps)"

@@ -362,3 +362,14 @@ def test_archive_of_50(tmp_path):
     code, obj, se = batch_json(a["pipeline"], [a["archive"]], out, "--tolerances", tol)
     assert code == 5 and "fail" in obj["units"].values()
     print(f"50 files, 2 workers: first run {first_s:.1f} s")
+
+
+def test_lock_file_symlink_is_refused(arch, tmp_path):
+    out = tmp_path / "o"
+    out.mkdir()
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep me")
+    os.symlink(victim, out / ".calib-batch.lock")
+    code, so, se = run_cli("batch", arch["pipeline"], arch["good"][0], "--out", out)
+    assert code == 3 and "cannot open the lock file" in se
+    assert victim.read_text() == "keep me"

@@ -12,9 +12,28 @@ import pytest
 pytest.importorskip("distributed", reason="dask/distributed not installed: the optional extra "
                                           "calib-cli[dask] (pip install 'calib-cli[dask]')")
 
-from calib_cli.batch.archive import make_archive  # noqa: E402
+import contextlib  # noqa: E402
+import io  # noqa: E402
+import json  # noqa: E402
 
-from .test_batch import batch_json  # noqa: E402
+from calib_cli.batch.archive import make_archive  # noqa: E402
+from calib_cli.cli.main import main  # noqa: E402
+
+
+def run_cli(*args) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            main([str(a) for a in args])
+            code = 0
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 0
+    return code, out.getvalue(), err.getvalue()
+
+
+def batch_json(pipe, inputs, out, *extra):
+    code, so, se = run_cli("batch", pipe, *inputs, "--out", out, "--json", *extra)
+    return code, (json.loads(so) if so.strip() else None), se
 
 
 @pytest.fixture(scope="module")
@@ -65,8 +84,6 @@ def test_dask_cluster_byte_identical_50(tmp_path, cluster):
 
 def test_unreachable_scheduler_is_one_line(tmp_path):
     a = make_archive(tmp_path, n=1, n_broken=0)
-    from .test_batch import run_cli
-
     code, so, se = run_cli("batch", a["pipeline"], a["archive"], "--out", tmp_path / "o",
                            "--scheduler", "tcp://127.0.0.1:9")
     assert code == 3 and "cannot reach the Dask scheduler" in se

@@ -263,7 +263,10 @@ def output_lock(out_dir: str):
     """An exclusive flock on OUT/.calib-batch.lock for the whole run. The kernel
     drops it when the process ends, so a killed run never leaves a stale lock."""
     path = Path(out_dir) / LOCK_NAME
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:  # never through a symlink: the lock file is truncated below
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+    except OSError as exc:
+        raise InputError(f"cannot open the lock file: {exc.strerror}", str(path)) from None
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
