@@ -36,12 +36,25 @@ def batch_json(pipe, inputs, out, *extra):
     return code, (json.loads(so) if so.strip() else None), se
 
 
-@pytest.fixture(scope="module")
-def cluster():
+def _cluster(processes: bool):
     from distributed import LocalCluster
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address="127.0.0.1:0", protocol="tcp") as c:
+    return LocalCluster(n_workers=2, threads_per_worker=1, processes=processes,
+                        host="127.0.0.1", dashboard_address="127.0.0.1:0", protocol="tcp")
+
+
+@pytest.fixture
+def cluster():
+    """Workers as threads of this process (fast: nothing to import), still
+    reached over TCP on loopback through the scheduler."""
+    with _cluster(processes=False) as c:
+        yield c
+
+
+@pytest.fixture
+def process_cluster():
+    """Worker processes, as on a real cluster."""
+    with _cluster(processes=True) as c:
         yield c
 
 
@@ -78,11 +91,14 @@ def test_dask_cluster_byte_identical(tmp_path, cluster):
 
 
 @pytest.mark.slow
-def test_dask_cluster_byte_identical_50(tmp_path, cluster):
-    _compare(50, 3, tmp_path, cluster)
+def test_dask_cluster_byte_identical_50(tmp_path, process_cluster):
+    _compare(50, 3, tmp_path, process_cluster)
 
 
-def test_unreachable_scheduler_is_one_line(tmp_path):
+def test_unreachable_scheduler_is_one_line(tmp_path, monkeypatch):
+    from calib_cli.batch import runner
+
+    monkeypatch.setattr(runner, "DASK_CONNECT_TIMEOUT", "2s")
     a = make_archive(tmp_path, n=1, n_broken=0)
     code, so, se = run_cli("batch", a["pipeline"], a["archive"], "--out", tmp_path / "o",
                            "--scheduler", "tcp://127.0.0.1:9")

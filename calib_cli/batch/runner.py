@@ -20,6 +20,7 @@ import contextlib
 import fcntl
 import json
 import os
+import threading
 import time
 import uuid
 from datetime import datetime, timezone
@@ -33,6 +34,7 @@ from calib_cli.errors import CalibError, InputError
 
 RAW_SUFFIXES = (".h5", ".hdf5")
 LOCK_NAME = ".calib-batch.lock"
+DASK_CONNECT_TIMEOUT = "15s"
 
 
 def utc_now() -> str:
@@ -93,16 +95,28 @@ def _serial_of(path: str) -> str | None:
         return None
 
 
+_quiet_lock = threading.Lock()
+_quiet_depth = [0, False]  # chains running in this process, saved Ctx.quiet
+
+
 @contextlib.contextmanager
 def _quiet_cli():
+    """Silence the CLI helpers the steps reuse while any chain runs here
+    (Dask workers may run several chains in threads of one process)."""
     from calib_cli.cli.common import Ctx
 
-    old = Ctx.quiet
-    Ctx.quiet = True
+    with _quiet_lock:
+        if _quiet_depth[0] == 0:
+            _quiet_depth[1] = Ctx.quiet
+            Ctx.quiet = True
+        _quiet_depth[0] += 1
     try:
         yield
     finally:
-        Ctx.quiet = old
+        with _quiet_lock:
+            _quiet_depth[0] -= 1
+            if _quiet_depth[0] == 0:
+                Ctx.quiet = _quiet_depth[1]
 
 
 def run_chain(task: dict) -> dict:
@@ -237,7 +251,7 @@ def _run_dask(tasks, scheduler):
     except ImportError:
         raise InputError("--scheduler needs Dask: pip install 'calib-cli[dask]'") from None
     try:
-        client = Client(scheduler, timeout="15s")
+        client = Client(scheduler, timeout=DASK_CONNECT_TIMEOUT)
     except (OSError, TimeoutError) as exc:
         raise InputError(f"cannot reach the Dask scheduler: {exc}", scheduler) from None
     try:
