@@ -233,9 +233,26 @@ def _lost(task: dict, why: str) -> dict:
             "outputs": {}, "steps_run": 0, "steps_skipped": 0, "seconds": 0.0}
 
 
+def _preload(task: dict) -> None:
+    """Import the steps' modules (numpy, scipy, h5py, ...) once here, so that
+    forked workers start with them instead of each importing them again."""
+    import contextlib
+
+    for s in Pipeline.from_dict(task["pipeline"]).steps:
+        with contextlib.suppress(Exception):
+            s.definition().function()
+    with contextlib.suppress(Exception):
+        import calib_cli.batch.steps  # noqa: F401
+        import calib_cli.cli.cmd_apply  # noqa: F401
+        import calib_cli.cli.cmd_show  # noqa: F401
+        import calib_cli.io.csvlog  # noqa: F401
+        import calib_cli.io.h5  # noqa: F401
+
+
 def _run_pool(tasks, workers):
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
+    _preload(tasks[0])
     with ProcessPoolExecutor(max_workers=workers) as ex:
         futs = {ex.submit(run_chain, t): t for t in tasks}
         for f in as_completed(futs):
