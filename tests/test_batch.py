@@ -373,3 +373,18 @@ def test_lock_file_symlink_is_refused(arch, tmp_path):
     code, so, se = run_cli("batch", arch["pipeline"], arch["good"][0], "--out", out)
     assert code == 3 and "cannot open the lock file" in se
     assert victim.read_text() == "keep me"
+
+
+def test_terminal_table_and_quiet(arch, tmp_path, monkeypatch):
+    import calib_cli.cli.cmd_batch as cb
+
+    good = arch["good"][:2]
+    monkeypatch.setattr(cb, "interactive", lambda: True)  # as on a terminal
+    code, so, se = run_cli("batch", arch["pipeline"], *good, arch["broken"][0], "--out",
+                           tmp_path / "o")
+    assert code == 1 and so == ""
+    assert "calib batch" in se and "┃" in se and "failed" in se
+    assert "calib: batch: " in se and "not a number" in se
+    monkeypatch.undo()
+    code, so, se = run_cli("-q", "batch", arch["pipeline"], *good, "--out", tmp_path / "o")
+    assert code == 0 and so == "" and se == ""
