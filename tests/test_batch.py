@@ -388,3 +388,24 @@ def test_terminal_table_and_quiet(arch, tmp_path, monkeypatch):
     monkeypatch.undo()
     code, so, se = run_cli("-q", "batch", arch["pipeline"], *good, "--out", tmp_path / "o")
     assert code == 0 and so == "" and se == ""
+
+
+def test_history_orders_by_recorded_utc(arch, tmp_path):
+    """A raw file's recorded_utc (written by a recorder) is carried onto the
+    calibration and orders the unit's history before the file names do."""
+    raws = [g for g in arch["good"] if g.endswith(".h5")][:1]
+    d = tmp_path / "a"
+    d.mkdir()
+    for name, when in (("a-late.h5", "2026-06-01T00:00:00Z"), ("b-early.h5",
+                                                               "2026-01-01T00:00:00Z")):
+        (d / name).write_bytes(Path(raws[0]).read_bytes())
+        with h5py.File(d / name, "r+") as h5:
+            h5.attrs["recorded_utc"] = when
+    out = tmp_path / "o"
+    code, obj, se = batch_json(arch["pipeline"], [d], out)
+    assert code == 0, se
+    serial = obj["inputs"][0]["serial"]
+    code, so, se = run_cli("history", out, "--unit", serial, "--json")
+    cals = json.loads(so)["calibrations"]
+    assert [c["file"].split("/")[0] for c in cals] == ["b-early-h5", "a-late-h5"]
+    assert cals[0]["recorded_utc"] == "2026-01-01T00:00:00Z"

@@ -83,16 +83,21 @@ def _source_artifacts(src: str) -> dict:
     return {"source": src}
 
 
-def _serial_of(path: str) -> str | None:
+def _attr_of(path: str, name: str) -> str | None:
+    """A string root attribute of an HDF5 file, or None."""
     try:
         import h5py
 
         with h5py.File(path, "r") as h5:
-            v = h5.attrs.get("unit_serial", "")
+            v = h5.attrs.get(name, "")
         v = v.decode() if isinstance(v, bytes) else str(v)
         return v or None
     except Exception:
         return None
+
+
+def _serial_of(path: str) -> str | None:
+    return _attr_of(path, "unit_serial")
 
 
 _quiet_lock = threading.Lock()
@@ -170,6 +175,9 @@ def run_chain(task: dict) -> dict:
                 stamp = {"batch_fingerprint": fp, "batch_pipeline_sha256": pipe_sha,
                          "batch_pipeline": pipe.name, "batch_step": s.label,
                          "batch_input": src, "batch_key": key, "batch_utc": utc_now()}
+                recorded = _attr_of(art["raw"], "recorded_utc") if "raw" in art else None
+                if recorded:  # when the recording was made: orders the unit's history
+                    stamp["recorded_utc"] = recorded
                 with atomic_path(out) as tmp:
                     run = StepRun(inputs=inputs, out=tmp, options=opts, source=src, stamp=stamp)
                     if d.name == "fit":
