@@ -409,3 +409,21 @@ def test_history_orders_by_recorded_utc(arch, tmp_path):
     cals = json.loads(so)["calibrations"]
     assert [c["file"].split("/")[0] for c in cals] == ["b-early-h5", "a-late-h5"]
     assert cals[0]["recorded_utc"] == "2026-01-01T00:00:00Z"
+
+
+def test_missing_input_keeps_outputs_corrupt_input_drops_them(arch, tmp_path):
+    raw = Path([g for g in arch["good"] if g.endswith(".h5")][0])
+    d = tmp_path / "a"
+    d.mkdir()
+    f = d / "r.h5"
+    f.write_bytes(raw.read_bytes())
+    out = tmp_path / "o"
+    assert batch_json(arch["pipeline"], [f], out)[0] == 0
+    cal = out / "r-h5" / "cal-accel.h5"
+    assert cal.exists()
+    f.rename(d / "moved.h5")
+    code, obj, _ = batch_json(arch["pipeline"], [f], out)
+    assert code == 1 and "no such file" in obj["inputs"][0]["error"] and cal.exists()
+    f.write_bytes(b"corrupt")
+    code, obj, _ = batch_json(arch["pipeline"], [f], out)
+    assert code == 1 and obj["inputs"][0]["error"].startswith(str(f)) and not cal.exists()

@@ -136,7 +136,7 @@ def run_chain(task: dict) -> dict:
     res = {"input": src, "key": key, "status": "failed", "steps": [], "error": None,
            "exit_code": 0, "serial": None, "outputs": {}, "steps_run": 0, "steps_skipped": 0}
     plan_of_step = [(s, s.definition(pipe.path)) for s in pipe.steps]
-    failed_at, art = 0, {}
+    failed_at, art = -1, {}  # -1: the input itself could not be read
     try:
         with _quiet_cli():
             art = _source_artifacts(src)
@@ -193,14 +193,19 @@ def run_chain(task: dict) -> dict:
                 art[d.makes] = out
             failed_at = None
         res["status"] = "done" if res["steps_run"] else "up to date"
-    except CalibError as exc:
-        where = "" if failed_at is None else f"{plan_of_step[failed_at][0].label}: "
-        res["error"] = exc.line() if exc.path else f"{src}: {where}{exc.message}"
+    except CalibError as exc:  # the line always starts with the input it concerns
+        where = f"{plan_of_step[failed_at][0].label}: " if failed_at not in (None, -1) else ""
+        res["error"] = exc.line() if exc.path == src else f"{src}: {where}{exc.line()}"
         res["exit_code"] = exc.exit_code
     except Exception as exc:  # a bug in a step: still only this input fails
         res["error"] = f"{src}: internal error: {type(exc).__name__}: {exc}"
         res["exit_code"] = 70
-    if failed_at is not None:
+    if failed_at == -1:
+        res["steps"].append({"step": "read input", "action": "failed", "output": None})
+        if Path(src).exists():  # present but broken: its old outputs are stale
+            _drop_stale(out_dir, key, [st for st, _ in plan_of_step])
+        # a missing input (moved, not yet synced) leaves its outputs alone
+    elif failed_at is not None:
         s = plan_of_step[failed_at][0]
         res["steps"].append({"step": s.label, "action": "failed", "output": None})
         _drop_stale(out_dir, key, [st for st, _ in plan_of_step[failed_at:]])
