@@ -1,0 +1,125 @@
+"""Tolerance files: the CI gate of `calib batch --tolerances TOL.toml`.
+
+    [param.accel_bias]
+    min_mg = -20              # allowed range, every element (unit suffix or SI)
+    max_mg = 20
+    max_change_sigma = 5      # |new - previous| / sqrt(s_new^2 + s_prev^2)
+
+    [param.accel_K]
+    min = [[0.99, -0.01, -0.01], [-0.01, 0.99, -0.01], [-0.01, -0.01, 0.99]]
+    max = [[1.01,  0.01,  0.01], [ 0.01, 1.01,  0.01], [ 0.01,  0.01, 1.01]]
+
+min/max are a number (every element) or an array of the parameter's shape
+(nan = no bound there). ``max_change_sigma`` compares with the unit's
+previous calibration (known by its serial, see history.py) that reports the
+parameter; entries fixed by convention (sigma 0) or unobservable (sigma
+NaN) are not compared. A parameter the calibration does not report is not
+checked. All values SI unless a suffix (_mg, _ug, _deg, _dps, _dph, _ppm,
+_mm, ...) says otherwise.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from calib_cli.batch.history import CalEntry, element_names, previous
+from calib_cli.errors import InputError
+from calib_cli.units import split_suffix
+
+
+@dataclass(frozen=True)
+class ParamTolerance:
+    key: str
+    lo: np.ndarray | None
+    hi: np.ndarray | None
+    max_change_sigma: float | None
+
+
+def load_tolerances(path) -> dict[str, ParamTolerance]:
+    p = str(path)
+    try:
+        raw = tomllib.loads(Path(p).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError("no such file", p) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"not valid TOML: {exc}", p) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read: {exc}", p) from None
+    table = raw.get("param")
+    if not isinstance(table, dict) or not table:
+        raise InputError("no [param.NAME] tables", p)
+    out = {}
+    for key, spec in table.items():
+        if not isinstance(spec, dict):
+            raise InputError(f"param.{key} must be a table", p)
+        lo = hi = change = None
+        for k, v in spec.items():
+            base, factor = split_suffix(k)
+            where = f"param.{key}.{k}"
+            if base in ("min", "max"):
+                try:
+                    arr = np.asarray(v, dtype=float) * factor
+                except (TypeError, ValueError):
+                    raise InputError(f"{where} must be a number or an array", p) from None
+                if base == "min":
+                    lo = arr
+                else:
+                    hi = arr
+            elif k == "max_change_sigma":
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0:
+                    raise InputError(f"{where} must be a positive number", p)
+                change = float(v)
+            else:
+                raise InputError(f"{where}: unknown key (min, max, max_change_sigma, with an "
+                                 "optional unit suffix on min/max)", p)
+        out[key] = ParamTolerance(key, lo, hi, change)
+    return out
+
+
+def _bound(arr, shape, where):
+    try:
+        return np.broadcast_to(arr, shape)
+    except ValueError:
+        raise InputError(f"{where}: bound of shape {np.shape(arr)} does not fit the parameter's "
+                         f"shape {shape}") from None
+
+
+def check(entry: CalEntry, entries: list[CalEntry], tols: dict) -> dict:
+    """Pass/fail of one calibration: {"status", "failures": [lines], "previous": {key: rel}}."""
+    fails, prev_used = [], {}
+    for key, tol in tols.items():
+        if key not in entry.params:
+            continue
+        v = np.asarray(entry.params[key], dtype=float)
+        s = np.asarray(entry.sigma.get(key, np.full(v.shape, np.nan)), dtype=float)
+        names = element_names(key, v.shape)
+        unit = entry.units.get(key, "")
+        for bound, op, word in ((tol.lo, np.less, "below min"), (tol.hi, np.greater,
+                                                                   "above max")):
+            if bound is None:
+                continue
+            b = _bound(bound, v.shape, f"param.{key}")
+            bad = op(v, b) & np.isfinite(b)
+            for i in np.flatnonzero(bad.ravel()):
+                fails.append(f"{names[i]} = {v.ravel()[i]:.6g} {unit} {word} "
+                             f"{b.ravel()[i]:.6g}".replace("  ", " "))
+        if tol.max_change_sigma is not None and entry.serial:
+            p = previous(entries, entry, key)
+            if p is None:
+                continue
+            prev_used[key] = p.rel
+            pv = np.asarray(p.params[key], dtype=float)
+            if pv.shape != v.shape:
+                continue
+            ps = np.asarray(p.sigma.get(key, np.full(v.shape, np.nan)), dtype=float)
+            comb = np.sqrt(s**2 + ps**2)
+            ok = np.isfinite(comb) & (s > 0) & (ps > 0)
+            z = np.where(ok, np.abs(v - pv) / np.where(ok, comb, 1.0), 0.0)
+            for i in np.flatnonzero((z > tol.max_change_sigma).ravel()):
+                fails.append(f"{names[i]} changed by {z.ravel()[i]:.1f} sigma since {p.rel} "
+                             f"(limit {tol.max_change_sigma:g})")
+    return {"status": "fail" if fails else "pass", "failures": fails, "previous": prev_used}

@@ -1,0 +1,114 @@
+"""calib history DIR --unit SERIAL [--plot FILE.png] [--json]: a unit's parameters over time."""
+
+from __future__ import annotations
+
+import click
+import numpy as np
+from rich.markup import escape
+from rich.table import Table
+
+from calib_cli.cli.common import out_console, print_json
+from calib_cli.cli.main import cli
+from calib_cli.cli.render import display_of
+from calib_cli.errors import InputError
+
+
+def _keys(entries) -> list[str]:
+    keys: list[str] = []
+    for e in entries:
+        keys += [k for k in e.params if k not in keys]
+    return keys
+
+
+def _plot(entries, keys, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from calib_cli.batch.history import element_names
+    from calib_cli.io.h5 import atomic_path
+
+    fig, axes = plt.subplots(len(keys), 1, figsize=(8, 2.6 * len(keys)), squeeze=False,
+                             sharex=True)
+    x = np.arange(len(entries))
+    for ax, key in zip(axes[:, 0], keys, strict=True):
+        have = [i for i, e in enumerate(entries) if key in e.params]
+        first = entries[have[0]]
+        matrix = np.ndim(first.params[key]) == 2
+        factor, unit = display_of(key, first.units.get(key, ""))
+        if matrix:
+            factor, unit = 1e6, "ppm"
+        v = np.array([np.ravel(entries[i].params[key]) for i in have])
+        s = np.array([np.ravel(entries[i].sigma.get(key, np.full(np.size(first.params[key]),
+                                                                  np.nan))) for i in have])
+        names = element_names(key, np.shape(first.params[key]))
+        for j, name in enumerate(names):
+            if np.all(s[:, j] == 0):
+                continue  # fixed by convention
+            ax.errorbar(x[have], (v[:, j] - v[0, j]) * factor, yerr=s[:, j] * factor, marker="o",
+                        ms=3, capsize=2, label=name)
+        ax.set_ylabel(f"{key}\nchange [{unit}]")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6, ncol=3, loc="best")
+    axes[-1, 0].set_xticks(x, [e.rel for e in entries], rotation=60, ha="right", fontsize=6)
+    fig.suptitle(f"unit {entries[0].serial}: change since its first calibration (1 sigma bars)")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
+
+
+@cli.command("history")
+@click.argument("directory", type=click.Path(file_okay=False))
+@click.option("--unit", "serial", required=True, help="The unit's serial (from its plan).")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False),
+              help="Write a PNG: each parameter's change over the calibrations.")
+@click.option("--json", "as_json", is_flag=True, help="One JSON object on stdout.")
+def history_cmd(directory, serial, plot_path, as_json):
+    """Each parameter of a unit over its calibrations found under DIRECTORY."""
+    from calib_cli.batch.history import element_names, scan
+
+    entries = scan(directory, serial)
+    if not entries:
+        raise InputError(f"no calibration of unit {serial!r} found", directory)
+    keys = _keys(entries)
+    if plot_path:
+        _plot(entries, keys, plot_path)
+    if as_json:
+        print_json({"unit": {"serial": serial}, "calibrations": [
+            {"file": e.rel, "method": e.method, "recorded_utc": e.recorded_utc or None,
+             "created_utc": e.created_utc, "params": e.params, "sigma": e.sigma,
+             "units": e.units} for e in entries]})
+        return 0
+    legend = Table(title=f"unit {serial}: {len(entries)} calibrations, in order")
+    for col in ("#", "file", "method", "recorded (UTC)"):
+        legend.add_column(col)
+    for i, e in enumerate(entries):
+        legend.add_row(str(i + 1), e.rel, e.method, e.recorded_utc or "-")
+    out_console.print(legend)
+    for key in keys:
+        first = next(e for e in entries if key in e.params)
+        factor, unit = display_of(key, first.units.get(key, ""))
+        t = Table(title=escape(f"{key} [{unit or '-'}], value ±1 sigma"))
+        t.add_column("entry")
+        have = [(i, e) for i, e in enumerate(entries) if key in e.params]
+        for i, _ in have:
+            t.add_column(f"#{i + 1}", justify="right")
+        names = element_names(key, np.shape(first.params[key]))
+        for j, n in enumerate(names):
+            cells = []
+            for _, e in have:
+                v = np.ravel(e.params[key])
+                s = np.ravel(e.sigma.get(key, np.full(v.size, np.nan)))
+                if j >= v.size:
+                    cells.append("-")
+                    continue
+                sig = ("±?" if not np.isfinite(s[j]) else "" if s[j] == 0
+                       else f"±{s[j] * factor:.2g}")
+                cells.append(f"{v[j] * factor:.7g}{sig}")
+            t.add_row(n, *cells)
+        out_console.print(t)
+    if plot_path:
+        out_console.print(f"-> {plot_path}")
+    return 0
