@@ -167,6 +167,10 @@ class AsciiDecoder:
                 if n - (j + 1) < self.nhex:
                     pos = i
                     break
+                if 0 <= nxt < j + 1 + self.nhex:  # a sentence starts inside the digits
+                    self.garbage_bytes += nxt - i
+                    pos = nxt
+                    continue
                 hx = bytes(buf[j + 1:j + 1 + self.nhex])
                 pos = j + 1 + self.nhex
                 try:
