@@ -413,6 +413,8 @@ class Emulator:
         self.prof, self.site = prof, site
         self.fs = float(rate or prof.rate_hz)
         self.rng = np.random.default_rng(seed)
+        self.seed = seed
+        self._noise_cache: dict = {}
         self.truth = truth or default_truth(layout, self.rng)
         self.faults = faults or Faults()
         self.frng = np.random.default_rng(self.faults.seed)
@@ -449,6 +451,28 @@ class Emulator:
         self._disc = None  # (k_start, k_end) of the disconnect
 
     # -- values of one chunk -------------------------------------------------
+    NOISE_BLOCK = 4096
+
+    def _noise(self, sensor: str, k0: int, n: int, dim: int) -> np.ndarray:
+        """Unit white noise for samples k0..k0+n-1, a function of the sample
+        index alone (blocks seeded by (seed, sensor, block)), so a run is
+        reproducible whatever the chunking of the real-time loop."""
+        B = self.NOISE_BLOCK
+        out = np.empty((n, dim))
+        k = k0
+        while k < k0 + n:
+            b = k // B
+            key = (sensor, b)
+            if self._noise_cache.get(sensor, (None,))[0] != key:
+                rng = np.random.default_rng([self.seed, 0 if sensor == "accel" else 1, b])
+                self._noise_cache[sensor] = (key, rng.standard_normal((B, dim)))
+            blk = self._noise_cache[sensor][1]
+            a = k - b * B
+            m = min(B - a, k0 + n - k)
+            out[k - k0:k - k0 + m] = blk[a:a + m]
+            k += m
+        return out
+
     def _values(self, k0: int, n: int) -> dict:
         kin = self.unit.kinematics(k0, n).with_(temp=np.full(n, self.temp_c))
         out = self.truth.model.predict(self.truth.params, kin)
@@ -461,7 +485,7 @@ class Emulator:
             if f"{s}_white_density" in self.truth.noise:
                 white = np.asarray(self.truth.noise[f"{s}_white_density"], float) * \
                     np.sqrt(self.fs)
-            y = out[s] + self.rng.standard_normal(out[s].shape) * white
+            y = out[s] + self._noise(s, k0, n, out[s].shape[1]) * white
             chan = (["ax", "ay", "az"] if s == "accel" else ["gx", "gy", "gz"]) \
                 if not p.redundant else [f"{s[0]}{i}" for i in range(nsens)]
             for j, c in enumerate(chan):
