@@ -54,11 +54,13 @@ def test_modbus_rtu_example_frame():
 NMEA = [b"$GPGGA,123519,4807.038,N,01131.000,E,1,08,0.9,545.4,M,46.9,M,,*47\r\n",
         b"$GPRMC,123519,A,4807.038,N,01131.000,E,022.4,084.4,230394,003.1,W*6A\r\n"]
 
+GGA_PATTERN = (r"GPGGA,(?P<ax>[\d.]+),(?P<ay>[\d.]+),N,(?P<az>[\d.]+),E,"
+               r"(?P<gx>\d),(?P<gy>\d+),(?P<gz>[\d.]+),.*")
 GGA_PROFILE = r'''
 format = "ascii"
 rate_hz = 1
 [frame]
-pattern = 'GPGGA,(?P<ax>[\d.]+),(?P<ay>[\d.]+),N,(?P<az>[\d.]+),E,(?P<gx>\d),(?P<gy>\d+),(?P<gz>[\d.]+),.*'
+pattern = 'PATTERN'
 [checksum]
 kind = "xor"
 [[field]]
@@ -73,7 +75,7 @@ name = "gx"
 name = "gy"
 [[field]]
 name = "gz"
-'''
+'''.replace("PATTERN", GGA_PATTERN)
 
 
 def test_nmea_published_checksums():

@@ -124,7 +124,7 @@ class AsciiDecoder:
         if len(toks) != len(self.fields):
             return None
         out = []
-        for f, tok in zip(self.fields, toks):
+        for f, tok in zip(self.fields, toks, strict=True):
             if f.literal is not None:
                 if tok != f.literal:
                     return None

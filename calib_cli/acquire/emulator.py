@@ -405,11 +405,13 @@ class Emulator:
     """
 
     def __init__(self, prof: ImuProfile, table: TableProfile | None = None,
-                 truth: Truth | None = None, site: Site = Site(), rate: float | None = None,
-                 faults: Faults | None = None, seed: int = 0, layout: Layout = Layout(),
+                 truth: Truth | None = None, site: Site | None = None, rate: float | None = None,
+                 faults: Faults | None = None, seed: int = 0, layout: Layout | None = None,
                  attitude_deg=(0.0, 0.0, 0.0), temp_c: float = 25.0, link_dir: str | None = None,
                  can_interface: str = "virtual", can_channel: str | None = None,
                  chunk_s: float = 0.005):
+        site = site or Site()
+        layout = layout or Layout()
         self.prof, self.site = prof, site
         self.fs = float(rate or prof.rate_hz)
         self.rng = np.random.default_rng(seed)

@@ -58,7 +58,8 @@ class SerialTable:
             raise InputError(f"the turntable refused {name!r}: {reply!r}", self.port)
 
     def move(self, att_rad, label: str = "") -> None:
-        vals = {f"{a}_deg": float(v) * R2D for a, v in zip(("roll", "pitch", "yaw"), att_rad)}
+        vals = {f"{a}_deg": float(v) * R2D
+                for a, v in zip(("roll", "pitch", "yaw"), att_rad, strict=True)}
         self._command("move", **vals)
 
     def set_rate(self, rate_rad_s: float) -> None:

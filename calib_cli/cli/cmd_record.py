@@ -104,8 +104,7 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
                settle_timeout, segment_duration, reconnect_timeout):
     """Record an experiment plan (or a free-running log) from an IMU into raw.h5."""
     from calib_cli.acquire.profile import load_imu_profile, load_table_profile
-    from calib_cli.acquire.session import (Session, SettleConfig, free_run_plan,
-                                           journal_to_recording)
+    from calib_cli.acquire.session import Session, SettleConfig, free_run_plan, journal_to_recording
     from calib_cli.acquire.table import ManualTable, SerialTable
     from calib_cli.acquire.transport import CanTransport, SerialTransport
     from calib_cli.io.h5 import write_raw
