@@ -278,3 +278,29 @@ def test_manual_table_prompts():
     said = []
     ManualTable(lambda m: said.append(m) or "").move(np.array([90, 0, 0]) * d2r, "y-up")
     assert said == ["[y-up] put +y up, hold it still, then press Enter"]
+
+
+def test_rotating_segment_commands_table_rate(tmp_path):
+    prof = load_imu_profile("generic-bin6")
+    plan = parse_plan('name = "rot"\nkind = "turntable"\n[site]\nlatitude_deg = 45\n'
+                      '[[segment]]\nlabel = "still"\nattitude_deg = [0, 0, 0]\nduration_s = 0.3\n'
+                      '[[segment]]\nlabel = "spin"\nattitude_deg = [0, 0, 0]\n'
+                      'table_axis_enu = [0, 0, 1]\ntable_rate_dps = 90\nduration_s = 0.5\n')
+    tab = table_profile()
+    em = Emulator(prof, tab, site=plan.site, rate=1000, link_dir=str(tmp_path)).start()
+    try:
+        s = Session(prof, SerialTransport(em.paths["imu"], prof.transport), plan,
+                    str(tmp_path / "j.journal"), table=SerialTable(tab, em.paths["table"]),
+                    settle=SETTLE)
+        s.start()
+        s.run_plan()
+        s.close()
+    finally:
+        em.stop()
+    rec = journal_to_recording(str(tmp_path / "j.journal"))
+    spin = rec.segments[1]
+    assert spin.kind == "rotating" and abs(spin.n - 500) <= 1
+    gz = rec.gyro[spin.slice, 2].mean()
+    assert abs(gz - np.pi / 2) < 0.02  # the virtual table turned at 90 deg/s
+    assert rec.table_rate[spin.start] == pytest.approx(np.pi / 2)
+    assert np.isnan(rec.table_angle[0])

@@ -327,10 +327,21 @@ def journal_to_recording(path: str) -> Recording:
         layout = plan_layout(plan) if plan.kind == "rimu" else Layout(n=n)
     else:
         layout = plan_layout(plan)
+    t = rows[:, 0] - rows[0, 0]
+    table_angle = table_rate = None
+    if any(s.kind == "rotating" for s in segments):
+        # the commanded (nominal) table rate, and the angle it turns from each
+        # rotating segment's first sample, as calib simulate stores them
+        table_angle, table_rate = np.full(len(t), np.nan), np.zeros(len(t))
+        for s in segments:
+            if s.kind == "rotating" and s.table_rate is not None:
+                table_rate[s.slice] = s.table_rate
+                table_angle[s.slice] = s.table_rate * (t[s.slice] - t[s.start])
     counters = {k: int(v) for k, v in counters.items()}
     counters["journal_complete"] = int(complete)
     counters["samples"] = len(rows)
-    return Recording(time=rows[:, 0] - rows[0, 0], accel=data[:, :n], gyro=data[:, n:2 * n],
+    return Recording(time=t, accel=data[:, :n], gyro=data[:, n:2 * n],
+                     table_angle=table_angle, table_rate=table_rate,
                      segments=tuple(segments), site=plan.site, plan_kind=plan.kind,
                      plan_text=plan.text, serial=plan.serial, layout=layout,
                      temp=data[:, 2 * n] if "temp" in chans else None, counters=counters)
