@@ -366,3 +366,59 @@ def test_rimu18_redundant_unit_records_18_channels(tmp_path):
     want = em.truth.model.predict(em.truth.params, kin)
     np.testing.assert_allclose(rec.accel[seg.slice].mean(0), want["accel"][0], atol=2e-3)
     np.testing.assert_allclose(rec.gyro[seg.slice].mean(0), want["gyro"][0], atol=5e-4)
+
+
+def test_manual_table_operator_places_unit_and_repeat_auto(tmp_path):
+    """The operator (here a function that moves the virtual unit) follows the
+    prompts; a repeat = "auto" segment takes positions until 'q'."""
+    from scipy.spatial.transform import Rotation
+
+    from calib_cli.acquire.table import ManualTable
+
+    prof = load_imu_profile("generic-bin6")
+    plan = parse_plan('name = "m"\nkind = "static"\n'
+                      '[[segment]]\nlabel = "x-up"\nattitude_deg = [0, -90, 0]\nduration_s = 0.3\n'
+                      '[[segment]]\nlabel = "free"\nrepeat = "auto"\nduration_s = 0.3\n')
+    em = Emulator(prof, rate=1000, link_dir=str(tmp_path)).start()
+    prompts = []
+    places = [Rotation.from_euler("ZYX", [0, -90, 0], degrees=True),
+              Rotation.from_euler("ZYX", [0, 0, 180], degrees=True),
+              Rotation.from_euler("ZYX", [30, 20, 10], degrees=True)]
+
+    def operator(msg):
+        prompts.append(msg)
+        if not places:
+            return "q"
+        em.unit.move_to(places.pop(0), em.k)
+        time.sleep(0.1)
+        return ""
+
+    try:
+        s = Session(prof, SerialTransport(em.paths["imu"], prof.transport), plan,
+                    str(tmp_path / "j.journal"), table=ManualTable(operator), settle=SETTLE)
+        s.start()
+        s.run_plan()
+        s.close()
+    finally:
+        em.stop()
+    assert prompts[0] == "[x-up] put +x up, hold it still, then press Enter"
+    assert "q + Enter when done" in prompts[1] and len(prompts) == 4
+    rec = journal_to_recording(str(tmp_path / "j.journal"))
+    assert [x.label for x in rec.segments] == ["x-up", "free#1", "free#2"]
+    f = rec.accel[rec.segments[0].slice].mean(0)
+    assert f[0] > 9.0  # +x up reads +g on x
+    assert rec.segments[1].attitude is None
+
+
+def test_host_clock_timestamps():
+    from calib_cli.acquire.codec import SampleStream
+
+    text = load_imu_profile("nmea-imu").raw_text.replace('source = "sequence"',
+                                                          'source = "host"')
+    from calib_cli.acquire.profile import parse_imu_profile
+
+    st = SampleStream(parse_imu_profile(text))
+    vals = (0.0, 1, 0, 0, 9.8, 0, 0, 0, 25)
+    a = st.push([vals], 100.0)
+    b = st.push([(0.0, 2, 0, 0, 9.8, 0, 0, 0, 25)], 100.25)
+    assert a[0, 0] == 0.0 and b[0, 0] == pytest.approx(0.25)

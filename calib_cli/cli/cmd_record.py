@@ -158,6 +158,8 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
             session.run_free(duration)
     except KeyboardInterrupt:
         interrupted = True
+        if not plan_path and duration is None:
+            session.finished = True  # an open-ended log ends with Ctrl-C
     except BaseException:
         display.close()
         with contextlib.suppress(Exception):
