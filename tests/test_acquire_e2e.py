@@ -38,13 +38,13 @@ def plan12(duration=0.3, n=12):
 
 
 def table_profile():
-    return dataclasses.replace(load_table_profile("generic-3axis"), speed_dps=1440.0)
+    return dataclasses.replace(load_table_profile("generic-3axis"), speed_dps=1800.0)
 
 
-SETTLE = SettleConfig(window_s=0.1, timeout_s=20.0)
+SETTLE = SettleConfig(window_s=0.1, timeout_s=20.0, poll_s=0.05)
 
 
-def run_plan(tmp_path, imu, rate, faults=None, seed=0, duration=0.3):
+def run_plan(tmp_path, imu, rate, faults=None, seed=0, duration=0.25):
     prof = load_imu_profile(imu)
     plan = parse_plan(plan12(duration))
     tab = table_profile()
@@ -90,7 +90,7 @@ def check_fit(z):
 def test_serial_binary_12_positions_fit_within_3_sigma(tmp_path):
     em, counts, rec = run_plan(tmp_path, "generic-bin6", 2000)
     assert [s.label for s in rec.segments] == [f"p{i}" for i in range(12)]
-    assert all(abs(s.n - 600) <= 1 for s in rec.segments)
+    assert all(abs(s.n - 500) <= 1 for s in rec.segments)
     assert counts["checksum_errors"] == counts["gaps"] == 0 and em.injected.overflow == 0
     assert rec.counters["frames"] == len(rec) and rec.serial == "EMU-1"
     z = zscores(rec, em.truth)
@@ -108,7 +108,7 @@ def test_serial_ascii_nmea_12_positions(tmp_path):
 
 
 def test_can_virtual_bus_12_positions(tmp_path):
-    em, counts, rec = run_plan(tmp_path, "can-imu", 1000, seed=2, duration=0.3)
+    em, counts, rec = run_plan(tmp_path, "can-imu", 1000, seed=2)
     assert len(rec.segments) == 12 and counts["gaps"] == 0 and counts["checksum_errors"] == 0
     z = zscores(rec, em.truth)
     print("can z:", np.round(z, 2))
@@ -216,6 +216,15 @@ def _calib(*args, **kw):
                           text=True, env=env, timeout=60, **kw)
 
 
+def _cli(*args):
+    """The real command line, in this process (faster than a subprocess)."""
+    from click.testing import CliRunner
+
+    from calib_cli.cli.main import cli
+
+    return CliRunner().invoke(cli, list(args))
+
+
 def _start_record(tmp_path, em, plan_path, extra=()):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     return subprocess.Popen(
@@ -241,7 +250,7 @@ def _wait_rows(journal, n, timeout=20):
 
 def test_sigkill_mid_segment_then_recover(tmp_path):
     plan_path = tmp_path / "plan.toml"
-    plan_path.write_text(plan12(duration=1.5, n=3))
+    plan_path.write_text(plan12(duration=1.0, n=3))
     plan = parse_plan(plan_path.read_text())
     em = Emulator(load_imu_profile("generic-bin6"), table_profile(), site=plan.site, rate=1000,
                   link_dir=str(tmp_path)).start()
@@ -255,9 +264,9 @@ def test_sigkill_mid_segment_then_recover(tmp_path):
     finally:
         em.stop()
     assert not (tmp_path / "raw.h5").exists()
-    r = _calib("recover", str(tmp_path / "rec.journal"), "--out", str(tmp_path / "rec.h5"))
-    assert r.returncode == 0, r.stderr
-    assert _calib("show", str(tmp_path / "rec.h5")).returncode == 0
+    r = _cli("recover", str(tmp_path / "rec.journal"), "--out", str(tmp_path / "rec.h5"))
+    assert r.exit_code == 0, r.output
+    assert _cli("show", str(tmp_path / "rec.h5")).exit_code == 0
     rec = read_raw(tmp_path / "rec.h5")
     _, rows, _, complete = read_journal(str(tmp_path / "rec.journal"))
     seq = rows[:, 1]
@@ -379,7 +388,9 @@ def test_manual_table_operator_places_unit_and_repeat_auto(tmp_path):
     plan = parse_plan('name = "m"\nkind = "static"\n'
                       '[[segment]]\nlabel = "x-up"\nattitude_deg = [0, -90, 0]\nduration_s = 0.3\n'
                       '[[segment]]\nlabel = "free"\nrepeat = "auto"\nduration_s = 0.3\n')
-    em = Emulator(prof, rate=1000, link_dir=str(tmp_path)).start()
+    em = Emulator(prof, rate=1000, link_dir=str(tmp_path))
+    em.unit.speed = np.radians(1440.0)
+    em.start()
     prompts = []
     places = [Rotation.from_euler("ZYX", [0, -90, 0], degrees=True),
               Rotation.from_euler("ZYX", [0, 0, 180], degrees=True),

@@ -83,6 +83,8 @@ def _raise_interrupt(*_):
 @click.option("--plan", "plan_path", type=click.Path(dir_okay=False), help="Experiment plan.")
 @click.option("--duration", type=float, help="Free-running log of S seconds (no plan); "
               "without --plan and --duration: until Ctrl-C.")
+@click.option("--rate", type=float, help="The device's output rate, Hz, when it is configured "
+              "otherwise than the profile's rate_hz (time from the sequence counter uses it).")
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="raw.h5 to write.")
 @click.option("--journal", "journal_path", type=click.Path(dir_okay=False),
               help="Append-only journal (default: OUT.journal).")
@@ -100,7 +102,7 @@ def _raise_interrupt(*_):
 @click.option("--reconnect-timeout", default=30.0, show_default=True, type=float,
               help="How long to wait for a disconnected device, s.")
 def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_path, duration,
-               out, journal_path, keep_journal, settle_window, accel_still, gyro_still,
+               rate, out, journal_path, keep_journal, settle_window, accel_still, gyro_still,
                settle_timeout, segment_duration, reconnect_timeout):
     """Record an experiment plan (or a free-running log) from an IMU into raw.h5."""
     from calib_cli.acquire.profile import load_imu_profile, load_table_profile
@@ -113,6 +115,10 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
     if plan_path and duration is not None:
         raise click.UsageError("give --plan or --duration, not both")
     prof = load_imu_profile(imu)
+    if rate:
+        import dataclasses
+
+        prof = dataclasses.replace(prof, rate_hz=float(rate))
     if prof.format == "can":
         tr = prof.transport
         transport = CanTransport(can_interface or tr.get("interface", "socketcan"),
