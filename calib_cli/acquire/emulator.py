@@ -40,6 +40,7 @@ D2R = np.pi / 180.0
 NP_TYPES = {"u8": "u1", "i8": "i1", "u16": "u2", "i16": "i2", "u32": "u4", "i32": "i4",
             "u64": "u8", "i64": "i8", "f32": "f4", "f64": "f8"}
 FIFO_LIMIT = 1 << 20  # bytes the virtual device buffers before it drops frames
+STALL_S = 1.0  # no byte taken for this long: nobody listens, the queue is discarded
 
 
 @dataclass
@@ -329,6 +330,8 @@ class PtyPort:
         self.link = link
         self.master = self.slave = None
         self.out = bytearray()
+        self.last_progress = time.monotonic()
+        self.discarded = 0  # bytes thrown away while nobody read the port
         self.open()
 
     def open(self) -> None:
@@ -359,14 +362,23 @@ class PtyPort:
         return True
 
     def pump(self) -> None:
+        """Write what the port takes. Like a real device, which does not keep
+        its output for a port nobody has opened, the queue is dropped when
+        nothing has been taken for STALL_S seconds (else a recorder started
+        later would first get seconds of stale samples)."""
+        if not self.out:
+            self.last_progress = time.monotonic()
         while self.out and self.master is not None:
             try:
                 n = os.write(self.master, self.out[:65536])
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError:
-                return
+            except (BlockingIOError, InterruptedError, OSError):
+                break
             del self.out[:n]
+            self.last_progress = time.monotonic()
+        if self.out and time.monotonic() - self.last_progress > STALL_S:
+            self.discarded += len(self.out)
+            self.out.clear()
+            self.last_progress = time.monotonic()
 
     def read(self) -> bytes:
         if self.master is None:

@@ -64,9 +64,13 @@ class LiveDisplay:
             if self.live is not None:
                 self.live.start()
 
-    def close(self) -> None:
+    def close(self, session=None) -> None:
         if self.live is not None:
+            if session is not None:  # the final state, not the last throttled frame
+                session.state = "finished" if session.finished else "stopped"
+                self.live.update(self.render(session), refresh=True)
             self.live.stop()
+            self.live = None
 
 
 def _raise_interrupt(*_):
@@ -178,7 +182,7 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
         raise
     finally:
         signal.signal(signal.SIGTERM, old_term)
-    display.close()
+    display.close(session)
     if driver is not None:
         with contextlib.suppress(Exception):
             driver.stop()
