@@ -433,3 +433,16 @@ def test_host_clock_timestamps():
     a = st.push([vals], 100.0)
     b = st.push([(0.0, 2, 0, 0, 9.8, 0, 0, 0, 25)], 100.25)
     assert a[0, 0] == 0.0 and b[0, 0] == pytest.approx(0.25)
+
+
+def test_record_bad_port_or_profile_exit_3_and_no_output(tmp_path):
+    r = _cli("record", "--imu", "generic-bin6", "--port", str(tmp_path / "nope"),
+             "--duration", "1", "--out", str(tmp_path / "raw.h5"))
+    assert r.exit_code != 0 and "cannot open serial port" in str(r.exception)
+    assert list(tmp_path.iterdir()) == []
+    bad = tmp_path / "bad.toml"
+    bad.write_text('format = "binary"\nrate_hz = 100\n[frame]\nsync = "ZZ"\n[[field]]\n'
+                   'name = "ax"\ntype = "i16"\n')
+    r = _cli("record", "--imu", str(bad), "--port", "x", "--duration", "1", "--out",
+             str(tmp_path / "raw.h5"))
+    assert "frame.sync" in str(r.exception) and not (tmp_path / "raw.h5").exists()

@@ -50,7 +50,7 @@ class LiveDisplay:
             if now - self.last >= 0.25:
                 self.last = now
                 self.live.update(self.render(s), refresh=True)
-        elif s.current_label != self.last_label:
+        elif s.current_label and s.current_label != self.last_label:
             self.last_label = s.current_label
             info(f"segment {s.current_label}")
 
@@ -177,8 +177,12 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
         if driver is not None:
             with contextlib.suppress(Exception):
                 driver.stop()
-        err_console.print(f"calib: the journal {journal_path} keeps what was recorded "
-                          "(calib recover)", markup=False)
+        if session.n_rows:
+            err_console.print(f"calib: the journal {journal_path} keeps what was recorded "
+                              "(calib recover)", markup=False)
+        else:  # nothing recorded: leave nothing behind
+            with contextlib.suppress(OSError):
+                os.unlink(journal_path)
         raise
     finally:
         signal.signal(signal.SIGTERM, old_term)
