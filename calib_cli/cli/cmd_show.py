@@ -77,6 +77,8 @@ def _render_raw(path):
         att = "unknown" if s.attitude is None else ", ".join(f"{x:.4g}" for x in np.degrees(s.attitude))
         t.add_row(s.label, s.kind, str(s.n), f"{s.n / max(r.sample_rate, 1e-9):.1f}", att)
     out_console.print(t)
+    if r.counters:  # acquisition counts (calib record)
+        out_console.print("counters: " + ", ".join(f"{k} {v}" for k, v in r.counters.items()))
 
 
 @cli.command("show")

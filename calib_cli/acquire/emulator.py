@@ -1,0 +1,626 @@
+"""A virtual IMU (and turntable) speaking a profile's protocol over a pty or CAN.
+
+The unit's motion comes from ``model.kinematics`` and its outputs from the
+truth model (``ImuModel.predict`` plus white noise, as ``sim/`` does), so a
+recording of the emulator can be fitted and compared with the truth. The
+virtual table obeys the commands of a table profile and moves the unit.
+
+The encoders here are written apart from the decoders in ``codec.py`` (numpy
+record arrays and int.to_bytes here, struct there), and both are checked
+against hand-written golden vectors, so a bug cannot hide in both.
+
+Faults (``Faults``): corrupted frames (one byte changed, in the payload and
+checksum or anywhere in the frame), dropped frames, garbage bursts between
+frames and a disconnect; ``Emulator.injected`` counts what was done.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import string
+import tempfile
+import threading
+import time
+import tty
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from calib_cli.acquire.profile import ImuProfile, TableProfile
+from calib_cli.model import kinematics as kn
+from calib_cli.model.earth import Site
+from calib_cli.model.effects import Layout
+from calib_cli.model.frames import attitude_to_rotation, rotation_to_attitude
+from calib_cli.sim.truth import Truth, default_truth
+
+D2R = np.pi / 180.0
+NP_TYPES = {"u8": "u1", "i8": "i1", "u16": "u2", "i16": "i2", "u32": "u4", "i32": "i4",
+            "u64": "u8", "i64": "i8", "f32": "f4", "f64": "f8"}
+FIFO_LIMIT = 1 << 20  # bytes the virtual device buffers before it drops frames
+STALL_S = 1.0  # no byte taken for this long: nobody listens, the queue is discarded
+
+
+@dataclass
+class Faults:
+    """Fault injection, per frame probabilities. corrupt_where: "payload"
+    (payload or checksum bytes: each one is a checksum error) or "anywhere"
+    (any byte of the frame, sync, length and delimiters too)."""
+
+    corrupt: float = 0.0
+    corrupt_where: str = "payload"
+    drop: float = 0.0
+    garbage: float = 0.0
+    garbage_max: int = 40
+    disconnect_at: float | None = None  # s after start
+    disconnect_for: float = 1.0  # s
+    seed: int = 1
+
+
+# ---------------------------------------------------------------------------
+# encoders (independent of codec.py)
+
+
+class BinaryEncoder:
+    def __init__(self, prof: ImuProfile):
+        self.prof = prof
+        bo = "<" if prof.byte_order == "little" else ">"
+        self.dtype = np.dtype([(f.name, bo + NP_TYPES[f.type]) for f in prof.fields])
+        self.cs = prof.checksum
+        psize = self.dtype.itemsize
+        if prof.length_type:
+            n = psize + (self.cs.nbytes if prof.length_covers != "payload" else 0)
+            self.len_bytes = n.to_bytes(1 if prof.length_type == "u8" else 2, prof.byte_order)
+        else:
+            self.len_bytes = b""
+        self.payload_offset = len(prof.sync) + len(self.len_bytes)
+        self.psize = psize
+
+    def encode(self, values: dict) -> list[bytes]:
+        """values: field name -> raw numbers (k,). Returns k whole frames."""
+        k = len(next(iter(values.values())))
+        rec = np.zeros(k, dtype=self.dtype)
+        for f in self.prof.fields:
+            rec[f.name] = _to_type(values.get(f.name, np.zeros(k)), f.type)
+        blob = rec.tobytes()
+        out = []
+        head = self.prof.sync + self.len_bytes
+        for i in range(k):
+            frame = head + blob[i * self.psize:(i + 1) * self.psize]
+            if self.cs.nbytes:
+                cov = {"all": frame, "after_sync": frame[len(self.prof.sync):],
+                       "payload": frame[self.payload_offset:]}[self.cs.covers]
+                frame += self.cs.compute(cov).to_bytes(self.cs.nbytes, self.cs.byte_order)
+            out.append(frame)
+        return out
+
+    def payload_span(self, frame: bytes) -> tuple[int, int]:
+        """[a, b): the payload and checksum bytes of a frame."""
+        return self.payload_offset, len(frame)
+
+
+class AsciiEncoder:
+    def __init__(self, prof: ImuProfile):
+        self.prof = prof
+        self.ints = {prof.seq_field, prof.time_field}
+
+    def encode(self, values: dict) -> list[bytes]:
+        p = self.prof
+        k = len(next(iter(values.values())))
+        cols = []
+        for f in p.fields:
+            if f.literal is not None:
+                cols.append([f.literal] * k)
+            elif f.name in self.ints:
+                cols.append([str(int(v)) for v in values[f.name]])
+            else:
+                cols.append([f"{v:.6f}" for v in values.get(f.name, np.zeros(k))])
+        out = []
+        for i in range(k):
+            body = p.delimiter.join(c[i] for c in cols)
+            s = p.start + body
+            if p.checksum.kind != "none":
+                x = p.checksum.compute(body.encode())
+                s += f"{p.separator}{x:0{p.hex_digits}X}"
+            out.append((s + p.terminator).encode())
+        return out
+
+    def payload_span(self, frame: bytes) -> tuple[int, int]:
+        """The body and checksum digits (not the start, separator, terminator)."""
+        return len(self.prof.start), len(frame) - len(self.prof.terminator)
+
+
+class CanEncoder:
+    def __init__(self, prof: ImuProfile):
+        self.prof = prof
+
+    def encode(self, values: dict) -> list[list[tuple[int, bool, bytes]]]:
+        k = len(next(iter(values.values())))
+        out = []
+        for i in range(k):
+            msgs = []
+            for m in self.prof.messages:
+                data = bytearray(m.length)
+                for f in m.fields:
+                    v = _to_type(np.asarray([values[f.name][i]]), f.type)[0]
+                    if f.type.startswith("f"):
+                        b = np.asarray(v, dtype=("<" if self.prof.byte_order == "little" else ">")
+                                       + NP_TYPES[f.type]).tobytes()
+                    else:
+                        b = int(v).to_bytes(int(NP_TYPES[f.type][1:]), self.prof.byte_order,
+                                            signed=f.type.startswith("i"))
+                    data[f.offset:f.offset + len(b)] = b
+                if m.checksum.nbytes:
+                    kk = m.length - m.checksum.nbytes
+                    data[kk:] = m.checksum.compute(bytes(data[:kk])).to_bytes(
+                        m.checksum.nbytes, m.checksum.byte_order)
+                msgs.append((m.can_id, m.extended, bytes(data)))
+            out.append(msgs)
+        return out
+
+
+def _to_type(x, typ: str) -> np.ndarray:
+    x = np.asarray(x, dtype=float)
+    if typ.startswith("f"):
+        return x
+    info = np.iinfo(NP_TYPES[typ])
+    return np.clip(np.rint(x), info.min, info.max).astype(np.int64)
+
+
+def make_encoder(prof: ImuProfile):
+    return {"binary": BinaryEncoder, "ascii": AsciiEncoder, "can": CanEncoder}[prof.format](prof)
+
+
+# ---------------------------------------------------------------------------
+# the virtual unit on its virtual table
+
+
+class VirtualUnit:
+    """Attitude and motion of the unit: static, slewing (minimum-jerk, from
+    kinematics.slew_kinematics) or turning at a constant rate about ENU up."""
+
+    def __init__(self, site: Site, fs: float, attitude=(0.0, 0.0, 0.0), speed_dps=90.0):
+        self.site, self.fs = site, fs
+        self.rot = attitude_to_rotation(np.asarray(attitude, float))
+        self.speed = speed_dps * D2R
+        self.mode = "static"
+        self.slew = None  # (k0, Kinematics of the whole slew, target rotation)
+        self.rate = 0.0
+        self.rate_k0 = 0
+        self.rate_rot0 = self.rot
+
+    def state(self) -> str:
+        return {"static": "IDLE", "slew": "MOVING", "rate": "RATE"}[self.mode]
+
+    def move_to(self, target: Rotation, k_now: int) -> None:
+        self._freeze(k_now)
+        ang = (self.rot.inv() * target).magnitude()
+        dur = max(ang / self.speed, 0.05)
+        n = max(int(round(dur * self.fs)), 2)
+        t = (k_now + np.arange(n)) / self.fs
+        self.slew = (k_now, kn.slew_kinematics(t, self.rot, target, self.site), target)
+        self.mode = "slew"
+
+    def set_rate(self, rate: float, k_now: int) -> None:
+        self._freeze(k_now)
+        if rate == 0.0:
+            self.mode = "static"
+            return
+        self.mode, self.rate, self.rate_k0, self.rate_rot0 = "rate", rate, k_now, self.rot
+
+    def _freeze(self, k_now: int) -> None:
+        """Stop where the unit is now."""
+        self.rot = self.rotation_at(k_now)
+        self.mode = "static"
+
+    def rotation_at(self, k: int) -> Rotation:
+        if self.mode == "slew":
+            k0, kin, target = self.slew
+            if k - k0 >= len(kin):
+                return target
+            # re-derive the attitude along the slew from its rotation vector
+            n = len(kin)
+            u = (k - k0) / (n - 1)
+            s = 10 * u**3 - 15 * u**4 + 6 * u**5
+            phi = (self.rot.inv() * target).as_rotvec()
+            return self.rot * Rotation.from_rotvec(s * phi)
+        if self.mode == "rate":
+            th = self.rate * (k - self.rate_k0) / self.fs
+            return Rotation.from_rotvec([0, 0, th]) * self.rate_rot0
+        return self.rot
+
+    def kinematics(self, k0: int, n: int) -> kn.Kinematics:
+        t = (k0 + np.arange(n)) / self.fs
+        if self.mode == "slew":
+            ks, kin, target = self.slew
+            a = k0 - ks
+            if a + n <= len(kin):
+                return kin.take(slice(a, a + n))
+            m = max(len(kin) - a, 0)
+            self.rot, self.mode = target, "static"
+            rest = self.kinematics(k0 + m, n - m)
+            return rest if m == 0 else kn.Kinematics.concatenate([kin.take(slice(a, a + m)),
+                                                                  rest])
+        if self.mode == "rate":
+            th = self.rate * (k0 + np.arange(n) - self.rate_k0) / self.fs
+            rot0 = Rotation.from_rotvec([0, 0, th[0]]) * self.rate_rot0
+            return kn.table_kinematics(t, [0, 0, 1], th, np.full(n, self.rate), np.zeros(n),
+                                       rot0, self.site)
+        return kn.from_attitude(t, Rotation.from_quat(np.tile(self.rot.as_quat(), (n, 1))),
+                                self.site)
+
+
+def _template_regex(tpl: str) -> re.Pattern:
+    parts = []
+    for lit, name, _spec, _conv in string.Formatter().parse(tpl):
+        parts.append(re.escape(lit))
+        if name:
+            parts.append(rf"(?P<{name}>[-+0-9.eE]+)")
+    return re.compile("^" + "".join(parts) + "$")
+
+
+class VirtualTable:
+    """Parses commands by the profile's templates and answers with its replies."""
+
+    def __init__(self, prof: TableProfile, unit: VirtualUnit):
+        self.prof, self.unit = prof, unit
+        self.patterns = {k: _template_regex(v) for k, v in prof.commands.items()}
+        self.target = rotation_to_attitude(unit.rot) / D2R
+        self.inbuf = b""
+        self.log: list[str] = []
+
+    def _reply(self, name: str, **kw) -> bytes:
+        tpl = self.prof.replies.get(name, {"ack": "OK", "error": "ERR"}.get(name, ""))
+        return (tpl.format(**kw) + self.prof.terminator).encode()
+
+    def handle(self, line: str, k_now: int) -> bytes:
+        self.log.append(line)
+        for name, pat in self.patterns.items():
+            m = pat.match(line)
+            if not m:
+                continue
+            vals = {k: float(v) for k, v in m.groupdict().items()}
+            if name == "move":
+                for i, a in enumerate(("roll", "pitch", "yaw")):
+                    if f"{a}_deg" in vals:
+                        self.target[i] = vals[f"{a}_deg"]
+                self.unit.move_to(attitude_to_rotation(self.target * D2R), k_now)
+                return self._reply("ack")
+            if name == "rate":
+                self.unit.set_rate(vals["rate_dps"] * D2R, k_now)
+                return self._reply("ack")
+            if name == "stop":
+                self.unit.set_rate(0.0, k_now)
+                return self._reply("ack")
+            if name == "query_angle":
+                att = rotation_to_attitude(self.unit.rotation_at(k_now)) / D2R
+                return self._reply("angle", roll_deg=att[0], pitch_deg=att[1], yaw_deg=att[2])
+            if name == "query_status":
+                return self._reply("status", state=self.unit.state())
+        return self._reply("error")
+
+    def feed(self, data: bytes, k_now: int) -> bytes:
+        self.inbuf += data
+        term = self.prof.terminator.encode()
+        out = b""
+        # accept \r, \n or the terminator as the end of a command
+        while True:
+            m = re.search(rb"\r\n|\r|\n", self.inbuf)
+            if not m:
+                break
+            line = self.inbuf[:m.start()].decode("ascii", "replace").strip()
+            self.inbuf = self.inbuf[m.end():]
+            if line:
+                out += self.handle(line, k_now)
+        del term
+        return out
+
+
+# ---------------------------------------------------------------------------
+# pseudo-terminals
+
+
+class PtyPort:
+    """A pty whose slave is reachable through a stable symlink, so that a
+    simulated disconnect (close, reopen) keeps the path the recorder uses."""
+
+    def __init__(self, link: str):
+        self.link = link
+        self.master = self.slave = None
+        self.out = bytearray()
+        self.last_progress = time.monotonic()
+        self.discarded = 0  # bytes thrown away while nobody read the port
+        self.open()
+
+    def open(self) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)
+        os.set_blocking(self.master, False)
+        tmp = self.link + ".new"
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+        os.symlink(os.ttyname(self.slave), tmp)
+        os.replace(tmp, self.link)
+
+    def close(self) -> None:
+        for fd in (self.master, self.slave):
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self.master = self.slave = None
+        self.out.clear()
+
+    def write(self, data: bytes) -> bool:
+        """Queue bytes; False if the device FIFO is full (the frame is dropped)."""
+        if len(self.out) + len(data) > FIFO_LIMIT:
+            return False
+        self.out += data
+        return True
+
+    def pump(self) -> None:
+        """Write what the port takes. Like a real device, which does not keep
+        its output for a port nobody has opened, the queue is dropped when
+        nothing has been taken for STALL_S seconds (else a recorder started
+        later would first get seconds of stale samples)."""
+        if not self.out:
+            self.last_progress = time.monotonic()
+        while self.out and self.master is not None:
+            try:
+                n = os.write(self.master, self.out[:65536])
+            except (BlockingIOError, InterruptedError, OSError):
+                break
+            del self.out[:n]
+            self.last_progress = time.monotonic()
+        if self.out and time.monotonic() - self.last_progress > STALL_S:
+            self.discarded += len(self.out)
+            self.out.clear()
+            self.last_progress = time.monotonic()
+
+    def read(self) -> bytes:
+        if self.master is None:
+            return b""
+        try:
+            return os.read(self.master, 4096)
+        except (BlockingIOError, OSError):
+            return b""
+
+
+# ---------------------------------------------------------------------------
+
+
+@dataclass
+class Injected:
+    corrupted: int = 0
+    dropped: int = 0
+    garbage_bursts: int = 0
+    disconnect_frames: int = 0
+    overflow: int = 0
+    frames: int = 0
+    samples: int = 0
+    corrupted_seq: list = field(default_factory=list)
+    dropped_seq: list = field(default_factory=list)
+
+    @property
+    def lost(self) -> int:
+        return self.corrupted + self.dropped + self.disconnect_frames + self.overflow
+
+
+class Emulator:
+    """Run with ``start()`` (a thread) or ``run()``; ``stop()`` ends it.
+
+    paths: {"imu": ..., "table": ...} symlinks to the pty slaves (serial
+    profiles), or the CAN channel name in ``can_channel``.
+    """
+
+    def __init__(self, prof: ImuProfile, table: TableProfile | None = None,
+                 truth: Truth | None = None, site: Site | None = None, rate: float | None = None,
+                 faults: Faults | None = None, seed: int = 0, layout: Layout | None = None,
+                 attitude_deg=(0.0, 0.0, 0.0), temp_c: float = 25.0, link_dir: str | None = None,
+                 can_interface: str = "virtual", can_channel: str | None = None,
+                 chunk_s: float = 0.005):
+        site = site or Site()
+        layout = layout or Layout()
+        self.prof, self.site = prof, site
+        self.fs = float(rate or prof.rate_hz)
+        self.rng = np.random.default_rng(seed)
+        self.seed = seed
+        self._noise_cache: dict = {}
+        self.truth = truth or default_truth(layout, self.rng)
+        self.faults = faults or Faults()
+        self.frng = np.random.default_rng(self.faults.seed)
+        self.temp_c = temp_c
+        self.chunk_s = chunk_s
+        self.encoder = make_encoder(prof)
+        self.unit = VirtualUnit(site, self.fs, np.asarray(attitude_deg, float) * D2R,
+                                table.speed_dps if table else 90.0)
+        self.table = VirtualTable(table, self.unit) if table and table.kind == "serial" else None
+        self.injected = Injected()
+        self.k = 0
+        self._stop = threading.Event()
+        self._thread = None
+        self.started = threading.Event()
+        self.own_dir = link_dir is None
+        self.dir = link_dir or tempfile.mkdtemp(prefix="calib-emu-")
+        self.paths: dict[str, str] = {}
+        self.bus = None
+        self.imu_port = None
+        self.table_port = None
+        if prof.format == "can":
+            import can
+
+            self.can_channel = can_channel or f"calib-emu-{os.getpid()}-{id(self)}"
+            self.bus = can.Bus(interface=can_interface, channel=self.can_channel,
+                               receive_own_messages=False)
+            self.paths["can"] = self.can_channel
+        else:
+            self.imu_port = PtyPort(os.path.join(self.dir, "imu"))
+            self.paths["imu"] = self.imu_port.link
+        if self.table is not None:
+            self.table_port = PtyPort(os.path.join(self.dir, "table"))
+            self.paths["table"] = self.table_port.link
+        self._disc = None  # (k_start, k_end) of the disconnect
+
+    # -- values of one chunk -------------------------------------------------
+    NOISE_BLOCK = 4096
+
+    def _noise(self, sensor: str, k0: int, n: int, dim: int) -> np.ndarray:
+        """Unit white noise for samples k0..k0+n-1, a function of the sample
+        index alone (blocks seeded by (seed, sensor, block)), so a run is
+        reproducible whatever the chunking of the real-time loop."""
+        B = self.NOISE_BLOCK
+        out = np.empty((n, dim))
+        k = k0
+        while k < k0 + n:
+            b = k // B
+            key = (sensor, b)
+            if self._noise_cache.get(sensor, (None,))[0] != key:
+                rng = np.random.default_rng([self.seed, 0 if sensor == "accel" else 1, b])
+                self._noise_cache[sensor] = (key, rng.standard_normal((B, dim)))
+            blk = self._noise_cache[sensor][1]
+            a = k - b * B
+            m = min(B - a, k0 + n - k)
+            out[k - k0:k - k0 + m] = blk[a:a + m]
+            k += m
+        return out
+
+    def _values(self, k0: int, n: int) -> dict:
+        kin = self.unit.kinematics(k0, n).with_(temp=np.full(n, self.temp_c))
+        out = self.truth.model.predict(self.truth.params, kin)
+        p = self.prof
+        vals = {}
+        names = list(p.channels)
+        nsens = self.truth.model.layout.n
+        for s in ("accel", "gyro"):
+            white = np.asarray(self.truth.noise.get(f"{s}_white", 0.0), dtype=float)
+            if f"{s}_white_density" in self.truth.noise:
+                white = np.asarray(self.truth.noise[f"{s}_white_density"], float) * \
+                    np.sqrt(self.fs)
+            y = out[s] + self._noise(s, k0, n, out[s].shape[1]) * white
+            chan = (["ax", "ay", "az"] if s == "accel" else ["gx", "gy", "gz"]) \
+                if not p.redundant else [f"{s[0]}{i}" for i in range(nsens)]
+            for j, c in enumerate(chan):
+                vals[c] = y[:, j]
+        if "temp" in names:
+            vals["temp"] = np.full(n, self.temp_c)
+        fields = {f.name: f for f in p.all_fields()}
+        raw = {c: vals[c] / fields[c].factor for c in names}
+        ks = k0 + np.arange(n)
+        if p.seq_field:
+            raw[p.seq_field] = ks % (1 << p.seq_bits)
+        if p.time_field:
+            raw[p.time_field] = np.rint(ks / self.fs / p.time_scale) % (1 << p.time_bits)
+        return raw
+
+    def _corrupt(self, frame: bytes) -> bytes:
+        f = self.faults
+        if f.corrupt_where == "payload":
+            a, b = self.encoder.payload_span(frame)
+        else:
+            a, b = 0, len(frame) - (len(self.prof.terminator) if self.prof.format == "ascii"
+                                    else 0)
+        i = int(self.frng.integers(a, b))
+        buf = bytearray(frame)
+        if self.prof.format == "ascii" and f.corrupt_where == "payload":
+            # a different printable character that cannot end or start a sentence
+            pool = "0123456789ABCDEF" if buf[i] in b"0123456789ABCDEF" else "0123456789"
+            pool = pool.replace(chr(buf[i]), "")
+            buf[i] = ord(pool[int(self.frng.integers(len(pool)))])
+        else:
+            buf[i] ^= int(self.frng.integers(1, 256))
+        return bytes(buf)
+
+    def _emit(self, k0: int, n: int) -> None:
+        raw = self._values(k0, n)
+        frames = self.encoder.encode(raw)
+        f, inj = self.faults, self.injected
+        seqs = k0 + np.arange(n)
+        out = bytearray()
+        for i, fr in enumerate(frames):
+            kk = int(seqs[i])
+            inj.samples += 1
+            if self._disc and self._disc[0] <= kk < self._disc[1]:
+                inj.disconnect_frames += 1
+                continue
+            if f.drop and self.frng.random() < f.drop:
+                inj.dropped += 1
+                inj.dropped_seq.append(kk)
+                continue
+            if self.bus is not None:
+                self._send_can(fr)
+                inj.frames += 1
+                continue
+            if f.garbage and self.frng.random() < f.garbage:
+                m = int(self.frng.integers(1, f.garbage_max + 1))
+                out += self.frng.integers(0, 256, m, dtype=np.uint8).tobytes()
+                inj.garbage_bursts += 1
+            if f.corrupt and self.frng.random() < f.corrupt:
+                fr = self._corrupt(fr)
+                inj.corrupted += 1
+                inj.corrupted_seq.append(kk)
+            out += fr
+            inj.frames += 1
+        if out and self.imu_port is not None:
+            if self.imu_port.master is None or not self.imu_port.write(bytes(out)):
+                inj.overflow += len(frames)  # approximate: whole chunk lost
+        if self.imu_port is not None:
+            self.imu_port.pump()
+
+    def _send_can(self, msgs) -> None:
+        import can
+
+        for cid, ext, data in msgs:
+            self.bus.send(can.Message(arbitration_id=cid, is_extended_id=ext, data=data))
+
+    # -- main loop -------------------------------------------------------------
+    def run(self, duration: float | None = None) -> None:
+        t0 = time.monotonic()
+        self.started.set()
+        f = self.faults
+        while not self._stop.is_set():
+            now = time.monotonic() - t0
+            if duration is not None and now >= duration:
+                break
+            if self.table_port is not None:
+                data = self.table_port.read()
+                if data:
+                    rep = self.table.feed(data, self.k)
+                    self.table_port.write(rep)
+                self.table_port.pump()
+            if f.disconnect_at is not None and self.imu_port is not None:
+                if self._disc is None and now >= f.disconnect_at:
+                    k1 = self.k + int(round(f.disconnect_for * self.fs))
+                    self._disc = (self.k, k1)
+                    self.imu_port.close()
+                elif self._disc and self.imu_port.master is None and self.k >= self._disc[1]:
+                    self.imu_port.open()
+            due = int(now * self.fs) - self.k
+            if due <= 0:
+                if self.imu_port is not None:
+                    self.imu_port.pump()
+                time.sleep(min(self.chunk_s, 0.002))
+                continue
+            n = min(due, max(int(self.chunk_s * self.fs), 1) * 4)
+            self._emit(self.k, n)
+            self.k += n
+
+    def start(self, duration: float | None = None) -> "Emulator":
+        self._thread = threading.Thread(target=self.run, args=(duration,), daemon=True)
+        self._thread.start()
+        self.started.wait(5)
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
+        for p in (self.imu_port, self.table_port):
+            if p is not None:
+                p.close()
+        if self.bus is not None:
+            self.bus.shutdown()
+        if self.own_dir:
+            shutil.rmtree(self.dir, ignore_errors=True)

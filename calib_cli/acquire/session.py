@@ -1,0 +1,347 @@
+"""The session runner behind ``calib record``: follow a plan, read the IMU,
+journal every sample, and turn the journal into a Recording.
+
+Two threads: a reader (transport -> decoder -> SampleStream, reconnecting
+after a disconnect) and the caller's thread, which commands the table, waits
+until the unit is settled (table status, then stillness in the IMU data),
+tags the samples of each segment with its plan index (-1 in the transitions,
+which are recorded too), appends everything to the journal and refreshes
+the display. ``journal_to_recording`` is the one path from a journal to a
+Recording: used at a clean end, after Ctrl-C and by ``calib recover``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib_cli.acquire.codec import SampleStream, make_decoder
+from calib_cli.acquire.journal import META_COLS, JournalWriter, read_journal
+from calib_cli.acquire.profile import ImuProfile
+from calib_cli.acquire.table import ManualTable, turn_target
+from calib_cli.acquire.transport import TransportLost
+from calib_cli.data import Recording
+from calib_cli.errors import InputError
+from calib_cli.io.csvlog import segments_from_column
+from calib_cli.io.plan import Plan, parse_plan
+from calib_cli.model.effects import Layout
+from calib_cli.sim.simulate import plan_layout
+
+
+@dataclass
+class SettleConfig:
+    """Stillness: over the last ``window_s`` seconds after the table reports
+    it is in position, every accel channel's std < accel_std (m/s^2) and
+    every gyro channel's std < gyro_std (rad/s)."""
+
+    window_s: float = 0.5
+    accel_std: float = 0.05
+    gyro_std: float = 0.01
+    timeout_s: float = 120.0
+    poll_s: float = 0.1
+    default_duration_s: float = 10.0
+    reconnect_s: float = 30.0
+
+
+def free_run_plan(duration: float | None) -> str:
+    """The plan of a free-running log: one segment of unknown attitude."""
+    dur = f"\nduration_s = {float(duration)}" if duration else ""
+    return (f'name = "free-run"\nkind = "static"\n\n[[segment]]\nlabel = "log"{dur}\n')
+
+
+class Interrupted(Exception):
+    pass
+
+
+class Session:
+    def __init__(self, prof: ImuProfile, transport, plan: Plan, journal_path: str,
+                 table=None, settle: SettleConfig | None = None, display=None,
+                 header_extra: dict | None = None):
+        self.prof, self.transport, self.plan = prof, transport, plan
+        self.table = table if table is not None else None
+        self.cfg = settle or SettleConfig()
+        self.display = display
+        self.stream = SampleStream(prof)
+        self.decoder = make_decoder(prof)
+        self.nch = self.stream.n_channels
+        self.nsens = sum(1 for c in prof.channels if c != "temp") // 2
+        header = {"format": "calib-journal", "version": 1, "profile": prof.name,
+                  "profile_text": prof.raw_text, "channels": list(prof.channels),
+                  "columns": list(META_COLS) + list(prof.channels), "plan_text": plan.text,
+                  "plan_path": plan.path, "rate_hz": prof.rate_hz,
+                  "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        header.update(header_extra or {})
+        self.journal = JournalWriter(journal_path, header)
+        self._lock = threading.Lock()
+        self._queue: list[np.ndarray] = []
+        self._stop = threading.Event()
+        self._reader = None
+        self.error: str | None = None
+        # tagging state
+        self.seg_index = -1
+        self.seg_t0 = None
+        self.seg_dur = None
+        self.seg_done = False
+        self.n_rows = 0
+        self.recent: list[np.ndarray] = []
+        self.recent_t = 0.0
+        self.state = "starting"
+        self.current_label = ""
+        self.progress = 0.0
+        self.finished = False
+        self.rate_meas = 0.0
+        self._rate_hist: list[tuple[float, int]] = []
+
+    # -- reader thread -------------------------------------------------------
+    def _read_loop(self) -> None:
+        can = self.prof.format == "can"
+        while not self._stop.is_set():
+            try:
+                if can:
+                    items = []
+                    for cid, data in self.transport.read_messages():
+                        items += self.decoder.feed_message(cid, data)
+                else:
+                    items = self.decoder.feed(self.transport.read())
+            except TransportLost:
+                self.stream.mark_disconnect()
+                self.decoder.buf = bytearray() if not can else self.decoder.buf
+                if not self.transport.reconnect(self.cfg.reconnect_s, self._stop):
+                    if not self._stop.is_set():
+                        self.error = "the device did not come back after a disconnect"
+                    return
+                continue
+            except Exception as exc:  # noqa: BLE001 - reported by the main thread
+                self.error = f"reader failed: {type(exc).__name__}: {exc}"
+                return
+            rows = self.stream.push(items, time.monotonic())
+            if len(rows):
+                with self._lock:
+                    self._queue.append(rows)
+
+    def counts(self) -> dict:
+        c = dict(self.stream.counts)
+        c["garbage_bytes"] = int(self.decoder.garbage_bytes)
+        c["lost_frames"] = c["checksum_errors"] + c["gaps"]
+        return c
+
+    # -- main thread: draining, tagging, journal ---------------------------
+    def pump(self, dt: float = 0.02) -> np.ndarray:
+        """Wait ``dt``, take the new rows, tag, journal. Returns the new rows."""
+        time.sleep(dt)
+        if self.error:
+            raise InputError(self.error, getattr(self.transport, "port", None)
+                             or getattr(self.transport, "channel", None))
+        with self._lock:
+            batch, self._queue = self._queue, []
+        if not batch:
+            self._tick()
+            return np.empty((0, 2 + self.nch))
+        rows = np.concatenate(batch)
+        seg = np.full(len(rows), -1.0)
+        if self.seg_index >= 0 and not self.seg_done:
+            if self.seg_t0 is None:
+                self.seg_t0 = rows[0, 0]
+            t = rows[:, 0]
+            inside = t < self.seg_t0 + self.seg_dur if self.seg_dur else np.ones(len(t), bool)
+            seg[inside] = self.seg_index
+            if self.seg_dur:
+                self.progress = min((t[-1] - self.seg_t0) / self.seg_dur, 1.0)
+                if not inside.all():
+                    self.seg_done = True
+        out = np.empty((len(rows), 3 + self.nch))
+        out[:, :2] = rows[:, :2]
+        out[:, 2] = seg
+        out[:, 3:] = rows[:, 2:]
+        self.journal.append(out)
+        self.n_rows += len(rows)
+        self.recent.append(rows)
+        # keep about window_s of rows for the stillness test
+        keep, tot = [], 0
+        for r in reversed(self.recent):
+            keep.append(r)
+            tot += len(r)
+            if tot * 1.0 / self.prof.rate_hz > self.cfg.window_s * 2:
+                break
+        self.recent = keep[::-1]
+        self._tick()
+        return rows
+
+    def _tick(self) -> None:
+        now = time.monotonic()
+        self._rate_hist.append((now, self.n_rows))
+        while len(self._rate_hist) > 2 and now - self._rate_hist[0][0] > 1.0:
+            self._rate_hist.pop(0)
+        (t0, n0), (t1, n1) = self._rate_hist[0], self._rate_hist[-1]
+        self.rate_meas = (n1 - n0) / (t1 - t0) if t1 > t0 else 0.0
+        self.journal.maybe_flush(self.counts())
+        if self.display is not None:
+            self.display(self)
+
+    def _still(self, since: float) -> bool:
+        if not self.recent:
+            return False
+        rows = np.concatenate(self.recent)
+        rows = rows[rows[:, 0] >= rows[-1, 0] - self.cfg.window_s]
+        if len(rows) < 5 or rows[0, 0] < since:
+            return False
+        n = self.nsens
+        a, g = rows[:, 2:2 + n], rows[:, 2 + n:2 + 2 * n]
+        return bool(np.all(a.std(axis=0) < self.cfg.accel_std)
+                    and np.all(g.std(axis=0) < self.cfg.gyro_std))
+
+    def _last_time(self) -> float:
+        return self.recent[-1][-1, 0] if self.recent else -np.inf
+
+    def wait_settled(self, check_still: bool = True) -> None:
+        """Table status first, then stillness of the IMU data."""
+        self.state = "moving"
+        t_end = time.monotonic() + self.cfg.timeout_s
+        next_poll = 0.0
+        while True:
+            self.pump()
+            if time.monotonic() > t_end:
+                raise InputError(f"the unit did not settle within {self.cfg.timeout_s:g} s "
+                                 "(table status or motion in the IMU data)")
+            if time.monotonic() >= next_poll:
+                next_poll = time.monotonic() + self.cfg.poll_s
+                if self.table is None or self.table.settled():
+                    break
+        if not check_still:
+            return
+        self.state = "settling"
+        since = self._last_time()
+        while not self._still(since):
+            self.pump()
+            if time.monotonic() > t_end:
+                raise InputError(f"the unit did not keep still within {self.cfg.timeout_s:g} s "
+                                 f"(accel std < {self.cfg.accel_std} m/s^2, gyro std < "
+                                 f"{self.cfg.gyro_std} rad/s over {self.cfg.window_s} s)")
+
+    def record_segment(self, index: int, duration: float | None) -> None:
+        """Tag the next ``duration`` seconds of samples with plan index ``index``
+        (until interrupted when duration is None)."""
+        self.seg_index, self.seg_t0, self.seg_dur, self.seg_done = index, None, duration, False
+        self.state, self.progress = "recording", 0.0
+        while not self.seg_done:
+            self.pump()
+        self.seg_index = -1
+        self.state = "done"
+
+    # -- the plan ----------------------------------------------------------
+    def start(self) -> None:
+        self.transport.open()
+        self._reader = threading.Thread(target=self._read_loop, daemon=True)
+        self._reader.start()
+
+    def run_plan(self) -> None:
+        plan, table = self.plan, self.table
+        current_att = None
+        for i, seg in enumerate(plan.segments):
+            self.current_label = f"{seg.label} ({i + 1}/{len(plan.segments)})"
+            dur = seg.duration or self.cfg.default_duration_s
+            kind = seg.kind
+            manual = isinstance(table, ManualTable)
+            if kind == "static" and seg.repeat_auto and manual:
+                while True:
+                    line = table.ask(f"[{seg.label}] place the unit in a new position, hold it "
+                                     "still and press Enter (q + Enter when done)")
+                    if line.strip().lower().startswith("q"):
+                        break
+                    self.wait_settled()
+                    self.record_segment(i, dur)
+                continue
+            if seg.attitude is not None and table is not None:
+                table.move(seg.attitude, seg.label)
+                current_att = seg.attitude
+            elif manual:
+                table.move(None, seg.label)
+            if kind == "static":
+                self.wait_settled()
+                self.record_segment(i, dur)
+            elif kind == "rotating":
+                if table is None or manual:
+                    raise InputError(f"segment {seg.label!r} turns the table: it needs a "
+                                     "motorised table (--table PROFILE --table-port PORT)",
+                                     plan.path)
+                self.wait_settled()
+                table.set_rate(seg.table_rate)
+                self.wait_settled(check_still=False)
+                self.record_segment(i, dur)
+                table.stop()
+            else:  # a turn of known angle
+                self.wait_settled()
+                self.seg_index, self.seg_t0, self.seg_dur, self.seg_done = i, None, None, False
+                self.state = "turning"
+                if manual:
+                    table.turn(seg.rotation_axis_body, seg.rotation_angle, seg.label)
+                else:
+                    if abs(seg.rotation_angle) >= np.pi or current_att is None:
+                        raise InputError(f"segment {seg.label!r}: a motorised turn needs a start "
+                                         "attitude and less than 180 deg; use a manual table",
+                                         plan.path)
+                    current_att = turn_target(current_att, seg.rotation_axis_body,
+                                              seg.rotation_angle)
+                    table.move(current_att, seg.label)
+                self.wait_settled()
+                self.seg_done = True
+                self.seg_index = -1
+        self.finished = True
+
+    def run_free(self, duration: float | None) -> None:
+        self.current_label = "log"
+        self.record_segment(0, duration)
+        self.finished = duration is not None
+
+    def close(self) -> dict:
+        """Stop reading, take the last rows, close the journal. Returns the counts."""
+        self._stop.set()
+        if self._reader is not None:
+            self._reader.join(2)
+        try:
+            self.pump(0.0)
+        except InputError:
+            pass
+        self.transport.close()
+        counts = self.counts()
+        counts["plan_finished"] = int(self.finished)
+        self.journal.close(counts)
+        return counts
+
+
+def journal_to_recording(path: str) -> Recording:
+    """A Recording from a journal (complete, or cut by a killed recorder)."""
+    header, rows, counters, complete = read_journal(path)
+    if not len(rows):
+        raise InputError("the journal holds no samples", str(path))
+    plan = parse_plan(header.get("plan_text", ""), header.get("plan_path", str(path)))
+    chans = header["channels"]
+    n = sum(1 for c in chans if c != "temp") // 2
+    data = rows[:, 3:]
+    seg = rows[:, 2].astype(int)
+    segments = segments_from_column(seg, plan, str(path))
+    if plan.kind == "rimu" or "a0" in chans:
+        layout = plan_layout(plan) if plan.kind == "rimu" else Layout(n=n)
+    else:
+        layout = plan_layout(plan)
+    t = rows[:, 0] - rows[0, 0]
+    table_angle = table_rate = None
+    if any(s.kind == "rotating" for s in segments):
+        # the commanded (nominal) table rate, and the angle it turns from each
+        # rotating segment's first sample, as calib simulate stores them
+        table_angle, table_rate = np.full(len(t), np.nan), np.zeros(len(t))
+        for s in segments:
+            if s.kind == "rotating" and s.table_rate is not None:
+                table_rate[s.slice] = s.table_rate
+                table_angle[s.slice] = s.table_rate * (t[s.slice] - t[s.start])
+    counters = {k: int(v) for k, v in counters.items()}
+    counters["journal_complete"] = int(complete)
+    counters["samples"] = len(rows)
+    return Recording(time=t, accel=data[:, :n], gyro=data[:, n:2 * n],
+                     table_angle=table_angle, table_rate=table_rate,
+                     segments=tuple(segments), site=plan.site, plan_kind=plan.kind,
+                     plan_text=plan.text, serial=plan.serial, layout=layout,
+                     temp=data[:, 2 * n] if "temp" in chans else None, counters=counters)

@@ -1,0 +1,108 @@
+"""calib emulate --imu PROFILE [--table PROFILE] [--truth TRUTH.toml] [--rate HZ]
+with fault injection (docs/acquisition.md)."""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+
+import click
+import numpy as np
+
+from calib_cli.cli.common import info, to_jsonable
+from calib_cli.cli.main import cli
+
+
+@cli.command("emulate")
+@click.option("--imu", "imu", required=True, help="IMU profile: a .toml path or a shipped name.")
+@click.option("--table", "table", help="Turntable profile of the virtual table.")
+@click.option("--truth", "truth_path", type=click.Path(dir_okay=False),
+              help="Truth model TOML (docs/simulate.md); default: a random unit (--seed).")
+@click.option("--plan", "plan_path", type=click.Path(dir_okay=False),
+              help="Take the site (and a redundant unit's geometry) from this plan.")
+@click.option("--rate", type=float, help="Output rate, Hz (default: the profile's).")
+@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--duration", type=float, help="Stop after S seconds (default: Ctrl-C).")
+@click.option("--attitude-deg", nargs=3, type=float, default=(0.0, 0.0, 0.0),
+              help="Initial attitude: roll pitch yaw.")
+@click.option("--speed-dps", type=float, help="Slew speed of the virtual table.")
+@click.option("--corrupt", default=0.0, type=float, help="Fraction of frames with a bad byte.")
+@click.option("--corrupt-where", type=click.Choice(["payload", "anywhere"]), default="payload",
+              show_default=True, help="payload: payload/checksum bytes; anywhere: any byte.")
+@click.option("--drop", default=0.0, type=float, help="Fraction of frames dropped.")
+@click.option("--garbage", default=0.0, type=float,
+              help="Fraction of frames preceded by a burst of random bytes.")
+@click.option("--disconnect-at", type=float, help="Close the port S seconds after start ...")
+@click.option("--disconnect-for", default=1.0, show_default=True, type=float,
+              help="... for this long, then reopen it at the same path.")
+@click.option("--fault-seed", default=1, show_default=True, type=int)
+@click.option("--link-dir", type=click.Path(file_okay=False),
+              help="Directory for the port symlinks (default: a new temporary one).")
+@click.option("--can-interface", default="virtual", show_default=True,
+              help="python-can interface for CAN profiles (virtual: this process only).")
+@click.option("--can-channel", help="CAN channel name.")
+@click.option("--truth-out", type=click.Path(dir_okay=False),
+              help="Write the truth parameters as JSON here.")
+def emulate_cmd(imu, table, truth_path, plan_path, rate, seed, duration, attitude_deg, speed_dps,
+                corrupt, corrupt_where, drop, garbage, disconnect_at, disconnect_for, fault_seed,
+                link_dir, can_interface, can_channel, truth_out):
+    """Emulate an IMU (and a turntable) on pseudo-terminals or a virtual CAN bus.
+
+    Prints one JSON line with the port paths on stdout, streams until Ctrl-C
+    or --duration, then prints one JSON line with the injected faults."""
+    import dataclasses
+
+    from calib_cli.acquire.emulator import Emulator, Faults
+    from calib_cli.acquire.profile import load_imu_profile, load_table_profile
+    from calib_cli.errors import InputError
+    from calib_cli.io.plan import load_plan
+    from calib_cli.model.earth import Site
+    from calib_cli.model.effects import Layout
+    from calib_cli.sim.simulate import plan_layout
+    from calib_cli.sim.truth import load_truth
+
+    prof = load_imu_profile(imu)
+    tprof = load_table_profile(table) if table else None
+    if tprof is not None and speed_dps:
+        tprof = dataclasses.replace(tprof, speed_dps=speed_dps)
+    plan = load_plan(plan_path) if plan_path else None
+    site = plan.site if plan else Site()
+    if prof.redundant:
+        if plan is None or plan.kind != "rimu":
+            raise InputError("a redundant-unit profile needs --plan with a [rimu] geometry",
+                             prof.path)
+        layout = plan_layout(plan)
+        if layout.n != prof.n_sensors:
+            raise InputError(f"the plan's [rimu] has {layout.n} sensors, the profile "
+                             f"{prof.n_sensors}", plan_path)
+    else:
+        layout = Layout()
+    truth = load_truth(truth_path, layout) if truth_path else None
+    faults = Faults(corrupt=corrupt, corrupt_where=corrupt_where, drop=drop, garbage=garbage,
+                    disconnect_at=disconnect_at, disconnect_for=disconnect_for, seed=fault_seed)
+    em = Emulator(prof, tprof, truth=truth, site=site, rate=rate, faults=faults, seed=seed,
+                  layout=layout, attitude_deg=attitude_deg, link_dir=link_dir,
+                  can_interface=can_interface, can_channel=can_channel)
+    if truth_out:
+        with open(truth_out, "w") as fh:
+            json.dump(to_jsonable({k: np.asarray(v) for k, v in em.truth.params.items()}), fh)
+    sys.stdout.write(json.dumps(em.paths) + "\n")
+    sys.stdout.flush()
+    info(f"emulating {prof.name} at {em.fs:g} Hz: " + ", ".join(f"{k} {v}"
+                                                                  for k, v in em.paths.items()))
+    old = signal.signal(signal.SIGTERM, lambda *_: em._stop.set())
+    try:
+        em.run(duration)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        em.stop()
+    inj = em.injected
+    summary = {"frames": inj.frames, "samples": inj.samples, "corrupted": inj.corrupted,
+               "dropped": inj.dropped, "garbage_bursts": inj.garbage_bursts,
+               "disconnect_frames": inj.disconnect_frames, "overflow": inj.overflow}
+    sys.stdout.write(json.dumps(summary) + "\n")
+    sys.stdout.flush()
+    info("emulator stopped: " + ", ".join(f"{k} {v}" for k, v in summary.items()))

@@ -1,0 +1,206 @@
+"""calib record --imu PROFILE --port PORT [--table PROFILE --table-port PORT]
+(--plan PLAN | --duration S) --out RAW.h5 (docs/acquisition.md)"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import time
+
+import click
+from rich.live import Live
+from rich.table import Table
+
+from calib_cli.cli.common import Ctx, err_console, info, interactive
+from calib_cli.cli.main import cli
+from calib_cli.errors import InputError
+
+
+class LiveDisplay:
+    """The live panel (rich) on a terminal; one line per segment otherwise."""
+
+    def __init__(self, total: int):
+        self.total = total
+        self.live = None
+        self.last = 0.0
+        self.last_label = None
+        if interactive():
+            self.live = Live(console=err_console, auto_refresh=False, transient=False)
+            self.live.start()
+
+    def render(self, s) -> Table:
+        c = s.counts()
+        t = Table(show_header=False, box=None, title="calib record")
+        t.add_row("segment", s.current_label or "-")
+        t.add_row("state", s.state)
+        bar = int(30 * s.progress)
+        t.add_row("progress", "#" * bar + "." * (30 - bar) + f" {100 * s.progress:5.1f} %")
+        t.add_row("sample rate", f"{s.rate_meas:8.1f} Hz (nominal {s.prof.rate_hz:g})")
+        t.add_row("samples", str(s.n_rows))
+        t.add_row("checksum errors", str(c["checksum_errors"]))
+        t.add_row("dropped frames", f"{c['gaps']} (counter gaps)")
+        t.add_row("garbage bytes", str(c["garbage_bytes"]))
+        t.add_row("disconnects", str(c["disconnects"]))
+        return t
+
+    def __call__(self, s) -> None:
+        if self.live is not None:
+            now = time.monotonic()
+            if now - self.last >= 0.25:
+                self.last = now
+                self.live.update(self.render(s), refresh=True)
+        elif s.current_label and s.current_label != self.last_label:
+            self.last_label = s.current_label
+            info(f"segment {s.current_label}")
+
+    @contextlib.contextmanager
+    def paused(self):
+        if self.live is not None:
+            self.live.stop()
+        try:
+            yield
+        finally:
+            if self.live is not None:
+                self.live.start()
+
+    def close(self, session=None) -> None:
+        if self.live is not None:
+            if session is not None:  # the final state, not the last throttled frame
+                session.state = "finished" if session.finished else "stopped"
+                self.live.update(self.render(session), refresh=True)
+            self.live.stop()
+            self.live = None
+
+
+def _raise_interrupt(*_):
+    raise KeyboardInterrupt  # SIGTERM ends a recording like Ctrl-C
+
+
+@cli.command("record")
+@click.option("--imu", "imu", required=True, help="IMU profile: a .toml path or a shipped name.")
+@click.option("--port", help="Serial port of the IMU (serial profiles).")
+@click.option("--can-interface", help="python-can interface (default: the profile's).")
+@click.option("--can-channel", help="CAN channel (default: the profile's).")
+@click.option("--table", "table", help="Turntable profile (path, shipped name, or 'manual').")
+@click.option("--table-port", help="Serial port of the turntable.")
+@click.option("--plan", "plan_path", type=click.Path(dir_okay=False), help="Experiment plan.")
+@click.option("--duration", type=float, help="Free-running log of S seconds (no plan); "
+              "without --plan and --duration: until Ctrl-C.")
+@click.option("--rate", type=float, help="The device's output rate, Hz, when it is configured "
+              "otherwise than the profile's rate_hz (time from the sequence counter uses it).")
+@click.option("--out", required=True, type=click.Path(dir_okay=False), help="raw.h5 to write.")
+@click.option("--journal", "journal_path", type=click.Path(dir_okay=False),
+              help="Append-only journal (default: OUT.journal).")
+@click.option("--keep-journal", is_flag=True, help="Keep the journal after a clean end.")
+@click.option("--settle-window", default=0.5, show_default=True, type=float,
+              help="Stillness window, s.")
+@click.option("--accel-still", default=0.05, show_default=True, type=float,
+              help="Stillness: max accel std, m/s^2.")
+@click.option("--gyro-still", default=0.01, show_default=True, type=float,
+              help="Stillness: max gyro std, rad/s.")
+@click.option("--settle-timeout", default=120.0, show_default=True, type=float,
+              help="Give up when the unit has not settled after S seconds.")
+@click.option("--segment-duration", default=10.0, show_default=True, type=float,
+              help="Duration of plan segments without duration_s, s.")
+@click.option("--reconnect-timeout", default=30.0, show_default=True, type=float,
+              help="How long to wait for a disconnected device, s.")
+def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_path, duration,
+               rate, out, journal_path, keep_journal, settle_window, accel_still, gyro_still,
+               settle_timeout, segment_duration, reconnect_timeout):
+    """Record an experiment plan (or a free-running log) from an IMU into raw.h5."""
+    from calib_cli.acquire.profile import load_imu_profile, load_table_profile
+    from calib_cli.acquire.session import Session, SettleConfig, free_run_plan, journal_to_recording
+    from calib_cli.acquire.table import ManualTable, SerialTable
+    from calib_cli.acquire.transport import CanTransport, SerialTransport
+    from calib_cli.io.h5 import write_raw
+    from calib_cli.io.plan import load_plan, parse_plan
+
+    if plan_path and duration is not None:
+        raise click.UsageError("give --plan or --duration, not both")
+    prof = load_imu_profile(imu)
+    if rate:
+        import dataclasses
+
+        prof = dataclasses.replace(prof, rate_hz=float(rate))
+    if prof.format == "can":
+        tr = prof.transport
+        transport = CanTransport(can_interface or tr.get("interface", "socketcan"),
+                                 can_channel or tr.get("channel", "can0"), tr.get("bitrate"))
+    else:
+        if not port:
+            raise click.UsageError(f"profile {prof.name!r} is a serial device: give --port")
+        transport = SerialTransport(port, prof.transport)
+    plan = load_plan(plan_path) if plan_path else parse_plan(free_run_plan(duration), "free-run")
+    out_dir = os.path.dirname(os.path.abspath(out))
+    if not os.path.isdir(out_dir):
+        raise InputError("output directory does not exist", out)
+    journal_path = journal_path or out + ".journal"
+    display = LiveDisplay(len(plan.segments))
+
+    def ask(msg: str) -> str:
+        with display.paused():
+            return click.prompt(msg, default="", show_default=False, err=True)
+
+    tprof = load_table_profile(table) if table else None
+    if tprof is not None and tprof.kind == "serial":
+        if not table_port:
+            raise click.UsageError("a serial turntable needs --table-port")
+        driver = SerialTable(tprof, table_port)
+    elif plan_path:
+        driver = ManualTable(ask)  # no motor: the operator places the unit
+    else:
+        driver = None
+    cfg = SettleConfig(window_s=settle_window, accel_std=accel_still, gyro_std=gyro_still,
+                       timeout_s=settle_timeout, default_duration_s=segment_duration,
+                       reconnect_s=reconnect_timeout)
+    session = Session(prof, transport, plan, journal_path, table=driver, settle=cfg,
+                      display=display,
+                      header_extra={"imu_profile_path": prof.path,
+                                    "table_profile": tprof.name if tprof else None})
+    old_term = signal.signal(signal.SIGTERM, _raise_interrupt)
+    interrupted = False
+    try:
+        session.start()
+        if plan_path:
+            session.run_plan()
+        else:
+            session.run_free(duration)
+    except KeyboardInterrupt:
+        interrupted = True
+        if not plan_path and duration is None:
+            session.finished = True  # an open-ended log ends with Ctrl-C
+    except BaseException:
+        display.close()
+        with contextlib.suppress(Exception):
+            session.close()
+        if driver is not None:
+            with contextlib.suppress(Exception):
+                driver.stop()
+        if session.n_rows:
+            err_console.print(f"calib: the journal {journal_path} keeps what was recorded "
+                              "(calib recover)", markup=False)
+        else:  # nothing recorded: leave nothing behind
+            with contextlib.suppress(OSError):
+                os.unlink(journal_path)
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, old_term)
+    display.close(session)
+    if driver is not None:
+        with contextlib.suppress(Exception):
+            driver.stop()
+            driver.close()
+    counts = session.close()
+    rec = journal_to_recording(journal_path)
+    inputs = [p for p in (plan_path, prof.path, tprof.path if tprof else None) if p]
+    write_raw(out, rec, inputs)
+    if not keep_journal:
+        os.unlink(journal_path)
+    info(f"recorded {len(rec)} samples, {len(rec.segments)} segments -> {out}; "
+         f"checksum errors {counts['checksum_errors']}, dropped frames {counts['gaps']}, "
+         f"disconnects {counts['disconnects']}")
+    if interrupted and not Ctx.quiet:
+        err_console.print("calib: interrupted" + ("" if session.finished else
+                                                  " before the plan was finished"), markup=False)
+    return 130 if interrupted and not session.finished else 0

@@ -1,0 +1,25 @@
+"""calib recover JOURNAL --out RAW.h5: a raw file from a recorder's journal
+(after a crash, SIGKILL or power loss: everything up to the last flush)."""
+
+from __future__ import annotations
+
+import click
+
+from calib_cli.cli.common import info
+from calib_cli.cli.main import cli
+
+
+@cli.command("recover")
+@click.argument("journal", type=click.Path(dir_okay=False))
+@click.option("--out", required=True, type=click.Path(dir_okay=False))
+def recover_cmd(journal, out):
+    """Turn a recording journal into raw.h5."""
+    from calib_cli.acquire.session import journal_to_recording
+    from calib_cli.io.h5 import write_raw
+
+    rec = journal_to_recording(journal)
+    write_raw(out, rec, [journal])
+    c = rec.counters
+    state = "complete" if c.get("journal_complete") else "cut short (recorder killed)"
+    info(f"recovered {len(rec)} samples, {len(rec.segments)} segments from a journal "
+         f"{state} -> {out}")
