@@ -26,8 +26,11 @@ validate: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check calib_cli tests
 
+# each benchmark prints its figures against a baseline measured in the same run
+BENCHES := calib_cli.bench calib_cli.bench_acquire calib_cli.bench_batch
+
 bench: $(STAMP)
-	MPLBACKEND=Agg $(BIN)/python -m calib_cli.bench
+	for b in $(BENCHES); do echo "== $$b"; MPLBACKEND=Agg $(BIN)/python -m $$b || exit 1; done
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache demo_out

@@ -6,13 +6,10 @@ slower machine changes both and the ratio stays comparable.
 
 from __future__ import annotations
 
-import importlib
 import time
 
 import numpy as np
 
-# further benchmark modules (each with a run() -> list of (name, value, baseline, unit))
-EXTRA = ["calib_cli.bench_turntable", "calib_cli.bench_acquire", "calib_cli.bench_batch"]
 
 
 def _best(fn, repeat=3):
@@ -56,12 +53,6 @@ def bench_static():
 
 def main() -> None:
     rows = bench_static()
-    for mod in EXTRA:
-        try:
-            m = importlib.import_module(mod)
-        except ImportError:
-            continue
-        rows += m.run()
     print(f"{'benchmark':60s} {'value':>12s} {'baseline':>12s} {'ratio':>8s}")
     for name, value, base, _unit in rows:
         print(f"{name:60s} {value:12.4g} {base:12.4g} {value / base:8.3g}")
