@@ -11,7 +11,6 @@ import time
 import numpy as np
 
 
-
 def _best(fn, repeat=3):
     best = float("inf")
     for _ in range(repeat):
