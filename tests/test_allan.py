@@ -44,7 +44,7 @@ def test_exact_mode_equals_allantools_and_chunking_does_not_matter():
     _, ad3, cl = A.overlapping_adev(y, 0.1, chunk=4096)
     rel = np.abs(ad3 / ad - 1)
     assert np.all(rel <= 3 * A.rel_sigma(cl)[:, None] + 1e-12)
-    assert np.all(rel[:5] == 0)  # m <= 16: identical
+    assert np.all(rel[:5] <= 1e-12)  # m <= 16: the same estimator
 
 
 def test_ci_factors_bracket_one_and_shrink():
