@@ -64,7 +64,7 @@ def _check(n, tau0, floor, tau_w, tau_r, seeds, channels=3):
                         ["rad/s"] * channels, 1e-3)
         # the record is >= 10 x the tau of the minimum
         assert np.all(n * tau0 >= 10 * res.tau_min)
-        for k, true in zip(A.TERM_NAMES, (N, B, K)):
+        for k, true in zip(A.TERM_NAMES, (N, B, K), strict=True):
             d = res.terms[k]
             out[k] += list(d["value"] / true)
             inside[k] += list((d["lo"] <= true) & (true <= d["hi"]))

@@ -93,7 +93,7 @@ class OctaveAllan:
         idx = np.arange(self.pos + 1, self.pos + len(y) + 1)  # global phase indices
         self.x_last = x[-1]
         self.pos += len(y)
-        for j, (m, s) in enumerate(zip(self.m, self.stride)):
+        for j, (m, s) in enumerate(zip(self.m, self.stride, strict=True)):
             q = int(m // s)
             sel = x[(idx % s) == 0]
             buf = np.concatenate([self.tails[j], sel]) if len(sel) else self.tails[j]

@@ -39,7 +39,7 @@ def allan_figure(res: AllanResult, title: str = "Allan deviation") -> Figure:
     fig = Figure(figsize=(6.4 * len(groups), 4.8), layout="constrained")
     axes = fig.subplots(1, len(groups), squeeze=False)[0]
     t = res.tau
-    for ax, (sensor, idx) in zip(axes, groups.items()):
+    for ax, (sensor, idx) in zip(axes, groups.items(), strict=True):
         for i in idx:
             line, = ax.loglog(t, res.adev[:, i], marker="o", ms=3, label=res.channels[i])
             ax.fill_between(t, res.adev_lo[:, i], res.adev_hi[:, i], color=line.get_color(),
