@@ -44,6 +44,9 @@ def test_json_yaml_csv_agree(files):
                                atol=1e-15)
     np.testing.assert_allclose(np.array(obj["correction"]["accel"]["K_inv"]) @ K, np.eye(3),
                                atol=1e-14)
+    np.testing.assert_allclose(np.array(obj["correction"]["gyro"]["G_inv"]),
+                               np.linalg.inv(c.params["gyro_K"]), rtol=1e-13)
+    np.testing.assert_allclose(obj["correction"]["gyro"]["d"], c.params["gyro_bias"], atol=1e-17)
     assert obj["formula"]["gyro"] == "w = G^-1 (W - d - D f)"
     # YAML: one line per key, flow lists that are also JSON
     y = run("export", cal, "--format", "yaml")

@@ -46,7 +46,7 @@ def _predict(model, params, sensor, f, w):
 
 
 def affine_correction(cal: CalibrationResult, path: str = "<calibration>") -> dict:
-    """{"accel": {"bias", "K", "K_inv"}, "gyro": {"bias", "K", "K_inv", "D"}} for the
+    """{"accel": {"b", "K", "K_inv"}, "gyro": {"d", "G", "G_inv", "D"}} for the
     sensors the calibration covers, read off its forward model."""
     if cal.layout.redundant:
         raise InputError("a redundant-unit (RIMU) calibration has no triad K^-1; export it "
@@ -82,10 +82,11 @@ def affine_correction(cal: CalibrationResult, path: str = "<calibration>") -> di
         if np.max(np.abs(y - lin)) > 1e-9 * (np.max(np.abs(y)) + 1e-300):
             raise InputError(f"the {sensor} model is not affine in its input; the linear "
                              "correction cannot express it (use `calib apply`)", path)
-        entry = {"bias": b, "K": K, "K_inv": np.linalg.inv(K)}
-        if D is not None:
-            entry["D"] = D
-        out[sensor] = entry
+        # named as in the formula: accel b, K, K_inv; gyro d, G, G_inv, D
+        if sensor == "accel":
+            out[sensor] = {"b": b, "K": K, "K_inv": np.linalg.inv(K)}
+        else:
+            out[sensor] = {"d": b, "G": K, "G_inv": np.linalg.inv(K), "D": D}
     if not out:
         raise InputError("the calibration holds no accelerometer or gyroscope correction", path)
     return out
@@ -184,7 +185,9 @@ def to_csv(cal: CalibrationResult, obj: dict) -> str:
             rows.append(f"{k},{' '.join(map(str, idx))},{fmt(v[idx])},{fmt(s[idx])},"
                         f"{cal.units.get(k, '')}")
     for sensor, d in obj.get("correction", {}).items():
-        for name in ("K_inv",):
+        for name in ("K_inv", "G_inv"):
+            if name not in d:
+                continue
             m = np.asarray(d[name], dtype=float)
             for idx in np.ndindex(m.shape):
                 rows.append(f"{sensor}_{name},{' '.join(map(str, idx))},{fmt(m[idx])},,"
@@ -257,7 +260,7 @@ def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = 
     if "accel" in corr:
         a = corr["accel"]
         body += [f"#define {P}_HAS_ACCEL 1",
-                 "/* accelerometer bias b */", _c_vec(f"{P}_ACCEL_BIAS", a["bias"], single, T),
+                 "/* accelerometer bias b */", _c_vec(f"{P}_ACCEL_BIAS", a["b"], single, T),
                  "/* K^-1, the inverse of the accelerometer scale/misalignment matrix K */",
                  _c_mat(f"{P}_ACCEL_KINV", a["K_inv"], single, T), "",
                  "/* f = K^-1 (A - b) */",
@@ -272,9 +275,9 @@ def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = 
     if "gyro" in corr:
         g = corr["gyro"]
         body += [f"#define {P}_HAS_GYRO 1",
-                 "/* gyro bias d */", _c_vec(f"{P}_GYRO_BIAS", g["bias"], single, T),
+                 "/* gyro bias d */", _c_vec(f"{P}_GYRO_BIAS", g["d"], single, T),
                  "/* G^-1, the inverse of the gyro scale/misalignment matrix G */",
-                 _c_mat(f"{P}_GYRO_GINV", g["K_inv"], single, T),
+                 _c_mat(f"{P}_GYRO_GINV", g["G_inv"], single, T),
                  "/* D, g-sensitivity, (rad/s)/(m/s^2) (zero when not estimated) */",
                  _c_mat(f"{P}_GYRO_D", g["D"], single, T), "",
                  "/* w = G^-1 (W - d - D f), f the corrected specific force */",
