@@ -42,6 +42,7 @@ SLOPE_BAND = 0.2  # a point is on a +-1/2 line when its local slope is within th
 # variance the other terms add at the reading point: real (and simulated)
 # flicker noise rises above its floor at short tau, so once is not enough.
 OTHER_TERMS_MARGIN = 2.0
+FLOOR_CLUSTERS = 10  # the minimum is looked for where the record is >= 10 x tau
 
 
 # ---------------------------------------------------------------------------
@@ -191,13 +192,24 @@ def _term(value_fn, tau, adev, clusters, i, other_var):
     return Term(float(v), float(lo), float(v * hi_f), float(tau[i]), int(clusters[i]))
 
 
+def floor_index(adev: np.ndarray, clusters: np.ndarray) -> int:
+    """Index of the Allan minimum, searched among the taus with at least
+    FLOOR_CLUSTERS independent clusters (the record >= 10 x that tau): the
+    last few octaves scatter so much that their dips are not a floor."""
+    ok = np.flatnonzero(np.asarray(clusters) >= FLOOR_CLUSTERS)
+    if not len(ok):
+        return int(np.argmin(adev))
+    return int(ok[np.argmin(np.asarray(adev)[ok])])
+
+
 def channel_terms(tau: np.ndarray, adev: np.ndarray, clusters: np.ndarray) -> dict[str, Term]:
     """IEEE 952 readings for one channel's curve.
 
     random_walk N (ARW for gyros, VRW for accelerometers; unit * sqrt(s)):
         the -1/2 slope line at tau = 1 s, i.e. adev * sqrt(tau) at the point
         of the -1/2 region with the most clusters (its left end).
-    bias_instability B (unit): the flat minimum over 0.664.
+    bias_instability B (unit): the flat minimum over 0.664 (the minimum over
+        the taus with >= FLOOR_CLUSTERS clusters).
     rate_random_walk K (unit / sqrt(s)): the +1/2 slope line at tau = 3 s,
         adev * sqrt(3 / tau), read at the first point right of the minimum
         where the curve rises and has reached twice the minimum (else the
@@ -206,7 +218,7 @@ def channel_terms(tau: np.ndarray, adev: np.ndarray, clusters: np.ndarray) -> di
     """
     tau, adev, clusters = (np.asarray(a) for a in (tau, adev, clusters))
     slope = local_slopes(tau, adev)
-    imin = int(np.argmin(adev))
+    imin = floor_index(adev, clusters)
     # first readings (no correction), then intervals with the other terms removed
     wn = np.flatnonzero((np.abs(slope + 0.5) <= SLOPE_BAND) & (np.arange(len(tau)) <= imin))
     right = np.arange(len(tau)) > imin
@@ -220,8 +232,13 @@ def channel_terms(tau: np.ndarray, adev: np.ndarray, clusters: np.ndarray) -> di
     N = adev[iN] * np.sqrt(tau[iN] / ARW_TAU) if iN is not None else 0.0
     K = adev[iK] * np.sqrt(RRW_TAU / tau[iK]) if iK is not None else 0.0
     F = adev[imin]
-    # a floor: a minimum inside the curve, or a flat end (no -1/2 or +1/2 trend)
-    flat = 0 < imin < len(tau) - 1 or abs(slope[imin]) <= SLOPE_BAND
+    # a floor: the curve at its minimum lies significantly (2 sigma) above the
+    # -1/2 line, i.e. it has left the white noise; without a -1/2 line, a
+    # minimum inside the curve or a flat end
+    if iN is not None and imin > iN:
+        flat = adev[imin] >= N * np.sqrt(ARW_TAU / tau[imin]) * (1 + 2 * rel_sigma(clusters[imin]))
+    else:
+        flat = 0 < imin < len(tau) - 1 or abs(slope[imin]) <= SLOPE_BAND
 
     def var_n(t):
         return N**2 * ARW_TAU / t
@@ -318,7 +335,7 @@ def analyse(tau: np.ndarray, adev: np.ndarray, tau0: float, n_samples: int, chan
         for k in TERM_NAMES:
             for f in terms[k]:
                 terms[k][f].append(getattr(ct[k], f))
-        t_min.append(tau[int(np.argmin(adev[:, c]))])
+        t_min.append(tau[floor_index(adev[:, c], clusters)])
         t_avg.append(averaging_time(tau, adev[:, c], targets[c]))
     terms = {k: {f: np.asarray(v) for f, v in d.items()} for k, d in terms.items()}
     return AllanResult(channels=list(channels), units=list(units), tau0=float(tau0),
