@@ -193,3 +193,24 @@ def test_streaming_state_does_not_grow_with_the_record():
     tau, ad, cnt = acc.result()
     # white noise of unit variance: adev = 1 / sqrt(m)
     np.testing.assert_allclose(ad[:8] * np.sqrt(tau[:8, None] / 0.01), 1.0, rtol=0.1)
+
+
+def test_gap_in_time_is_input_error_and_no_static_is_estimation_error(tmp_path):
+    from calib_cli.cli.main import main
+    from calib_cli.data import Recording, Segment
+    from calib_cli.io.h5 import write_raw
+
+    n = 4096
+    t = np.arange(n) / 100.0
+    t[2000:] += 1.0  # a 1 s gap
+    z = np.zeros((n, 3))
+    write_raw(tmp_path / "gap.h5", Recording(time=t, accel=z, gyro=z,
+                                             segments=(Segment("rest", "static", 0, n),)))
+    with pytest.raises(SystemExit) as e:
+        main(["allan", str(tmp_path / "gap.h5"), "--out", str(tmp_path / "a.h5")])
+    assert e.value.code == 3 and not (tmp_path / "a.h5").exists()
+    write_raw(tmp_path / "rot.h5", Recording(time=np.arange(n) / 100.0, accel=z, gyro=z,
+                                             segments=(Segment("spin", "rotating", 0, n),)))
+    with pytest.raises(SystemExit) as e:
+        main(["allan", str(tmp_path / "rot.h5")])
+    assert e.value.code == 4

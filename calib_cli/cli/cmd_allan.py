@@ -46,12 +46,16 @@ def _span(h5, path, segment):
                 return s.start, s.stop, s.label
         raise InputError(f"no segment labelled {segment!r} (segments: "
                          f"{', '.join(s.label for s in segs) or 'none'})", path)
-    if len(segs) <= 1:
+    if not segs:
         return 0, n, "(whole record)"
-    statics = [s for s in segs if s.kind == "static"] or list(segs)
+    statics = [s for s in segs if s.kind == "static"]
+    if not statics:
+        raise EstimationError("the record has no static segment (the Allan deviation needs "
+                              "the unit at rest); name a segment with --segment", path)
     best = max(statics, key=lambda s: s.n)
-    info(f"{path}: {len(segs)} segments; using the longest static one, {best.label!r} "
-         "(choose with --segment)")
+    if len(segs) > 1:
+        info(f"{path}: {len(segs)} segments; using the longest static one, {best.label!r} "
+             "(choose with --segment)")
     return best.start, best.stop, best.label
 
 
@@ -171,8 +175,8 @@ def show_allan(files, as_json, covariance):
 
 @cli.command("allan")
 @click.argument("raw", type=click.Path(dir_okay=False))
-@click.option("--segment", help="Label of the segment to analyse (default: the whole record "
-              "if it has one segment, else the longest static segment).")
+@click.option("--segment", help="Label of the segment to analyse (default: the longest "
+              "static segment; the whole record when it has no segments).")
 @click.option("--out", type=click.Path(dir_okay=False), help="Write an 'allan' HDF5 file.")
 @click.option("--plot", type=click.Path(dir_okay=False), help="Write the Allan plot (PNG).")
 @click.option("--target", "targets", multiple=True, metavar="SENSOR=VALUE",
