@@ -214,3 +214,26 @@ def test_gap_in_time_is_input_error_and_no_static_is_estimation_error(tmp_path):
     with pytest.raises(SystemExit) as e:
         main(["allan", str(tmp_path / "rot.h5")])
     assert e.value.code == 4
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="model.effects.FLICKER_SCALE = 0.43 gives an Allan floor "
+                   "of 0.69 x 0.664 B; about 0.61 is needed (reported, issue 9)")
+def test_simulator_bias_instability_has_the_0664_floor():
+    """The catalogue's BiasInstability effect, simulated, seen by calib allan."""
+    from calib_cli.io.plan import parse_plan
+    from calib_cli.sim.simulate import plan_layout, simulate
+    from calib_cli.sim.truth import truth_from_dict
+
+    plan = parse_plan('name = "bi"\nkind = "static"\nsample_rate_hz = 10.0\n[site]\n'
+                      'latitude_deg = 0.0\n[[segment]]\nlabel = "rest"\n'
+                      'attitude_deg = [0, 0, 0]\nduration_s = 20000.0\n')
+    B = 1e-4
+    truth = truth_from_dict({"params": {"gyro_bias_instability": [B] * 3},
+                             "noise": {"accel_white_density": 1e-5,
+                                       "gyro_white_density": 1e-7}}, plan_layout(plan))
+    rec = simulate(plan, truth, seed=4)
+    tau, ad, _ = A.overlapping_adev(rec.gyro, 0.1)
+    band = (tau >= 1) & (tau <= 1000)
+    floor = np.exp(np.mean(np.log(ad[band])))
+    assert floor / (A.BI_FACTOR * B) == pytest.approx(1.0, abs=0.1)
