@@ -112,3 +112,17 @@ def test_report_bad_input_leaves_nothing(sample, tmp_path):
         main(["report", str(sample / "static.h5"), "--out", str(tmp_path / "r")])
     assert e.value.code == 3
     assert not (tmp_path / "r").exists()
+
+
+def test_report_of_scalar_fit(tmp_path):
+    plan = parse_plan('name = "hand"\nkind = "static"\nsample_rate_hz = 50.0\n'
+                      'transition_s = 1.0\n[site]\nlatitude_deg = 45.0\n[[segment]]\n'
+                      'label = "pos"\nrepeat = "auto"\nsim_repeat = 12\nduration_s = 3\n')
+    rec = simulate(plan, None, seed=2)
+    cal = fit_accel(rec, "scalar")
+    assert cal.method == "scalar" and np.ndim(cal.residuals["accel_segment"]) == 1
+    write_calibration(tmp_path / "s.h5", cal)
+    _report(tmp_path / "s.h5", "--out", tmp_path / "r")
+    manifest = json.loads((tmp_path / "r" / "figures.json").read_text())
+    assert [f["axes"] for f in manifest["figures"]] == [2, 1]
+    assert "Static accelerometer fit (scalar)" in (tmp_path / "r" / "report.md").read_text()
