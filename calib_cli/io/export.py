@@ -72,6 +72,9 @@ def affine_correction(cal: CalibrationResult, path: str = "<calibration>") -> di
             yw = _predict(model, params, "gyro", Z, probe)
             yf = _predict(model, params, "gyro", probe, Z)
             b, K, D = yw[0], (yw[1:] - yw[0]).T, (yf[1:] - yf[0]).T
+        if not np.all(np.isfinite(K)) or np.linalg.cond(K) > 1e12:
+            raise InputError(f"the calibration's {sensor} model gives a singular scale "
+                             "matrix; nothing to invert", path)
         # the map must be affine: check on inputs of realistic size
         rng = np.random.default_rng(0)
         x = rng.standard_normal((8, 3)) * (10.0 if sensor == "accel" else 1.0)
