@@ -10,7 +10,7 @@ import click
 import numpy as np
 from rich.table import Table
 
-from calib_cli.cli.common import Ctx, info, out_console, print_json
+from calib_cli.cli.common import Ctx, err_console, info, interactive, out_console, print_json
 from calib_cli.cli.main import cli
 from calib_cli.errors import EstimationError, InputError
 from calib_cli.io.h5 import _attr_str, atomic_path, open_checked, read_segments
@@ -115,7 +115,13 @@ def compute_allan(raw, segment=None, targets=(), stride_div=A.STRIDE_DIV) -> A.A
                                      "deviation needs an evenly sampled record without gaps", raw)
                 yield np.column_stack([np.asarray(smp[s][a:b], dtype=float) for s in sensors])
 
-        return A.allan_of_chunks(chunks(), n, tau0, channels, chan_units, chan_tgt, stride_div,
+        feed = chunks()
+        if interactive() and n > 8 * CHUNK:  # long records: a progress bar on a terminal
+            from rich.progress import track
+
+            feed = track(feed, total=-(-n // CHUNK), description="Allan deviation",
+                         console=err_console)
+        return A.allan_of_chunks(feed, n, tau0, channels, chan_units, chan_tgt, stride_div,
                                  meta={"source_kind": _attr_str(h5, "kind"), "segment": label,
                                        "start": int(start), "stop": int(stop),
                                        "serial": _attr_str(h5, "unit_serial") or None})

@@ -91,12 +91,12 @@ class OctaveAllan:
         if self.y_ref is None:
             self.y_ref = y.mean(axis=0)
         x = self.x_last + np.cumsum((y - self.y_ref) * self.tau0, axis=0)
-        idx = np.arange(self.pos + 1, self.pos + len(y) + 1)  # global phase indices
+        first = self.pos + 1  # global index of x[0]
         self.x_last = x[-1]
         self.pos += len(y)
         for j, (m, s) in enumerate(zip(self.m, self.stride, strict=True)):
             q = int(m // s)
-            sel = x[(idx % s) == 0]
+            sel = x[(-first) % s::s]  # the phases whose global index is a multiple of s
             buf = np.concatenate([self.tails[j], sel]) if len(sel) else self.tails[j]
             if len(buf) > 2 * q:
                 d = buf[2 * q:] - 2.0 * buf[q:-q] + buf[:-2 * q]
