@@ -99,13 +99,16 @@ int main(void) {
 def test_c_header_compiles(files, single):
     d, cal, _ = files
     h = d / ("calf.h" if single else "cal.h")
-    run("export", cal, "--format", "c-header", "--out", h, *(["--float"] if single else []))
+    opts = ["--float", "--prefix", "imu1"] if single else []  # float with a renamed prefix
+    run("export", cal, "--format", "c-header", "--out", h, *opts)
+    P = "IMU1" if single else "CALIB"
     src = d / "use.c"
     src.write_text(f'#include "{h.name}"\n'
-                   "int calib_dummy(void) { return (int)CALIB_ACCEL_KINV[0][0]; }\n")
+                   f"int calib_dummy(void) {{ return (int){P}_ACCEL_KINV[0][0]; }}\n")
     subprocess.run(["cc", "-std=c99", "-Wall", "-Werror", "-c", str(src), "-o", str(d / "use.o")],
                    check=True, cwd=d)
     text = h.read_text()
+    assert ("typedef float imu1_real_t;" in text) if single else ("typedef double" in text)
     assert "f = K^-1 (A - b)" in text and "w = G^-1 (W - d - D f)" in text
     assert "sha256" in text and "SN-42" in text
 
