@@ -162,8 +162,11 @@ def render_allan(res: A.AllanResult, title: str) -> None:
         row = [_fmt(k, u, *(res.terms[k][f][i] for f in ("value", "lo", "hi")))
                for k in A.TERM_NAMES]
         at = res.averaging_time[i]
-        avg = (f"{at:.3g} s" if np.isfinite(at) else "target not reached") + \
-            f" (target {res.target[i]:.3g} {u})"
+        if not np.isfinite(res.target[i]):
+            avg = "no target (--target)"
+        else:
+            avg = (f"{at:.3g} s" if np.isfinite(at) else "target not reached") + \
+                f" (target {res.target[i]:.3g} {u})"
         t.add_row(c, *row, f"{res.tau_min[i]:.3g} s", avg)
     out_console.print(t)
 

@@ -188,7 +188,8 @@ def allan_section(ctx: ReportContext) -> Section | None:
             row.append("not visible" if not np.isfinite(v) else
                        f"{v:.3g} [{lo:.3g}, {hi:.3g}] {tu[k]}")
         at = res.averaging_time[i]
-        row.append(f"{at:.3g} s" if np.isfinite(at) else "not reached")
+        row.append(f"{at:.3g} s" if np.isfinite(at) else
+                   ("not reached" if np.isfinite(res.target[i]) else "no target"))
         rows.append(row)
     tab = Table(f"IEEE Std 952 noise terms with {CONFIDENCE:.0%} intervals, and the shortest "
                 "averaging time that brings the noise below the target.",
