@@ -7,7 +7,6 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from samples_9 import PLAN
 
 from calib_cli.cli.main import cli
 from calib_cli.io.h5 import write_calibration
@@ -16,6 +15,11 @@ from calib_cli.methods.accel_lsq import fit_accel
 from calib_cli.methods.compare import compare
 from calib_cli.sim.simulate import plan_layout, simulate
 from calib_cli.sim.truth import truth_from_dict
+
+try:  # tests/ as rootdir-inserted path (no __init__.py) or as a package
+    from samples_9 import PLAN
+except ImportError:  # pragma: no cover
+    from tests.samples_9 import PLAN
 
 TRUTH = {"params": {"accel_bias": [0.02, -0.01, 0.03],
                     "accel_K": [[1.002, 0.001, 0.0], [0.0, 0.998, 0.002], [0.001, 0.0, 1.001]]},
