@@ -86,9 +86,16 @@ def _render_raw(path):
 @click.option("--json", "as_json", is_flag=True, help="One JSON object (contract section 5).")
 @click.option("--covariance", is_flag=True, help="Include the covariance matrix.")
 def show_cmd(files, as_json, covariance):
-    """Summarise a calib HDF5 file (raw, calibration, corrected, ...)."""
+    """Summarise a calib HDF5 file (raw, calibration, corrected, ...).
+
+    With two calibration files A B: the parameter differences B - A in units
+    of their combined sigma (e.g. one unit calibrated on two dates)."""
     path = files[0]
     kind = file_kind(path)
+    if len(files) == 2 and kind == "calibration" and file_kind(files[1]) == "calibration":
+        from calib_cli.cli.compare import show_compare  # A.h5 B.h5: differences in sigma
+
+        return show_compare(files, as_json)
     if kind in SHOWERS:
         return SHOWERS[kind](files, as_json, covariance)
     if as_json:

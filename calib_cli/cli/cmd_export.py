@@ -1,0 +1,44 @@
+"""calib export CAL.h5 --format json|yaml|c-header|csv [--out FILE] [--float]"""
+
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+import click
+
+from calib_cli.cli.common import info
+from calib_cli.cli.main import cli
+from calib_cli.io.export import FORMATS, export_object, to_c_header, to_csv, to_json, to_yaml
+from calib_cli.io.h5 import atomic_path, provenance, read_calibration, sha256_file
+
+
+@cli.command("export")
+@click.argument("cal", type=click.Path(dir_okay=False))
+@click.option("--format", "fmt", type=click.Choice(FORMATS), required=True,
+              help="json | yaml | c-header | csv (docs/export.md).")
+@click.option("--out", type=click.Path(dir_okay=False), help="Output file (default: stdout).")
+@click.option("--float", "single", is_flag=True, help="c-header: float instead of double.")
+@click.option("--prefix", default="calib", show_default=True,
+              help="c-header: prefix of the names (CALIB_ACCEL_KINV, calib_correct_accel).")
+def export_cmd(cal, fmt, out, single, prefix):
+    """Export the correction (K^-1, biases, D) for firmware and other tools."""
+    if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", prefix):
+        raise click.BadParameter("must be a C identifier", param_hint="--prefix")
+    c = read_calibration(cal)
+    prov = provenance(cal)
+    prov["sha256"] = sha256_file(cal)
+    source = Path(cal).name
+    if fmt == "c-header":
+        text = to_c_header(c, prov, source, single=single, prefix=prefix)
+    else:
+        obj = export_object(c, prov, source)
+        text = {"json": to_json, "yaml": to_yaml}[fmt](obj) if fmt != "csv" else to_csv(c, obj)
+    if out:
+        with atomic_path(out) as tmp, open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        info(f"-> {out}")
+    else:
+        sys.stdout.write(text)
+    return 0

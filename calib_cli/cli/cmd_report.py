@@ -1,0 +1,77 @@
+"""calib report CAL.h5 [RAW.h5|ALLAN.h5] --out DIR"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+
+import click
+
+from calib_cli.cli.common import info
+from calib_cli.cli.main import cli
+from calib_cli.errors import CalibError, InputError
+from calib_cli.io.h5 import file_kind, provenance, read_calibration
+
+MIN_ALLAN_S = 60.0  # a record shorter than this is not a free-running noise record
+
+
+def _allan_for(raw: str, kind: str):
+    """(AllanResult or None, note)."""
+    if kind == "allan":
+        from calib_cli.io.allan_h5 import read_allan
+
+        return read_allan(raw), None
+    from calib_cli.cli.cmd_allan import compute_allan
+
+    try:
+        res = compute_allan(raw)
+    except CalibError as exc:
+        return None, f"No Allan deviation of {Path(raw).name}: {exc.message}"
+    if res.duration < MIN_ALLAN_S:
+        return None, (f"{Path(raw).name} is not a free-running record (longest span "
+                      f"{res.duration:.3g} s < {MIN_ALLAN_S:.0f} s): no Allan plot.")
+    return res, None
+
+
+@cli.command("report")
+@click.argument("cal", type=click.Path(dir_okay=False))
+@click.argument("raw", required=False, type=click.Path(dir_okay=False))
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="Directory for report.md, report.html, the PNG figures (created).")
+def report_cmd(cal, raw, out_dir):
+    """Markdown and self-contained HTML report of a calibration, with plots.
+
+    RAW (optional): a free-running raw record (or an 'allan' file) adds the
+    Allan deviation; method sections may also use it (docs/report.md)."""
+    from calib_cli.report.builder import ReportContext, build_report, write_report
+
+    c = read_calibration(cal)
+    ctx = ReportContext(cal=c, cal_path=cal, prov=provenance(cal))
+    if raw:
+        kind = file_kind(raw)
+        if kind not in ("raw", "corrected", "allan"):
+            raise InputError(f"a {kind!r} file; expected a raw, corrected or allan file", raw)
+        ctx.raw_path, ctx.raw_kind = raw, kind
+        ctx.allan, note = _allan_for(raw, kind)
+        if note:
+            ctx.notes.append(note)
+    sections = build_report(ctx)
+    title = f"Calibration report: {c.serial or 'unit'} ({c.method}), {Path(cal).name}"
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError("exists and is not a directory", out_dir)
+    parent = out.parent if str(out.parent) else Path(".")
+    if not parent.is_dir():
+        raise InputError("parent directory does not exist", out_dir)
+    # build in a temporary directory beside it, then move the files in: no partial report
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=parent))
+    try:
+        manifest = write_report(sections, title, tmp)
+        out.mkdir(exist_ok=True)
+        for f in sorted(tmp.iterdir()):
+            f.replace(out / f.name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    info(f"report with {len(manifest['figures'])} figures -> {out / 'report.html'}")
+    return 0

@@ -1,0 +1,297 @@
+"""Export a calibration's correction for firmware and other tools (docs/export.md).
+
+The correction is the contract's (section 2):
+
+    f = K^-1 (A - b)            accelerometers
+    w = G^-1 (W - d - D f)      gyroscopes, f the corrected specific force
+
+b, K, d, G, D are not copied blindly from the parameters: they are read off
+the calibration's own forward model (``ImuModel.predict``) by probing it with
+zero and unit inputs, so whatever effects the fit used (full or triangular
+K, a separate misalignment, g-sensitivity) end up in the one affine map that
+``calib apply`` inverts. A model that is not affine in its inputs
+(nonlinearity, scale asymmetry, temperature drift, time offset) cannot be
+written as K^-1 and b: the export refuses it rather than drop terms silently.
+Lever arms and proof-mass offsets are not part of the correction (apply does
+not invert them either) and are listed but not applied.
+
+Formats: json, yaml (written here, no dependency), csv (long format, one row
+per entry), c-header (K^-1, b, G^-1, d, D as literals with full precision,
+%.17g for double, %.9g for float).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+
+import numpy as np
+
+from calib_cli.data import CalibrationResult
+from calib_cli.errors import InputError
+from calib_cli.methods.apply import model_of
+from calib_cli.model.kinematics import Kinematics
+
+FORMATS = ("json", "yaml", "c-header", "csv")
+LINEAR_EFFECTS = {"bias", "scale_misalignment", "misalignment", "g_sensitivity"}
+NOT_APPLIED = {"lever_arm", "proof_mass_offsets"}  # input-side terms, not part of the correction
+FORMULA = {"accel": "f = K^-1 (A - b)", "gyro": "w = G^-1 (W - d - D f)"}
+
+
+def _predict(model, params, sensor, f, w):
+    n = len(f)
+    kin = Kinematics(np.zeros(n), np.asarray(f, float), np.asarray(w, float), np.zeros((n, 3)))
+    return model.predict(params, kin, sensors=(sensor,))[sensor]
+
+
+def affine_correction(cal: CalibrationResult, path: str = "<calibration>") -> dict:
+    """{"accel": {"b", "K", "K_inv"}, "gyro": {"d", "G", "G_inv", "D"}} for the
+    sensors the calibration covers, read off its forward model."""
+    if cal.layout.redundant:
+        raise InputError("a redundant-unit (RIMU) calibration has no triad K^-1; export it "
+                         "as json, yaml or csv", path)
+    names = {d.get("name") for d in cal.model}
+    bad = sorted(names - LINEAR_EFFECTS - NOT_APPLIED)
+    if bad:
+        raise InputError(f"the calibration's model includes {', '.join(bad)}, which the linear "
+                         "correction f = K^-1 (A - b) cannot express; use `calib apply`", path)
+    model = model_of(cal)
+    params = {k: np.asarray(v, dtype=float) for k, v in cal.params.items()}
+    I3, Z = np.eye(3), np.zeros((4, 3))
+    probe = np.vstack([np.zeros(3), I3])
+    out = {}
+    for sensor in ("accel", "gyro"):
+        if f"{sensor}_bias" not in params and f"{sensor}_K" not in params:
+            continue
+        if sensor == "accel":
+            y = _predict(model, params, "accel", probe, Z)
+            b, K = y[0], (y[1:] - y[0]).T
+            D = None
+        else:
+            yw = _predict(model, params, "gyro", Z, probe)
+            yf = _predict(model, params, "gyro", probe, Z)
+            b, K, D = yw[0], (yw[1:] - yw[0]).T, (yf[1:] - yf[0]).T
+        if not np.all(np.isfinite(K)) or np.linalg.cond(K) > 1e12:
+            raise InputError(f"the calibration's {sensor} model gives a singular scale "
+                             "matrix; nothing to invert", path)
+        # the map must be affine: check on inputs of realistic size
+        rng = np.random.default_rng(0)
+        x = rng.standard_normal((8, 3)) * (10.0 if sensor == "accel" else 1.0)
+        fx = rng.standard_normal((8, 3)) * 10.0 if sensor == "gyro" else x
+        y = (_predict(model, params, "accel", x, np.zeros((8, 3))) if sensor == "accel"
+             else _predict(model, params, "gyro", fx, x))
+        lin = b + x @ K.T + (fx @ D.T if D is not None else 0.0)
+        if np.max(np.abs(y - lin)) > 1e-9 * (np.max(np.abs(y)) + 1e-300):
+            raise InputError(f"the {sensor} model is not affine in its input; the linear "
+                             "correction cannot express it (use `calib apply`)", path)
+        # named as in the formula: accel b, K, K_inv; gyro d, G, G_inv, D
+        if sensor == "accel":
+            out[sensor] = {"b": b, "K": K, "K_inv": np.linalg.inv(K)}
+        else:
+            out[sensor] = {"d": b, "G": K, "G_inv": np.linalg.inv(K), "D": D}
+    if not out:
+        raise InputError("the calibration holds no accelerometer or gyroscope correction", path)
+    return out
+
+
+def _num(x) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _lists(a):
+    a = np.asarray(a, dtype=float)
+    if a.ndim == 0:
+        return _num(a)
+    return [_lists(v) for v in a]
+
+
+def export_object(cal: CalibrationResult, prov: dict, source: str) -> dict:
+    """The JSON/YAML object: provenance, formula, correction, all parameters."""
+    obj = {
+        "format": "calib-correction", "format_version": 1,
+        "source": {"file": source, "sha256": prov.get("sha256"),
+                   "created_utc": prov.get("created_utc"), "command": prov.get("command"),
+                   "tool_version": prov.get("tool_version")},
+        "method": cal.method, "unit": {"serial": cal.serial},
+        "raw_units": cal.raw_units,
+    }
+    if not cal.layout.redundant:
+        corr = affine_correction(cal, source)
+        obj["formula"] = {s: FORMULA[s] for s in corr}
+        obj["correction"] = {s: {k: _lists(v) for k, v in d.items()} for s, d in corr.items()}
+        not_applied = sorted({d.get("name") for d in cal.model} & NOT_APPLIED)
+        if not_applied:
+            obj["not_applied"] = not_applied
+    obj["params"] = {k: _lists(v) for k, v in cal.params.items()}
+    obj["sigma"] = {k: _lists(v) for k, v in cal.sigma.items()}
+    obj["units"] = dict(cal.units)
+    return obj
+
+
+def to_json(obj) -> str:
+    return json.dumps(obj, indent=2) + "\n"
+
+
+# ---------------------------------------------------------------------------
+# YAML, by hand: block mappings, flow sequences, JSON-style quoted strings
+# (a JSON double-quoted string is a valid YAML double-quoted scalar)
+
+
+def _yaml_scalar(v) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(float(v)) if isinstance(v, float) else str(v)
+    return json.dumps(str(v))
+
+
+def _yaml_flow(v) -> str:
+    if isinstance(v, list):
+        return "[" + ", ".join(_yaml_flow(x) for x in v) + "]"
+    return _yaml_scalar(v)
+
+
+def to_yaml(obj, indent: int = 0) -> str:
+    lines = ["# calib correction export (docs/export.md)"] if indent == 0 else []
+    pad = "  " * indent
+    for k, v in obj.items():
+        key = str(k) if re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", str(k)) else json.dumps(str(k))
+        if isinstance(v, dict):
+            if not v:
+                lines.append(f"{pad}{key}: {{}}")
+            else:
+                lines.append(f"{pad}{key}:")
+                lines.append(to_yaml(v, indent + 1).rstrip("\n"))
+        else:
+            lines.append(f"{pad}{key}: {_yaml_flow(v)}")
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------
+# CSV, long format
+
+
+def to_csv(cal: CalibrationResult, obj: dict) -> str:
+    rows = ["parameter,index,value,sigma,unit"]
+
+    def fmt(x):
+        return "" if x is None or not math.isfinite(float(x)) else repr(float(x))
+
+    for k, v in cal.params.items():
+        v = np.asarray(v, dtype=float)
+        s = np.asarray(cal.sigma.get(k, np.full(v.shape, np.nan)), dtype=float)
+        for idx in np.ndindex(v.shape):
+            rows.append(f"{k},{' '.join(map(str, idx))},{fmt(v[idx])},{fmt(s[idx])},"
+                        f"{cal.units.get(k, '')}")
+    for sensor, d in obj.get("correction", {}).items():
+        for name in ("K_inv", "G_inv"):
+            if name not in d:
+                continue
+            m = np.asarray(d[name], dtype=float)
+            for idx in np.ndindex(m.shape):
+                rows.append(f"{sensor}_{name},{' '.join(map(str, idx))},{fmt(m[idx])},,"
+                            "derived")
+    return "\n".join(rows) + "\n"
+
+
+# ---------------------------------------------------------------------------
+# C header
+
+
+def _c_lit(x: float, single: bool) -> str:
+    x = float(x)
+    if not math.isfinite(x):
+        raise InputError("non-finite value in the correction")
+    if single:
+        s = "%.9g" % x
+        return s + ("f" if any(c in s for c in ".eE") else ".0f")
+    s = "%.17g" % x
+    return s if any(c in s for c in ".eEn") else s + ".0"
+
+
+def _c_vec(name, v, single, T):
+    return f"static const {T} {name}[3] = {{{', '.join(_c_lit(x, single) for x in v)}}};"
+
+
+def _c_mat(name, m, single, T):
+    rows = ",\n    ".join("{" + ", ".join(_c_lit(x, single) for x in r) + "}" for r in m)
+    return f"static const {T} {name}[3][3] = {{\n    {rows}\n}};"
+
+
+def _c_comment(text: str) -> str:
+    return text.replace("*/", "* /")
+
+
+def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = False,
+                prefix: str = "calib") -> str:
+    corr = affine_correction(cal, source)
+    P, p = prefix.upper(), prefix.lower()
+    T = f"{p}_real_t"
+    units = cal.raw_units or {}
+    head = [
+        "/*",
+        f" * Calibration correction exported by calib {prov.get('tool_version', '')}.",
+        f" * Source: {_c_comment(source)}",
+        f" *   sha256 {prov.get('sha256', '')}",
+        f" *   created {prov.get('created_utc', '')}",
+        f" *   by: {_c_comment(str(prov.get('command', '')))}",
+        f" *   method {cal.method}, unit serial {cal.serial or 'unknown'}",
+        " *",
+        " * Correction (calib contract, section 2):",
+    ]
+    if "accel" in corr:
+        head.append(f" *   f = K^-1 (A - b)          A: accelerometer output "
+                    f"({units.get('accel', 'm/s^2')}), f: specific force (m/s^2)")
+    if "gyro" in corr:
+        head.append(f" *   w = G^-1 (W - d - D f)    W: gyro output ({units.get('gyro', 'rad/s')}),"
+                    " w: angular rate (rad/s), f: the corrected specific force")
+    head += [
+        " * Matrices are row-major: M[i][j] is row i, column j. Axes x, y, z = 0, 1, 2.",
+        f" * Literals: {'float, %.9g' if single else 'double, %.17g (exact round trip)'}.",
+        " */",
+        f"#ifndef {P}_CORRECTION_H",
+        f"#define {P}_CORRECTION_H",
+        "",
+        f"typedef {'float' if single else 'double'} {T};",
+        "",
+    ]
+    body = []
+    if "accel" in corr:
+        a = corr["accel"]
+        body += [f"#define {P}_HAS_ACCEL 1",
+                 "/* accelerometer bias b */", _c_vec(f"{P}_ACCEL_BIAS", a["b"], single, T),
+                 "/* K^-1, the inverse of the accelerometer scale/misalignment matrix K */",
+                 _c_mat(f"{P}_ACCEL_KINV", a["K_inv"], single, T), "",
+                 "/* f = K^-1 (A - b) */",
+                 f"static inline void {p}_correct_accel(const {T} A[3], {T} f[3])",
+                 "{",
+                 f"    {T} u[3];",
+                 f"    for (int i = 0; i < 3; ++i) u[i] = A[i] - {P}_ACCEL_BIAS[i];",
+                 "    for (int i = 0; i < 3; ++i)",
+                 f"        f[i] = {P}_ACCEL_KINV[i][0] * u[0] + {P}_ACCEL_KINV[i][1] * u[1]"
+                 f" + {P}_ACCEL_KINV[i][2] * u[2];",
+                 "}", ""]
+    if "gyro" in corr:
+        g = corr["gyro"]
+        body += [f"#define {P}_HAS_GYRO 1",
+                 "/* gyro bias d */", _c_vec(f"{P}_GYRO_BIAS", g["d"], single, T),
+                 "/* G^-1, the inverse of the gyro scale/misalignment matrix G */",
+                 _c_mat(f"{P}_GYRO_GINV", g["G_inv"], single, T),
+                 "/* D, g-sensitivity, (rad/s)/(m/s^2) (zero when not estimated) */",
+                 _c_mat(f"{P}_GYRO_D", g["D"], single, T), "",
+                 "/* w = G^-1 (W - d - D f), f the corrected specific force */",
+                 f"static inline void {p}_correct_gyro(const {T} W[3], const {T} f[3], {T} w[3])",
+                 "{",
+                 f"    {T} u[3];",
+                 "    for (int i = 0; i < 3; ++i)",
+                 f"        u[i] = W[i] - {P}_GYRO_BIAS[i] - ({P}_GYRO_D[i][0] * f[0]"
+                 f" + {P}_GYRO_D[i][1] * f[1] + {P}_GYRO_D[i][2] * f[2]);",
+                 "    for (int i = 0; i < 3; ++i)",
+                 f"        w[i] = {P}_GYRO_GINV[i][0] * u[0] + {P}_GYRO_GINV[i][1] * u[1]"
+                 f" + {P}_GYRO_GINV[i][2] * u[2];",
+                 "}", ""]
+    return "\n".join(head + body + [f"#endif /* {P}_CORRECTION_H */", ""])

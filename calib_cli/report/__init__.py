@@ -1,0 +1,1 @@
+"""Reports: figures (matplotlib, Agg) and the Markdown/HTML report builder."""

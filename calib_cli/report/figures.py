@@ -1,0 +1,65 @@
+"""Figures for reports and `calib allan --plot` (matplotlib, headless).
+
+Every function returns a matplotlib Figure built without pyplot (no global
+state, no display); ``png_bytes`` renders it. Each figure has units on its
+axes; the caption that says what to look for lives with the report section.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from calib_cli.methods.allan import ARW_TAU, BI_FACTOR, RRW_TAU, AllanResult
+
+DPI = 100
+
+
+def png_bytes(fig: Figure) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    return buf.getvalue()
+
+
+def _groups(channels):
+    """Channel indices grouped by sensor (the prefix before '_')."""
+    out: dict[str, list[int]] = {}
+    for i, c in enumerate(channels):
+        out.setdefault(c.split("_")[0], []).append(i)
+    return out
+
+
+def allan_figure(res: AllanResult, title: str = "Allan deviation") -> Figure:
+    """One log-log axis per sensor: every channel's overlapping Allan
+    deviation with its confidence band, and the IEEE 952 lines (-1/2 slope
+    through N at 1 s, the 0.664 B floor, +1/2 slope through K at 3 s)."""
+    groups = _groups(res.channels)
+    fig = Figure(figsize=(6.4 * len(groups), 4.8), layout="constrained")
+    axes = fig.subplots(1, len(groups), squeeze=False)[0]
+    t = res.tau
+    for ax, (sensor, idx) in zip(axes, groups.items(), strict=True):
+        for i in idx:
+            line, = ax.loglog(t, res.adev[:, i], marker="o", ms=3, label=res.channels[i])
+            ax.fill_between(t, res.adev_lo[:, i], res.adev_hi[:, i], color=line.get_color(),
+                            alpha=0.15, lw=0)
+            col = line.get_color()
+            N = res.terms["random_walk"]["value"][i]
+            B = res.terms["bias_instability"]["value"][i]
+            K = res.terms["rate_random_walk"]["value"][i]
+            if np.isfinite(N):
+                ax.loglog(t, N * np.sqrt(ARW_TAU / t), ls="--", lw=0.8, color=col)
+            if np.isfinite(B):
+                ax.axhline(BI_FACTOR * B, ls=":", lw=0.8, color=col)
+            if np.isfinite(K):
+                ax.loglog(t, K * np.sqrt(t / RRW_TAU), ls="-.", lw=0.8, color=col)
+        lo = np.nanmin(res.adev_lo[:, idx])
+        hi = np.nanmax(res.adev_hi[:, idx])
+        ax.set_ylim(lo / 2, hi * 2)
+        ax.set_xlabel("averaging time tau (s)")
+        ax.set_ylabel(f"Allan deviation ({res.units[idx[0]]})")
+        ax.set_title(f"{title}: {sensor}")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8, title="-- N (-1/2)  : 0.664B  -. K (+1/2)", title_fontsize=7)
+    return fig

@@ -1,0 +1,112 @@
+"""Report sections of the static accelerometer fit (methods vector and scalar):
+|g| per position before and after correction, residuals per axis and position."""
+
+from __future__ import annotations
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
+
+MG = 1e3 / 9.80665  # m/s^2 -> mg
+
+
+def g_figure(labels, before, after, sigma_after, g_ref) -> Figure:
+    """Two axes: |mean f| per position before/after with the reference g and
+    the means; below, after - g in mg with the 1-sigma noise floor of each position."""
+    fig = Figure(figsize=(max(6.4, 0.45 * len(labels) + 3), 6.4), layout="constrained")
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
+    x = np.arange(len(labels))
+    if before is not None and np.any(np.isfinite(before)):
+        ax1.plot(x, before, "o", color="tab:red", label="before (raw)")
+        ax1.axhline(np.nanmean(before), color="tab:red", ls=":", lw=1,
+                    label=f"mean before {np.nanmean(before):.5f}")
+    ax1.plot(x, after, "s", color="tab:blue", label="after correction")
+    ax1.axhline(np.mean(after), color="tab:blue", ls=":", lw=1,
+                label=f"mean after {np.mean(after):.5f}")
+    ax1.axhline(g_ref, color="k", lw=1, label=f"reference g {g_ref:.5f}")
+    ax1.set_ylabel("|mean specific force| (m/s^2)")
+    ax1.set_title("|g| per static position")
+    ax1.legend(fontsize=8, ncol=2)
+    ax1.grid(alpha=0.3)
+    ax1.ticklabel_format(axis="y", useOffset=False)
+    ax2.errorbar(x, (after - g_ref) * MG, yerr=sigma_after * MG, fmt="s", color="tab:blue",
+                 capsize=3, label="after - g (bars: 1 sigma noise floor)")
+    ax2.axhline(0, color="k", lw=1)
+    ax2.set_ylabel("|f| - g after correction (mg)")
+    ax2.set_xlabel("static position")
+    ax2.set_xticks(x, labels, rotation=45, ha="right", fontsize=8)
+    ax2.legend(fontsize=8)
+    ax2.grid(alpha=0.3)
+    return fig
+
+
+def residual_figure(labels, resid) -> Figure:
+    """Residuals per position: per axis (vector fit, (m, 3)) or of |f| (scalar, (m,)), mg."""
+    fig = Figure(figsize=(max(6.4, 0.45 * len(labels) + 3), 4.0), layout="constrained")
+    ax = fig.subplots()
+    x = np.arange(len(labels))
+    r = np.asarray(resid, dtype=float) * MG
+    if r.ndim == 2:
+        w = 0.8 / r.shape[1]
+        for j in range(r.shape[1]):
+            ax.bar(x + (j - (r.shape[1] - 1) / 2) * w, r[:, j], w, label=f"{'xyz'[j]} axis"
+                   if r.shape[1] == 3 else f"channel {j}")
+        ax.set_title("Residuals of the fit per axis and position (measured - model)")
+    else:
+        ax.bar(x, r, 0.6, label="|f| - g")
+        ax.set_title("Residuals of the fit per position (|K^-1 (A - b)| - g)")
+    ax.axhline(0, color="k", lw=1)
+    ax.set_ylabel("residual (mg)")
+    ax.set_xlabel("static position")
+    ax.set_xticks(x, labels, rotation=45, ha="right", fontsize=8)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, axis="y")
+    return fig
+
+
+@register("vector", "scalar")
+def static_sections(ctx: ReportContext):
+    cal = ctx.cal
+    if "g_table" not in cal.tables:
+        return Section("Static positions", text=["The calibration file holds no |g| table."])
+    tab = np.asarray(cal.tables["g_table"], dtype=float)
+    cols = list(cal.tables.get("g_table_columns", ["samples", "g_before", "g_after",
+                                                   "g_error_after", "g_sigma_after"]))
+    labels = list(cal.tables.get("segment_labels", [str(i) for i in range(len(tab))]))
+    col = {c: tab[:, i] for i, c in enumerate(cols)}
+    g_ref = float(cal.stats.get("g_reference", np.nan))
+    if not np.isfinite(g_ref):
+        g_ref = float(np.mean(col["g_after"] - col["g_error_after"]))
+    counts = cal.raw_units.get("accel") == "count"
+    before = None if counts else col.get("g_before")
+    figs = [FigureItem(
+        "g-per-position",
+        g_figure(labels, before, col["g_after"], col.get("g_sigma_after", 0 * tab[:, 0]), g_ref),
+        "Top: the magnitude of the mean specific force of each static position, raw (red; "
+        "absent for data in counts) and corrected (blue), with the reference gravity (black) "
+        "and the means (dotted). Bottom: corrected |f| - g in mg with each position's 1-sigma "
+        "noise floor. What to look for: after correction every position should sit on the "
+        "reference within about its error bar; a position far off points to a disturbed "
+        "position or a wrong plan attitude, a pattern by axis to an effect the model lacks.")]
+    resid = cal.residuals.get("accel_segment")
+    if resid is not None and len(np.atleast_1d(resid)) == len(labels):
+        figs.append(FigureItem(
+            "residuals", residual_figure(labels, resid),
+            "Residuals of the fit (measured minus model) for each position, in mg, per axis "
+            "for the vector fit, of |f| for the scalar fit. What to look for: scatter like "
+            "the noise and no pattern; a residual that repeats with the sign of one axis "
+            "suggests nonlinearity or scale asymmetry (try `calib diagnose`)."))
+    rows = [[lab, f"{int(c)}", "-" if before is None or not np.isfinite(b) else f"{b:.6f}",
+             f"{a:.6f}", f"{e * MG:+.4f}", f"{s * MG:.4f}"]
+            for lab, c, b, a, e, s in zip(labels, col["samples"],
+                                          before if before is not None else col["samples"] * np.nan,
+                                          col["g_after"], col["g_error_after"],
+                                          col.get("g_sigma_after", col["samples"] * np.nan),
+                                          strict=True)]
+    table = Table("|g| per static position (m/s^2; differences in mg).",
+                  ["position", "samples", "|f| before", "|f| after", "after - g (mg)",
+                   "1 sigma (mg)"], rows)
+    text = [f"{len(labels)} static positions, reference g = {g_ref:.6f} m/s^2."]
+    return Section(f"Static accelerometer fit ({cal.method})", text=text, tables=[table],
+                   figures=figs)
