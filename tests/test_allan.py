@@ -217,8 +217,6 @@ def test_gap_in_time_is_input_error_and_no_static_is_estimation_error(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="model.effects.FLICKER_SCALE = 0.43 gives an Allan floor "
-                   "of 0.69 x 0.664 B; about 0.61 is needed (reported, issue 9)")
 def test_simulator_bias_instability_has_the_0664_floor():
     """The catalogue's BiasInstability effect, simulated, seen by calib allan."""
     from calib_cli.io.plan import parse_plan

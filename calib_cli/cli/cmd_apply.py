@@ -69,7 +69,7 @@ def apply_cmd(cal, raw, out):
                     for s, ds in body.items():
                         ds[a:b] = res[f"{s}_body"]
                 else:
-                    f, w = apply_triad(c, smp["accel"][a:b], g_in)
+                    f, w = apply_triad(c, smp["accel"][a:b], g_in, accel_si=units["accel"] != "count")
                 acc[a:b] = f
                 if gyr is not None:
                     gyr[a:b] = w

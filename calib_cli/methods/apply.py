@@ -29,14 +29,18 @@ def corrected_channels(cal: CalibrationResult) -> list[str]:
     return [s for s in ("accel", "gyro") if f"{s}_K" in cal.params or f"{s}_bias" in cal.params]
 
 
-def apply_triad(cal: CalibrationResult, accel: np.ndarray, gyro: np.ndarray | None):
+def apply_triad(cal: CalibrationResult, accel: np.ndarray, gyro: np.ndarray | None,
+                accel_si: bool = True):
     """Corrected (accel, gyro) for a chunk: f = K^-1 (A - b), w = G^-1 (W - d - D f).
-    Channels the calibration does not cover pass through unchanged."""
+    Channels the calibration does not cover pass through unchanged. For a
+    gyro-only calibration with g-sensitivity, f is the raw accelerometer
+    output when that is in SI (``accel_si``), else zero."""
     model = model_of(cal)
     params = {k: np.asarray(v, dtype=float) for k, v in cal.params.items()}
     chans = corrected_channels(cal)
     f = correct(model, params, "accel", accel) if "accel" in chans else accel
     w = gyro
     if gyro is not None and "gyro" in chans:
-        w = correct(model, params, "gyro", gyro, other=f if "accel" in chans else None)
+        other = f if "accel" in chans else (accel if accel_si else None)
+        w = correct(model, params, "gyro", gyro, other=other)
     return f, w
