@@ -51,6 +51,7 @@ MEMS_K_PRIOR = 3e-3  # default otherwise (the catalogue's typical MEMS size)
 GRADE_NORM_TOL = 0.25  # |w_k| must lie within 25 % of W at every position ...
 GRADE_NOISE_TOL = 0.02  # ... and the noise of a mean below 2 % of W
 MIN_TURN = 5.0 * D2R  # turns nearer than this to 0 or 360 deg tell nothing
+EW_TOL = 2.0  # deg: a turn axis this close to horizontal East-West counts as on it
 
 MODEL = ImuModel((Bias("accel"), Bias("gyro"), ScaleMisalignment("gyro")), Layout())
 KEYS = ("accel_bias", "gyro_bias", "attitude")
@@ -262,6 +263,7 @@ class _Problem:
     def __init__(self, inp: Inputs, C1: Rotation, eps0, site, use_gyro: bool, sK: float):
         self.inp, self.C1, self.eps0, self.site = inp, C1, np.asarray(eps0, float), site
         self.use_gyro, self.sK = use_gyro, sK
+        self.static_only = False
         self.M = len(inp.f)
         self.gyro_gaps = any(gp.source == "gyro" for gp in inp.gaps)
         self.nG = 9 if (self.gyro_gaps and sK > 0) else 0
@@ -302,8 +304,9 @@ class _Problem:
         for k, gp in enumerate(self.inp.gaps):
             psi = np.zeros(3)
             if gp.source == "gyro":
-                psi = (-gp.rel.S_bias @ (th[3:6] - self.eps0) - gp.rel.S_K @ dG
-                       + self.E[k] @ th[6:9])
+                psi = -gp.rel.S_K @ dG
+                if not self.static_only:  # second-order channels (see fit_align)
+                    psi = psi - gp.rel.S_bias @ (th[3:6] - self.eps0) + self.E[k] @ th[6:9]
             if self.idx[k] is not None:
                 psi = psi + self.L[k] @ th[self.idx[k]:self.idx[k] + 3]
             C = C * (Rotation.from_rotvec(psi) * gp.dR)
@@ -346,7 +349,7 @@ def _euler_cov(C1: Rotation, cov_alpha: np.ndarray, unobs_alpha: np.ndarray):
     cov = np.full((3, 3), np.nan)
     Jo = J[:, obs]
     cov_e = Jo @ cov_alpha[np.ix_(obs, obs)] @ Jo.T
-    bad = (np.abs(J[:, ~obs]) > 1e-3).any(axis=1) if (~obs).any() else np.zeros(3, bool)
+    bad = (np.abs(J[:, ~obs]) > 0.05).any(axis=1) if (~obs).any() else np.zeros(3, bool)
     good = ~bad
     cov[np.ix_(good, good)] = cov_e[np.ix_(good, good)]
     return e0, J, cov, bad
@@ -407,7 +410,60 @@ def fit_align(rec: Recording, rotation: str = "auto", gyro: str = "auto",
     if not use_gyro:
         fixed[8] = True  # the heading (alpha up) is not seen by the accelerometers
     fit = lsq.fit(prob.residual, theta0, prob.scales(), what="alignment fit", fixed=fixed)
-    return _result(rec, inp, prob, fit, use_gyro, why, sK, fixed)
+    # Observability is that of the static equations with the turn known (the
+    # issue's twelve equations): the bias and attitude also bend the integrated
+    # turn (eps T, W T alpha), which the fit uses, but that channel alone
+    # cannot determine an entry to any useful accuracy (its sigma is swamped by
+    # the gyro scale-factor prior), so such entries are reported unobservable.
+    prob.static_only = True
+    jac = _jacobian(prob.residual, fit.theta, prob.scales())
+    prob.static_only = False
+    _, unobs_static = lsq.covariance(jac, prob.scales(), fixed)
+    unobs_static |= _east_west_loss(inp, prob, fit.theta, eps, site, use_gyro, sK, fixed)
+    return _result(rec, inp, prob, fit, use_gyro, why, sK, fixed | unobs_static)
+
+
+def _east_west_loss(inp, prob, theta, eps, site, use_gyro, sK, fixed) -> np.ndarray:
+    """Entries lost to a turn about a horizontal East-West axis.
+
+    Exactly there the twelve equations lose a 2-D subspace (nabla and eps
+    along the axis, heading, tilt about North); the estimated attitude never
+    puts the axis exactly East-West, so the rank test at the estimate sees
+    only a weak direction. When every turn axis lies within EW_TOL of the
+    East-West line, the data cannot tell the geometry from the degenerate one:
+    the rank test is made there (the attitude turned by the small angle that
+    makes the first axis exactly East-West)."""
+    C = prob.attitudes(theta)
+    east = np.array([1.0, 0.0, 0.0])
+    axes = []
+    for k, gp in enumerate(inp.gaps):
+        rv = (C[k].inv() * C[k + 1]).as_rotvec()
+        axes.append(C[k].apply(rv / max(np.linalg.norm(rv), 1e-15)))
+    off = [np.degrees(np.arccos(min(abs(a @ east), 1.0))) for a in axes]
+    if max(off) > EW_TOL:
+        return np.zeros(len(theta), bool)
+    a = axes[0]
+    tgt = np.sign(a @ east) * east
+    cr = np.cross(a, tgt)
+    snap = Rotation.from_rotvec(cr / max(np.linalg.norm(cr), 1e-15)
+                                * np.arcsin(min(np.linalg.norm(cr), 1.0)))
+    ps = _Problem(inp, snap * C[0], eps, site, use_gyro, sK)
+    ps.static_only = True
+    th = np.array(theta, float)
+    th[6:9] = 0.0
+    _, unobs = lsq.covariance(_jacobian(ps.residual, th, ps.scales()), ps.scales(), fixed)
+    return unobs
+
+
+def _jacobian(fn, th, scales) -> np.ndarray:
+    r0 = fn(th)
+    J = np.empty((len(r0), len(th)))
+    for j in range(len(th)):
+        h = 1e-3 * scales[j]
+        d = np.zeros(len(th))
+        d[j] = h
+        J[:, j] = (fn(th + d) - fn(th - d)) / (2 * h)
+    return J
 
 
 def _result(rec, inp, prob, fit, use_gyro, why, sK, fixed) -> CalibrationResult:

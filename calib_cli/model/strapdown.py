@@ -98,14 +98,17 @@ def integrate_relative(t: np.ndarray, w: np.ndarray, C0: Rotation, site: Site,
     wmid = 0.5 * (w[1:] + w[:-1])
     for i in range(n - 1):
         Ri = R[i]
-        # earth rate in body axes at mid-interval (first-order in the step: exact enough)
+        # earth rate in body axes at mid-interval: a fixed vector seen from a body
+        # turning at w moves by -w x e (second-order accurate step)
         e_body = (C0m @ Ri).T @ W_n
+        e_body = e_body - 0.5 * np.cross(wmid[i] * dts[i], e_body)
         step = (wmid[i] - e_body) * dts[i]
         q = _qmul(q, _qexp(step))
         R[i + 1] = _qmat(q)
     dt = np.concatenate([dts, [0.0]])
-    # psi = sum_i R_{i+1} delta_w_i dt_i (left perturbation in start-body axes)
-    Rn = R[1:]
+    # psi = sum_i R_{i+1/2} delta_w_i dt_i (left perturbation in start-body axes;
+    # the mid-interval attitude carries a rate change within the step to second order)
+    Rn = 0.5 * (R[1:] + R[:-1])
     S_bias = np.einsum("nij,n->ij", Rn, dts)
     S_K = np.einsum("nar,nc->arc", Rn, wmid * dts[:, None]).reshape(3, 9)
     if sigma is None:
