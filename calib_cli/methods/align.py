@@ -143,7 +143,7 @@ def collect(rec: Recording, rotation: str = "auto", turn_sigma: float = 0.0) -> 
                               f"{len(segs)}: add a second position after a turn of 60-180 deg")
     f, w, n, sa, sw = _means(rec, segs)
     gaps = []
-    for a, b in zip(segs[:-1], segs[1:]):
+    for a, b in zip(segs[:-1], segs[1:], strict=True):
         i0, i1 = a.stop - 1, b.start
         plan_R = _plan_turn(rec, a, b)
         use_gyro = rotation == "gyro" or (rotation == "auto" and _continuous(rec, i0, i1))
@@ -436,7 +436,7 @@ def _east_west_loss(inp, prob, theta, eps, site, use_gyro, sK, fixed) -> np.ndar
     C = prob.attitudes(theta)
     east = np.array([1.0, 0.0, 0.0])
     axes = []
-    for k, gp in enumerate(inp.gaps):
+    for k in range(len(inp.gaps)):
         rv = (C[k].inv() * C[k + 1]).as_rotvec()
         axes.append(C[k].apply(rv / max(np.linalg.norm(rv), 1e-15)))
     off = [np.degrees(np.arccos(min(abs(a @ east), 1.0))) for a in axes]
@@ -523,6 +523,7 @@ def _result(rec, inp, prob, fit, use_gyro, why, sK, fixed) -> CalibrationResult:
         "gyro_residual_rms": float(np.sqrt(np.mean(rw**2))),
         "accel_noise_sigma": inp.sig_a.tolist(), "gyro_noise_sigma": inp.sig_w.tolist(),
         "chi2_dof": fit.chi2_dof,
+        **g_error_stats(inp.f, th[0:3], site.gravity),
         "observability": observability_note(gaps[0]["axis_body"], gaps[0]["angle"], C1, site,
                                             main_unobs),
         "direct_readings": direct_readings(inp, C_all, site, use_gyro),
@@ -540,6 +541,14 @@ def _result(rec, inp, prob, fit, use_gyro, why, sK, fixed) -> CalibrationResult:
         tables={"segment_labels": [s.label for s in inp.segments]},
         model=[{"name": "bias", "sensor": "accel"}, {"name": "bias", "sensor": "gyro"}],
         raw_units=dict(rec.units), layout=rec.layout, serial=rec.serial)
+
+
+def g_error_stats(f: np.ndarray, nabla: np.ndarray, g: float) -> dict:
+    """RMS over the positions of |mean f| - g, raw and bias-corrected (m/s^2)."""
+    return {"g_reference": g,
+            "g_error_rms_before": float(np.sqrt(np.mean((np.linalg.norm(f, axis=1) - g) ** 2))),
+            "g_error_rms_after": float(np.sqrt(np.mean((np.linalg.norm(f - nabla, axis=1) - g)
+                                                       ** 2)))}
 
 
 def observability_note(axis_body, angle, C1: Rotation, site, unobs) -> str:

@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError
-from calib_cli.methods.align import KEYS, UNITS, _integrate, _tilt_only, collect
+from calib_cli.methods.align import KEYS, UNITS, _integrate, _tilt_only, collect, g_error_stats
 from calib_cli.model.earth import EARTH_RATE
 from calib_cli.model.frames import rotation_to_attitude
 
@@ -101,7 +101,8 @@ def fit_classic(rec: Recording, rotation: str = "auto") -> CalibrationResult:
              "rotation_axis_body": [0.0, 0.0, 1.0], "rotation_angle": float(psi[1]),
              "earth_rate_used": True, "unobservable": [],
              "accel_noise_sigma": inp.sig_a.tolist(), "gyro_noise_sigma": inp.sig_w.tolist(),
-             "accel_residual_rms": None, "gyro_residual_rms": None}
+             "accel_residual_rms": None, "gyro_residual_rms": None,
+             **g_error_stats(inp.f, x[0:3], site.gravity)}
     return CalibrationResult(
         method="align-classic", params={"accel_bias": x[0:3], "gyro_bias": x[3:6],
                                         "attitude": x[6:9]},
