@@ -205,6 +205,13 @@ def test_cli_end_to_end(tmp_path, capsys):
     assert abs(np.degrees(js["params"]["attitude"][2]) - 30.0) < 0.2
     assert np.allclose(js["params"]["accel_bias"], np.array([120, -80, 150]) * ac.UG,
                        atol=150 * ac.UG)
+    # special attitude: body z within 2 deg of the vertical at position 1 reads
+    # its bias as f_z - g, off by the second-order tilt term g (1 - cos(tau))
+    d = [r for r in js["stats"]["direct_readings"] if r["sensor"] == "accel"]
+    assert [(r["position"], r["axis"]) for r in d] == [("position-1", 2)]
+    tau = np.radians(d[0]["tilt_deg"])
+    g = js["stats"]["g_reference"]
+    assert abs(d[0]["bias"] - (150 * ac.UG - g * (1 - np.cos(tau)))) < 5 * ac.UG
 
 
 def test_cli_bad_inputs(tmp_path, capsys):
