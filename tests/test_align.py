@@ -237,3 +237,26 @@ def test_cli_classic_rejects_a_tilted_axis(tmp_path, capsys):
     assert _run(["fit", "align", str(raw), "--out", str(tmp_path / "c.h5"),
                  "--method", "classic"]) == 4
     assert "two-position" in capsys.readouterr().err
+
+
+def test_accelerometer_only_on_request():
+    p = ac.plan([((0, 1, 0.3), 120.0)], duration=120.0)
+    truth = ac.nav_truth(np.random.default_rng(6))
+    rec = simulate(p, truth, seed=6)
+    res = fit_align(rec, gyro="ignore")
+    assert res.stats["earth_rate_used"] is False
+    assert res.stats["unobservable"] == ["attitude[2]"]
+    att = rec.truth["attitudes"][0]
+    z = (res.params["attitude"][:2] - att[:2]) / res.sigma["attitude"][:2]
+    za = (res.params["accel_bias"] - truth.params["accel_bias"]) / res.sigma["accel_bias"]
+    assert np.all(np.abs(np.concatenate([z, za])) < 4.5)
+
+
+def test_plan_turn_with_stated_uncertainty_widens_sigma():
+    p = ac.plan([((1, 1, 1), 130.0)], duration=120.0)
+    truth = ac.nav_truth(np.random.default_rng(8), k_prior=0.0)
+    rec = simulate(p, truth, seed=8)
+    exact = fit_align(rec, rotation="plan")
+    loose = fit_align(rec, rotation="plan", turn_sigma=0.01 * D2R)
+    assert np.all(loose.sigma["accel_bias"] >= exact.sigma["accel_bias"] * 0.999)
+    assert loose.sigma["accel_bias"].max() > 3 * exact.sigma["accel_bias"].max()
