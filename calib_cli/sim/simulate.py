@@ -16,7 +16,9 @@ continuously (transition samples have segment index -1). Per segment kind:
   lever-arm cycle.
 
 Top-level simulation keys: ``sample_rate_hz`` (100), ``transition_s`` (4),
-``temperature_c`` (constant) or ``temperature_profile = [[t_s, degC], ...]``.
+``temperature_c`` (constant) or ``temperature_profile = [[t_s, degC], ...]``,
+``sim_grade`` ("navigation" for plans of kind align, the default truth then
+being a random navigation-grade unit, docs/align.md; "mems" for the MEMS default).
 """
 
 from __future__ import annotations
@@ -96,6 +98,11 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
     """Raw samples of the plan's experiment from a truth model. Pure: no I/O."""
     rng = np.random.default_rng(seed)
     layout = plan_layout(plan)
+    nav = plan.kind == "align" and plan.extra.get("sim_grade", "navigation") != "mems"
+    if truth is None and nav:
+        from calib_cli.sim.align_cases import nav_truth  # alignment needs a navigation-grade unit
+
+        truth = nav_truth(rng)
     truth = truth or default_truth(layout, rng)
     if not same_layout(truth.model.layout, layout):
         truth = Truth(truth.model.__class__(truth.model.effects, layout), truth.params,

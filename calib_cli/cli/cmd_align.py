@@ -1,0 +1,59 @@
+"""calib fit align RAW --out CAL: two-position analytic alignment (docs/align.md)."""
+
+from __future__ import annotations
+
+import click
+
+from calib_cli.cli.cmd_fit import fit_group, save
+from calib_cli.cli.common import info
+from calib_cli.io.h5 import read_raw
+
+
+@fit_group.command("align")
+@click.argument("raw", type=click.Path(dir_okay=False))
+@click.option("--out", required=True, type=click.Path(dir_okay=False))
+@click.option("--method", type=click.Choice(["two-position", "classic"]), default="two-position",
+              show_default=True,
+              help="two-position: any rotation between the positions; classic: the 2- or "
+                   "4-position baseline (turns of 180 or 90 deg about the vertical body z).")
+@click.option("--rotation", type=click.Choice(["auto", "gyro", "plan"]), default="auto",
+              show_default=True,
+              help="Rotation between positions: gyros integrated through the recorded "
+                   "transition, or the plan's turn segments (auto: gyro when recorded).")
+@click.option("--gyro", "gyro_mode", type=click.Choice(["auto", "use", "ignore"]), default="auto",
+              show_default=True,
+              help="Earth-rate equations: auto = grade check decides; use = fail (exit 4) "
+                   "when the gyros cannot resolve the earth rate; ignore = accelerometer "
+                   "biases and tilt only.")
+@click.option("--gyro-k-ppm", type=float, default=None,
+              help="Prior 1-sigma of the gyro scale-factor/misalignment entries (ppm, urad) "
+                   "that bend the integrated turn [default: 30, or 3000 without earth rate].")
+@click.option("--turn-sigma-deg", type=float, default=0.0, show_default=True,
+              help="1-sigma error per axis of a plan-stated turn (with --rotation plan).")
+def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_deg):
+    """Accelerometer and gyro biases and the attitude of the first position from
+    two (or more) static positions related by a known rotation."""
+    import numpy as np
+
+    from calib_cli.errors import InputError
+
+    if gyro_k_ppm is not None and not (np.isfinite(gyro_k_ppm) and gyro_k_ppm >= 0):
+        raise InputError(f"--gyro-k-ppm must be >= 0, got {gyro_k_ppm}")
+    if not (np.isfinite(turn_sigma_deg) and turn_sigma_deg >= 0):
+        raise InputError(f"--turn-sigma-deg must be >= 0, got {turn_sigma_deg}")
+    rec = read_raw(raw)
+    if method == "classic":
+        from calib_cli.methods.align_classic import fit_classic
+
+        res = fit_classic(rec, rotation=rotation)
+    else:
+        from calib_cli.methods.align import fit_align
+
+        res = fit_align(rec, rotation=rotation, gyro=gyro_mode,
+                        gyro_k_prior=None if gyro_k_ppm is None else gyro_k_ppm * 1e-6,
+                        turn_sigma=np.radians(turn_sigma_deg))
+    if not res.stats.get("earth_rate_used", True):
+        info(f"[yellow]earth rate not used:[/] {res.stats.get('grade_check')}; heading not "
+             "estimated, accelerometer biases and tilt only")
+    info(res.stats.get("observability", ""))
+    save(res, raw, out)
