@@ -19,7 +19,7 @@ UG = G0 * 1e-6
 DPH = SUFFIXES["_dph"]
 K_PRIOR = 30e-6  # 1-sigma of each gyro K entry (scale factor ppm, misalignment rad)
 ACCEL_NOISE = 20.0 * UG  # m/s^2/sqrt(Hz)
-ARW = 0.002 * SUFFIXES["_dpsh"]  # rad/sqrt(s)
+ARW = 0.002 * SUFFIXES["_dpsqrth"]  # rad/sqrt(s)
 START_ATT_DEG = (0.8, -0.5, 30.0)
 
 # (label, axis in body axes of position 1, angle deg): axes spread over the
