@@ -427,3 +427,32 @@ def test_missing_input_keeps_outputs_corrupt_input_drops_them(arch, tmp_path):
     f.write_bytes(b"corrupt")
     code, obj, _ = batch_json(arch["pipeline"], [f], out)
     assert code == 1 and obj["inputs"][0]["error"].startswith(str(f)) and not cal.exists()
+
+
+def test_auto_method_fits_each_plan_kind(tmp_path):
+    """One pipeline (`method = "auto"`) over an archive of mixed experiments:
+    each raw file gets the fit of its plan kind."""
+    from calib_cli.io.h5 import write_raw
+    from calib_cli.io.plan import load_plan
+    from calib_cli.sim.simulate import simulate
+
+    repo = Path(__file__).resolve().parents[1]
+    arch = tmp_path / "archive"
+    arch.mkdir()
+    plans = {"static": repo / "sample_data" / "twelve_position.toml",
+             "rimu": repo / "sample_data" / "rimu_six_position.toml",
+             "align": repo / "docs" / "examples" / "align_plan.toml"}
+    for kind, p in plans.items():
+        write_raw(arch / f"{kind}.h5", simulate(load_plan(str(p)), seed=3))
+    pipe = tmp_path / "pipeline.toml"
+    pipe.write_text('glob = "*.h5"\n[[step]]\nstep = "fit"\nmethod = "auto"\n\n'
+                    '[[step]]\nstep = "export"\n')
+    code, obj, err = batch_json(pipe, [arch], tmp_path / "out")
+    assert code == 0, err
+    rows = {Path(r["input"]).stem: r for r in obj["inputs"]}
+    assert {k: r["status"] for k, r in rows.items()} == {k: "done" for k in plans}
+    keys = {k: json.loads((tmp_path / "out" / r["outputs"]["export"]).read_text())["params"].keys()
+            for k, r in rows.items()}
+    assert "accel_K" in keys["static"]
+    assert {"accel_bias", "gyro_bias", "attitude"} <= set(keys["align"])
+    assert "gyro_scale_error" in keys["rimu"] and "accel_dEl" in keys["rimu"]

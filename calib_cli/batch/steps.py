@@ -31,6 +31,50 @@ def fit_step(run: StepRun, fn) -> None:
     write_calibration(run.out, res, [run.inputs["raw"], *extra.values()])
 
 
+def fit_align_step(rec, method: str = "two-position", rotation: str = "auto", gyro: str = "auto",
+                   gyro_k_ppm: float | None = None, turn_sigma_deg: float = 0.0):
+    """`calib fit align` with the command's options (same names, same defaults)."""
+    import numpy as np
+
+    if method == "classic":
+        from calib_cli.methods.align_classic import fit_classic
+
+        return fit_classic(rec, rotation=rotation)
+    from calib_cli.methods.align import fit_align
+
+    return fit_align(rec, rotation=rotation, gyro=gyro,
+                     gyro_k_prior=None if gyro_k_ppm is None else float(gyro_k_ppm) * 1e-6,
+                     turn_sigma=float(np.radians(turn_sigma_deg)))
+
+
+def fit_gyro_step(rec, g_sensitivity: str = "auto"):
+    """`calib fit gyro` without --accel (the accelerometers are fitted from the same recording)."""
+    from calib_cli.methods.gyro import fit_gyro
+
+    return fit_gyro(rec, None, g_sensitivity)
+
+
+# plan kind -> the fit method `method = "auto"` runs for it
+AUTO_METHODS = {"static": "accel", "align": "align", "rimu": "rimu", "turntable": "turntable"}
+
+
+def fit_auto_step(rec, **options):
+    """Pick the fit from the recording's plan kind (an archive of mixed experiments
+    runs through one pipeline); options go to that fit unchanged."""
+    from calib_cli.batch.registry import FITS
+    from calib_cli.errors import EstimationError
+
+    method = AUTO_METHODS.get(rec.plan_kind)
+    if method not in FITS:
+        raise EstimationError(f"no batch fit for plan kind {rec.plan_kind!r} "
+                              f"(known: {', '.join(k for k, v in AUTO_METHODS.items() if v in FITS)})")
+    d = FITS[method]
+    bad = sorted(set(options) - set(d.options or ()))
+    if bad:
+        raise EstimationError(f"fit {method} (plan kind {rec.plan_kind}) takes no option {bad[0]!r}")
+    return d.function()(rec, **options)
+
+
 def apply_step(run: StepRun) -> None:
     """cal.h5 + raw.h5 -> corrected.h5: exactly `calib apply` (chunked)."""
     from calib_cli.cli.cmd_apply import apply_cmd
@@ -60,3 +104,10 @@ register_step("export", "calib_cli.batch.steps:export_step", needs=("calibration
 
 # fit methods: one line each
 register_fit("accel", "calib_cli.methods.accel_lsq:fit_accel", options=("method",))
+register_fit("align", "calib_cli.batch.steps:fit_align_step",
+             options=("method", "rotation", "gyro", "gyro_k_ppm", "turn_sigma_deg"))
+register_fit("gyro", "calib_cli.batch.steps:fit_gyro_step", options=("g_sensitivity",))
+register_fit("rimu", "calib_cli.methods.rimu:fit_rimu")
+# any option name is passed on: the chosen fit checks it
+register_fit("auto", "calib_cli.batch.steps:fit_auto_step",
+             options=("method", "rotation", "gyro", "gyro_k_ppm", "turn_sigma_deg", "g_sensitivity"))
