@@ -12,7 +12,23 @@ class TransportLost(Exception):
     """The device went away (unplugged, port closed)."""
 
 
-class SerialTransport:
+class _Reconnecting:
+    """``reconnect`` for a transport with ``open`` (raises InputError) and ``close``."""
+
+    def reconnect(self, give_up_s: float, stop=None) -> bool:
+        """Reopen the port until it comes back or ``give_up_s`` passes."""
+        self.close()
+        t_end = time.monotonic() + give_up_s
+        while time.monotonic() < t_end and not (stop is not None and stop.is_set()):
+            try:
+                self.open()
+                return True
+            except InputError:
+                time.sleep(0.1)
+        return False
+
+
+class SerialTransport(_Reconnecting):
     """Reads whatever arrived, in slices of ``read_timeout`` seconds."""
 
     def __init__(self, port: str, settings: dict | None = None, read_timeout: float = 0.02):
@@ -46,18 +62,6 @@ class SerialTransport:
     def write(self, data: bytes) -> None:
         self.ser.write(data)
 
-    def reconnect(self, give_up_s: float, stop=None) -> bool:
-        """Reopen the port until it comes back or ``give_up_s`` passes."""
-        self.close()
-        t_end = time.monotonic() + give_up_s
-        while time.monotonic() < t_end and not (stop is not None and stop.is_set()):
-            try:
-                self.open()
-                return True
-            except InputError:
-                time.sleep(0.1)
-        return False
-
     def close(self) -> None:
         if self.ser is not None:
             try:
@@ -67,7 +71,7 @@ class SerialTransport:
             self.ser = None
 
 
-class CanTransport:
+class CanTransport(_Reconnecting):
     """Yields (arbitration_id, data) pairs from a python-can bus."""
 
     def __init__(self, interface: str, channel: str, bitrate: int | None = None,
@@ -103,17 +107,6 @@ class CanTransport:
             return out
         except (can.CanError, OSError) as exc:
             raise TransportLost(str(exc)) from None
-
-    def reconnect(self, give_up_s: float, stop=None) -> bool:
-        self.close()
-        t_end = time.monotonic() + give_up_s
-        while time.monotonic() < t_end and not (stop is not None and stop.is_set()):
-            try:
-                self.open()
-                return True
-            except InputError:
-                time.sleep(0.1)
-        return False
 
     def close(self) -> None:
         if self.bus is not None:
