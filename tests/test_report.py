@@ -130,3 +130,28 @@ def test_report_of_scalar_fit(tmp_path):
     manifest = json.loads((tmp_path / "r" / "figures.json").read_text())
     assert [f["axes"] for f in manifest["figures"]] == [2, 1]
     assert "Static accelerometer fit (scalar)" in (tmp_path / "r" / "report.md").read_text()
+
+
+@pytest.mark.parametrize("kind", ["align", "rimu"])
+def test_report_of_align_and_rimu(kind, tmp_path):
+    """The method's own section renders: figures decode with their axes, HTML self-contained."""
+    from pathlib import Path
+
+    from calib_cli.io.plan import load_plan
+
+    repo = Path(__file__).resolve().parents[1]
+    plan, fit, title, axes = {
+        "align": ("docs/examples/align_plan.toml", "calib_cli.methods.align:fit_align",
+                  "Two-position alignment", [1, 1]),
+        "rimu": ("sample_data/rimu_six_position.toml", "calib_cli.methods.rimu:fit_rimu",
+                 "Redundant unit", [2, 2, 1, 1])}[kind]
+    import importlib
+
+    mod, _, fn = fit.partition(":")
+    rec = simulate(load_plan(str(repo / plan)), None, seed=4)
+    write_calibration(tmp_path / "c.h5", getattr(importlib.import_module(mod), fn)(rec))
+    _report(tmp_path / "c.h5", "--out", tmp_path / "r")
+    manifest = json.loads((tmp_path / "r" / "figures.json").read_text())
+    assert [f["axes"] for f in manifest["figures"]] == axes
+    assert f"## {title}" in (tmp_path / "r" / "report.md").read_text()
+    assert _check_self_contained((tmp_path / "r" / "report.html").read_text()) == len(axes)

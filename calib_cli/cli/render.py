@@ -73,9 +73,10 @@ def render_summary(res) -> None:
     if "g_error_rms_after" in st:
         before = st.get("g_error_rms_before")
         b = "n/a (counts)" if before is None else f"{before * 1e3 / 9.80665:.3f} mg"
+        floor = st.get("g_error_floor")
+        floor = "" if floor is None else f" (noise floor {floor * 1e3 / 9.80665:.4f} mg)"
         err_console.print(f"|g| error RMS: before {b}, after "
-                          f"{st['g_error_rms_after'] * 1e3 / 9.80665:.4f} mg "
-                          f"(noise floor {st.get('g_error_floor', float('nan')) * 1e3 / 9.80665:.4f} mg)")
+                          f"{st['g_error_rms_after'] * 1e3 / 9.80665:.4f} mg{floor}")
     if st.get("unobservable"):
         err_console.print(f"[yellow]unobservable:[/] {', '.join(st['unobservable'])}")
     if st.get("sigma_inflation", 1.0) != 1.0:

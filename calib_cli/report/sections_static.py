@@ -41,23 +41,24 @@ def g_figure(labels, before, after, sigma_after, g_ref) -> Figure:
     return fig
 
 
-def residual_figure(labels, resid) -> Figure:
-    """Residuals per position: per axis (vector fit, (m, 3)) or of |f| (scalar, (m,)), mg."""
+def residual_figure(labels, resid, scale: float = MG, unit: str = "mg", what: str = "") -> Figure:
+    """Residuals per position: per axis (vector fit, (m, 3)), per sensor ((m, n)) or of |f|
+    (scalar, (m,)), in ``unit`` (resid in SI times ``scale``); ``what`` names the sensor."""
     fig = Figure(figsize=(max(6.4, 0.45 * len(labels) + 3), 4.0), layout="constrained")
     ax = fig.subplots()
     x = np.arange(len(labels))
-    r = np.asarray(resid, dtype=float) * MG
+    r = np.asarray(resid, dtype=float) * scale
     if r.ndim == 2:
         w = 0.8 / r.shape[1]
         for j in range(r.shape[1]):
             ax.bar(x + (j - (r.shape[1] - 1) / 2) * w, r[:, j], w, label=f"{'xyz'[j]} axis"
                    if r.shape[1] == 3 else f"channel {j}")
-        ax.set_title("Residuals of the fit per axis and position (measured - model)")
+        ax.set_title(f"{what}Residuals of the fit per axis and position (measured - model)")
     else:
         ax.bar(x, r, 0.6, label="|f| - g")
         ax.set_title("Residuals of the fit per position (|K^-1 (A - b)| - g)")
     ax.axhline(0, color="k", lw=1)
-    ax.set_ylabel("residual (mg)")
+    ax.set_ylabel(f"residual ({unit})")
     ax.set_xlabel("static position")
     ax.set_xticks(x, labels, rotation=45, ha="right", fontsize=8)
     ax.legend(fontsize=8)
