@@ -42,6 +42,9 @@ from calib_cli.model.effects import Bias, GSensitivity, Layout, ScaleMisalignmen
 from calib_cli.model.frames import attitude_to_rotation
 from calib_cli.model.imu_model import ImuModel, Packing
 from calib_cli.model.kinematics import Kinematics
+from calib_cli.model.strapdown import quat_exp as _qexp
+from calib_cli.model.strapdown import quat_matrix as _qmat
+from calib_cli.model.strapdown import quat_mul as _qmul
 from calib_cli.sim.truth import effect_from_description
 
 GAP_FACTOR = 1.5  # a sample interval > 1.5 x the median is a gap: no integration across it
@@ -50,38 +53,6 @@ GAP_FACTOR = 1.5  # a sample interval > 1.5 x the median is a gap: no integratio
 def gyro_model(g_sensitivity: bool) -> ImuModel:
     eff = (Bias("gyro"), ScaleMisalignment("gyro", "full"))
     return ImuModel(eff + ((GSensitivity(),) if g_sensitivity else ()), Layout())
-
-
-# ---------------------------------------------------------------------------
-# quaternion helpers (scalar first, body-order composition)
-
-
-def _qmul(p, q):
-    pw, px, py, pz = np.moveaxis(p, -1, 0)
-    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
-    return np.stack([pw * qw - px * qx - py * qy - pz * qz,
-                     pw * qx + px * qw + py * qz - pz * qy,
-                     pw * qy - px * qz + py * qw + pz * qx,
-                     pw * qz + px * qy - py * qx + pz * qw], axis=-1)
-
-
-def _qexp(phi):
-    ang = np.linalg.norm(phi, axis=-1)
-    half = 0.5 * ang
-    # sin(x/2)/x with its series near 0
-    k = np.where(ang > 1e-8, np.sin(half) / np.where(ang > 0, ang, 1.0), 0.5 - ang**2 / 48.0)
-    return np.concatenate([np.cos(half)[..., None], phi * k[..., None]], axis=-1)
-
-
-def _qmat(q):
-    """Rotation matrices (..., 3, 3) of unit quaternions (scalar first)."""
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
 
 
 def increments(w, dt):

@@ -24,31 +24,34 @@ from calib_cli.model.earth import Site
 from calib_cli.model.frames import skew
 
 
-def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of scalar-last quaternions (x, y, z, w)."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return np.array([aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw,
-                     aw * bw - ax * bx - ay * by - az * bz])
+def quat_mul(p, q):
+    """Hamilton product p q of quaternions (..., 4), scalar first (w, x, y, z)."""
+    pw, px, py, pz = np.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
+    return np.stack([pw * qw - px * qx - py * qy - pz * qz,
+                     pw * qx + px * qw + py * qz - pz * qy,
+                     pw * qy - px * qz + py * qw + pz * qx,
+                     pw * qz + px * qy - py * qx + pz * qw], axis=-1)
 
 
-def _qexp(v: np.ndarray) -> np.ndarray:
-    """Quaternion of the rotation vector v (rad)."""
-    a = float(np.sqrt(v @ v))
-    if a < 1e-12:
-        return np.array([0.5 * v[0], 0.5 * v[1], 0.5 * v[2], 1.0])
-    s = np.sin(0.5 * a) / a
-    return np.array([s * v[0], s * v[1], s * v[2], np.cos(0.5 * a)])
+def quat_exp(phi):
+    """Unit quaternions (..., 4), scalar first, of rotation vectors phi (..., 3), rad."""
+    ang = np.linalg.norm(phi, axis=-1)
+    half = 0.5 * ang
+    # sin(x/2)/x with its series near 0
+    k = np.where(ang > 1e-8, np.sin(half) / np.where(ang > 0, ang, 1.0), 0.5 - ang**2 / 48.0)
+    return np.concatenate([np.cos(half)[..., None], phi * k[..., None]], axis=-1)
 
 
-def _qmat(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit scalar-last quaternion."""
-    x, y, z, w = q / np.sqrt(q @ q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+def quat_matrix(q):
+    """Rotation matrices (..., 3, 3) of unit quaternions (scalar first)."""
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
 
 
 @dataclass(frozen=True)
@@ -91,7 +94,7 @@ def integrate_relative(t: np.ndarray, w: np.ndarray, C0: Rotation, site: Site,
     n = len(t)
     W_n = site.earth_rate_enu
     C0m = C0.as_matrix()
-    q = np.array([0.0, 0.0, 0.0, 1.0])
+    q = np.array([1.0, 0.0, 0.0, 0.0])
     R = np.empty((n, 3, 3))
     R[0] = np.eye(3)
     dts = np.diff(t)
@@ -103,8 +106,8 @@ def integrate_relative(t: np.ndarray, w: np.ndarray, C0: Rotation, site: Site,
         e_body = (C0m @ Ri).T @ W_n
         e_body = e_body - 0.5 * np.cross(wmid[i] * dts[i], e_body)
         step = (wmid[i] - e_body) * dts[i]
-        q = _qmul(q, _qexp(step))
-        R[i + 1] = _qmat(q)
+        q = quat_mul(q, quat_exp(step))
+        R[i + 1] = quat_matrix(q)
     dt = np.concatenate([dts, [0.0]])
     # psi = sum_i R_{i+1/2} delta_w_i dt_i (left perturbation in start-body axes;
     # the mid-interval attitude carries a rate change within the step to second order)
@@ -116,4 +119,4 @@ def integrate_relative(t: np.ndarray, w: np.ndarray, C0: Rotation, site: Site,
     else:
         s2 = np.asarray(sigma, dtype=float) ** 2 * np.ones(3)
         noise = np.einsum("nij,j,nkj,n->ik", R, s2, R, dt**2)
-    return RelativeRotation(Rotation.from_quat(q), float(t[-1] - t[0]), S_bias, S_K, noise)
+    return RelativeRotation(Rotation.from_quat(q[[1, 2, 3, 0]]), float(t[-1] - t[0]), S_bias, S_K, noise)
