@@ -63,7 +63,8 @@ class TurntableOptions:
     tangential: bool = True
     block_s: float = 0.2
     passes: int = 2
-    axis_sigma: float = 1e-4
+    axis_sigma: float = 1e-3
+    accel_skip: float = 0.05  # rad/s^2: with tangential off, blocks accelerating faster are skipped
     history_every: float = 2.0
     noise: dict | None = None  # {"accel": (3,), "gyro": (3,)} per-sample sigma; else from data
 
@@ -159,6 +160,7 @@ class _Blocks:
     qbar: np.ndarray  # (nb, 3, 21) block mean of the cumulative sum
     wg: np.ndarray  # (3, nb, 3, 21) mean dR^T [e_c x] cumulative sum
     wabs: np.ndarray  # (nb,) mean |w|
+    dw_raw: np.ndarray  # (nb, 3) mean angular acceleration (also with the tangential term off)
     m: int  # samples per block
 
 
@@ -217,17 +219,16 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
     # mean centripetal operator [w x]^2 = w w^T - |w|^2 I
     ww = np.einsum("bmi,bmj->bij", wb, wb) / block_n
     cen = ww - np.trace(ww, axis1=1, axis2=2)[:, None, None] * np.eye(3)
-    # mean angular acceleration from the rates at the block edges (4-sample means)
-    if tangential:
-        edges = np.arange(nb + 1) * block_n
-        wpad = np.concatenate([w[:1].repeat(2, 0), w, w[-1:].repeat(2, 0)])
-        we = np.stack([wpad[e:e + 4].mean(axis=0) for e in edges])
-        dwm = (we[1:] - we[:-1]) / (dtb.sum(axis=1)[:, None])
-    else:
-        dwm = np.zeros((nb, 3))
+    # mean angular acceleration over the block's samples: the mean of the central
+    # differences (w[i+1] - w[i-1]) / 2dt, which telescopes to the rates at the block edges
+    wpad = np.concatenate([w[:1], w, w[n - 1:n] if n == len(w) else w[n:n + 1]])
+    e0 = np.arange(nb) * block_n + 1  # index of the block's first sample in wpad
+    e1 = e0 + block_n
+    dw_raw = ((wpad[e1] + wpad[e1 - 1]) - (wpad[e0] + wpad[e0 - 1])) / (2 * dtb.sum(axis=1)[:, None])
+    dwm = dw_raw if tangential else np.zeros((nb, 3))
     return _Blocks(t=t[:n:block_n], a_mean=A[:n].reshape(nb, block_n, 3).mean(axis=1),
                    r_mean=r_sum / block_n, r_end=R, cen=cen, dw=dwm, q=q,
-                   qbar=qbar / block_n, wg=wg / block_n,
+                   qbar=qbar / block_n, wg=wg / block_n, dw_raw=dw_raw,
                    wabs=np.linalg.norm(wb, axis=2).mean(axis=1), m=block_n)
 
 
@@ -317,6 +318,10 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         P[:3, :3] = np.eye(3) * np.radians(2.0) ** 2
         q_phi = block_n * (sig_g**2).mean() * (1.0 / rec.sample_rate) ** 2
         Nperp = _perp_basis(cy.a_enu).T  # (2, 3)
+        skip = np.zeros(nb, bool)
+        if not opt.tangential:
+            fast = np.linalg.norm(b.dw_raw, axis=1) > opt.accel_skip
+            skip = fast | np.roll(fast, 1) | np.roll(fast, -1)
         sA = slice(0, 3)
         for j in range(nb):
             cur = _unpack(theta_lin + x[3:], L, cycles)
@@ -364,6 +369,8 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 r_extra += (sig_g**2).mean() / 2 / T**2 * (s_c @ s_c)
             Rm = np.diag(np.concatenate([sig_a**2 / b.m + r_extra,
                                          np.full(2, opt.axis_sigma**2)]))
+            if skip[j]:  # the table accelerates and the tangential term is off: axis only
+                H, h, z, Rm = H[3:], h[3:], z[3:], Rm[3:, 3:]
             # the state x holds phi = 0 after each reset; theta part is x[3:]
             v = z - h
             PH = P @ H.T
@@ -372,7 +379,8 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             x = x + Kg @ v
             P = P - Kg @ PH.T
             P = 0.5 * (P + P.T)
-            innov.append(v[:3] * np.sqrt(b.m) / sig_a)
+            if not skip[j]:
+                innov.append(v[:3] * np.sqrt(b.m) / sig_a)
             nis.append(float(v @ np.linalg.solve(S, v)))
             if b.wabs[j] < np.radians(0.5):
                 fcorr = np.linalg.solve(Kc, b.a_mean[j] - cur["ab"])

@@ -13,7 +13,8 @@ continuously (transition samples have segment index -1). Per segment kind:
 - rotating: about ``table_axis_enu`` at ``table_rate_dps`` or along
   ``rate_profile = [[t_s, rate_dps], ...]`` (piecewise linear knots from the
   segment start; the duration is the last knot). Each rotating segment is a
-  lever-arm cycle.
+  lever-arm cycle. ``rate_shape = "smooth"`` joins the knots with smoothsteps
+  (continuous angular acceleration) instead of straight ramps.
 
 Top-level simulation keys: ``sample_rate_hz`` (100), ``transition_s`` (4),
 ``temperature_c`` (constant) or ``temperature_profile = [[t_s, degC], ...]``,
@@ -78,6 +79,16 @@ def _rate_profile(seg: PlanSegment, fs: float, t0: float):
     k = np.clip(np.searchsorted(kt, t, side="right") - 1, 0, len(kt) - 2)
     dt = t - kt[k]
     theta = seg_area[k] + kr[k] * dt + 0.5 * slope[k] * dt**2
+    if seg.extra.get("rate_shape", "linear") == "smooth":
+        # smoothstep between knots: the angular acceleration is continuous (a real table's)
+        span = np.diff(kt)[k]
+        u = dt / span
+        dr = np.diff(kr)[k]
+        rate = kr[k] + dr * (3 * u**2 - 2 * u**3)
+        accel = dr * (6 * u - 6 * u**2) / span
+        area = np.diff(kt) * (kr[:-1] + kr[1:]) / 2  # the smoothstep has the linear ramp's area
+        seg_area = np.concatenate([[0.0], np.cumsum(area)])
+        theta = seg_area[k] + span * (kr[k] * u + dr * (u**3 - u**4 / 2))
     return t0 + t, theta, rate, accel
 
 

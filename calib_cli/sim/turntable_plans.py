@@ -7,11 +7,14 @@ the table axis (six such cycles: every ordered pair k != j).
 
 Plan keys written here and read by ``calib simulate``:
 
-- ``rate_profile`` (per segment): piecewise-linear table rate knots.
+- ``rate_profile`` (per segment): table rate knots, joined by smoothsteps
+  (``rate_shape = "smooth"``: the angular acceleration is continuous).
 - ``sim_attitude_deg``: the true attitude at the cycle start (mounting error
   and unknown start angle of the table), ``attitude_deg`` being the nominal.
 - ``sim_lever_arm_m``: the true lever arm; ``lever_arm_m`` is the value
   "measured on the housing" (truth + a random error per component).
+- plan level ``sim_proof_mass_sigma_m``: 1-sigma of the random true proof-mass
+  offsets (default 5 mm).
 - plan level ``sim_table_rate_error`` (relative 1-sigma scale error of the
   table rate) and ``sim_table_wobble_dps`` (rate wobble amplitude): the
   recorded table angle/rate is the nominal profile, not the true motion.
@@ -103,7 +106,8 @@ def turntable_plan_text(seed: int = 0, duration_s: float = 600.0, tilted: bool =
                         sample_rate_hz: float = 100.0, housing_error_m: float = 5e-3,
                         mount_error_deg: float = 0.3, start_error_deg: float = 3.0,
                         rate_error: float = 2e-3, wobble_dps: float = 0.5,
-                        max_dps: float = 200.0, latitude_deg: float = 50.45) -> str:
+                        max_dps: float = 200.0, latitude_deg: float = 50.45,
+                        proof_mass_sigma_m: float = 5e-3) -> str:
     """A turntable plan with random true lever arms, mounting errors and housing
     measurements (all drawn from ``seed``)."""
     rng = np.random.default_rng(10_000 + seed)
@@ -121,6 +125,7 @@ def turntable_plan_text(seed: int = 0, duration_s: float = 600.0, tilted: bool =
     lines = ["name = 'turntable'", "kind = 'turntable'", f"sample_rate_hz = {sample_rate_hz}",
              "transition_s = 4.0", f"sim_table_rate_error = {rate_error}",
              f"sim_table_wobble_dps = {wobble_dps}",
+             f"sim_proof_mass_sigma_m = {proof_mass_sigma_m}",
              "[site]", f"latitude_deg = {latitude_deg}", "height_m = 180.0",
              "[unit]", "serial = 'SN-TT1'"]
     for c, (label, att, a_nom) in enumerate(cycles):
@@ -131,11 +136,11 @@ def turntable_plan_text(seed: int = 0, duration_s: float = 600.0, tilted: bool =
                   f"sim_attitude_deg = {_fmt(sim_att[c])}",
                   f"table_axis_enu = {_fmt(TABLE_AXIS)}",
                   f"lever_arm_m = {_fmt(housing)}", f"sim_lever_arm_m = {_fmt(s_true[c])}",
-                  f"rate_profile = {rate_profile(dur, max_dps)}"]
+                  "rate_shape = 'smooth'", f"rate_profile = {rate_profile(dur, max_dps)}"]
     return "\n".join(lines) + "\n"
 
 
-def turntable_truth(plan, rng, noise=None, proof_mass_sigma: float = 5e-3) -> Truth:
+def turntable_truth(plan, rng, noise=None, proof_mass_sigma: float | None = None) -> Truth:
     """A random MEMS unit on the table: biases, lower-triangular accelerometer K,
     full gyro G, g-sensitivity D, the plan's true lever arms (``sim_lever_arm_m``,
     else ``lever_arm_m``, else 0) and random proof-mass offsets."""
@@ -149,6 +154,8 @@ def turntable_truth(plan, rng, noise=None, proof_mass_sigma: float = 5e-3) -> Tr
                make_effect("g_sensitivity"), make_effect("lever_arm"),
                make_effect("proof_mass_offsets"))
     model = ImuModel(effects, layout)
+    if proof_mass_sigma is None:
+        proof_mass_sigma = float(plan.extra.get("sim_proof_mass_sigma_m", 5e-3))
     params = {}
     for spec in model.specs():
         if spec.key == "lever_arm":
