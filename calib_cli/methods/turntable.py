@@ -379,7 +379,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             x = x + Kg @ v
             P = P - Kg @ PH.T
             P = 0.5 * (P + P.T)
-            if not skip[j]:
+            if not skip[j] and j >= nb // 2:  # the second half of each cycle: converged state
                 innov.append(v[:3] * np.sqrt(b.m) / sig_a)
             nis.append(float(v @ np.linalg.solve(S, v)))
             if b.wabs[j] < np.radians(0.5):
@@ -455,19 +455,30 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     if L.est_p:
         sd[L.idx["p"]] = 0.05
     sd[L.idx["u"]] = np.radians(3.0)
-    theta = mean.copy()
-    out = None
-    for k in range(max(1, opt.passes)):
-        last = k == max(1, opt.passes) - 1
-        out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a, sig_g, block_n,
-                           s_known, record_history=last, first=k == 0)
-        if not np.all(np.isfinite(out.theta)):
-            raise EstimationError("the turntable filter diverged")
-        theta = out.theta
-    return _result(rec, cycles, L, out, opt, s_known, sig_a, sig_g, block_n)
+    # a model that does not explain the data (e.g. lever arms ignored) leaves accelerometer
+    # residuals far above the noise and can drag the attitude off; the fit then restarts with
+    # the measurement noise widened to the residual level (stats.accel_noise_inflation), so
+    # the covariance says how little such a fit is worth
+    inflation = 1.0
+    for _attempt in range(4):
+        theta = mean.copy()
+        for k in range(max(1, opt.passes)):
+            out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation, sig_g,
+                               block_n, s_known, record_history=True, first=k == 0)
+            if not np.all(np.isfinite(out.theta)):
+                break
+            theta = out.theta
+        r = float(np.sqrt(np.mean(np.square(out.innov)))) if out.innov else 1.0
+        if np.all(np.isfinite(out.theta)) and r < 1.3:
+            break
+        inflation *= min(max(r, 2.0), 100.0) if np.isfinite(r) else 10.0
+    if not np.all(np.isfinite(out.theta)):
+        raise EstimationError("the turntable filter diverged")
+    return _result(rec, cycles, L, out, opt, s_known, sig_a * inflation, sig_g, block_n,
+                   inflation)
 
 
-def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n):
+def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, inflation=1.0):
     theta, P = out.theta, out.P
     par = _unpack(theta, L, cycles)
     nc = len(cycles)
@@ -535,6 +546,7 @@ def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n):
         "lever_arm_mode": opt.lever_arm, "proof_mass_mode": opt.proof_mass,
         "tangential": bool(opt.tangential), "block_s": block_n / rec.sample_rate,
         "passes": int(opt.passes),
+        "accel_noise_inflation": float(inflation),
         "noise_accel": [float(v) for v in sig_a], "noise_gyro": [float(v) for v in sig_g],
         "table_axis_body": [[float(v) for v in a] for a in a_b],
         "table_axis_body_sigma_rad": [[float(v) for v in r] for r in u_sd],
