@@ -64,7 +64,7 @@ class TurntableOptions:
     block_s: float = 0.2
     passes: int = 2
     axis_sigma: float = 1e-3
-    accel_skip: float = 0.05  # rad/s^2: with tangential off, blocks accelerating faster are skipped
+    accel_skip: float = 0.02  # rad/s^2: with tangential off, blocks accelerating faster are skipped
     history_every: float = 2.0
     noise: dict | None = None  # {"accel": (3,), "gyro": (3,)} per-sample sigma; else from data
 
@@ -475,10 +475,11 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     if not np.all(np.isfinite(out.theta)):
         raise EstimationError("the turntable filter diverged")
     return _result(rec, cycles, L, out, opt, s_known, sig_a * inflation, sig_g, block_n,
-                   inflation)
+                   inflation, sd)
 
 
-def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, inflation=1.0):
+def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, inflation,
+            prior_sd_vec):
     theta, P = out.theta, out.P
     par = _unpack(theta, L, cycles)
     nc = len(cycles)
@@ -512,6 +513,10 @@ def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, 
     T = np.array(rows)
     cov = T @ P @ T.T
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    # an entry the data did not determine (sigma still above half its prior): sigma null
+    prior_sd = np.sqrt(np.diag(T @ np.diag(prior_sd_vec**2) @ T.T))
+    unobs = sd > 0.5 * prior_sd
+    sd = np.where(unobs, np.nan, sd)
     params = {"accel_bias": par["ab"], "accel_K": par["K"], "gyro_bias": par["gb"],
               "gyro_K": par["G"], "gyro_D": par["D"]}
     if opt.lever_arm != "off":
@@ -540,7 +545,8 @@ def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, 
         else None,
         "g_error_rms_after": float(np.sqrt(np.mean((lowrate[:, 1] - g) ** 2))) if len(lowrate)
         else None,
-        "unobservable": [],
+        "unobservable": [f"{k}[{','.join(str(int(i)) for i in np.unravel_index(f, np.shape(params[k])))}]"
+                         for (k, f), u in zip(order, unobs) if u],
         "n_cycles": len(cycles),
         "cycles": [rec.segments[cy.seg_index].label for cy in cycles],
         "lever_arm_mode": opt.lever_arm, "proof_mass_mode": opt.proof_mass,
