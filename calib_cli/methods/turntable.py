@@ -556,7 +556,9 @@ def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, 
         "noise_accel": [float(v) for v in sig_a], "noise_gyro": [float(v) for v in sig_g],
         "table_axis_body": [[float(v) for v in a] for a in a_b],
         "table_axis_body_sigma_rad": [[float(v) for v in r] for r in u_sd],
-        "g_error_note": "|mean f| - g over blocks of 0.2 s where the table is at rest",
+        "g_error_floor": float(np.sqrt(np.mean(sig_a**2) / block_n)),
+        "g_error_note": f"|mean f| - g over blocks of {block_n / rec.sample_rate:g} s where the "
+                        "table is at rest",
     }
     tables = {}
     if out.hist_t:

@@ -15,6 +15,7 @@ continuously (transition samples have segment index -1). Per segment kind:
   segment start; the duration is the last knot). Each rotating segment is a
   lever-arm cycle. ``rate_shape = "smooth"`` joins the knots with smoothsteps
   (continuous angular acceleration) instead of straight ramps.
+  ``sim_table_axis_enu``: the true table axis where it differs from the plan's.
 
 Top-level simulation keys: ``sample_rate_hz`` (100), ``transition_s`` (4),
 ``temperature_c`` (constant) or ``temperature_profile = [[t_s, degC], ...]``,
@@ -215,9 +216,10 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
         else:  # rotating
             t, theta, rate, acc = _rate_profile(seg, fs, t_next)
             th, rt, ac = _table_errors(plan, t - t_next, theta, rate, acc, rng)
-            kin = kn.table_kinematics(t, seg.table_axis_enu, th, rt, ac, start, site)
+            axis = np.asarray(seg.extra.get("sim_table_axis_enu", seg.table_axis_enu), float)
+            kin = kn.table_kinematics(t, axis, th, rt, ac, start, site)
             add(kin, index, cycle, theta, rate)  # the table's own (nominal) angle and rate
-            current = axis_angle(seg.table_axis_enu, th[-1] - th[0]) * start
+            current = axis_angle(axis, th[-1] - th[0]) * start
             cycle += 1
         prev_was_turn = kind == "turn"
         true_att.append(rotation_to_attitude(start))

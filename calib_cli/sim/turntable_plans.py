@@ -11,6 +11,9 @@ Plan keys written here and read by ``calib simulate``:
   (``rate_shape = "smooth"``: the angular acceleration is continuous).
 - ``sim_attitude_deg``: the true attitude at the cycle start (mounting error
   and unknown start angle of the table), ``attitude_deg`` being the nominal.
+- ``sim_table_axis_enu``: the table's true axis, tilted from the plan's
+  horizontal one by up to ``axis_tilt_deg`` (default 0: the fit takes the plan's
+  axis as exact, docs/turntable.md), the same in every cycle.
 - ``sim_lever_arm_m``: the true lever arm; ``lever_arm_m`` is the value
   "measured on the housing" (truth + a random error per component).
 - plan level ``sim_proof_mass_sigma_m``: 1-sigma of the random true proof-mass
@@ -108,17 +111,22 @@ def turntable_plan_text(seed: int = 0, duration_s: float = 600.0, tilted: bool =
                         mount_error_deg: float = 0.3, start_error_deg: float = 3.0,
                         rate_error: float = 2e-3, wobble_dps: float = 0.5,
                         max_dps: float = 200.0, latitude_deg: float = 50.45,
-                        proof_mass_sigma_m: float = 5e-3) -> str:
+                        proof_mass_sigma_m: float = 5e-3, axis_tilt_deg: float = 0.0) -> str:
     """A turntable plan with random true lever arms, mounting errors and housing
     measurements (all drawn from ``seed``)."""
     rng = np.random.default_rng(10_000 + seed)
     cycles = cycle_attitudes(tilted, tilt_deg)
+    # the table's true axis: tilted from the horizontal by up to axis_tilt_deg, the same for
+    # every cycle (one table); the unit sits on it as the plan says, up to the mounting error
+    tilt = np.radians(rng.uniform(-1, 1) * axis_tilt_deg)
+    true_axis = np.array([np.cos(tilt), 0.0, np.sin(tilt)])
+    to_true = Rotation.align_vectors([true_axis], [TABLE_AXIS])[0]
     sim_att = []
     for _label, att, _a in cycles:
         rot = attitude_to_rotation(np.radians(att))
         start = Rotation.from_rotvec(TABLE_AXIS * np.radians(rng.uniform(-1, 1) * start_error_deg))
         mount = Rotation.from_rotvec(rng.standard_normal(3) * np.radians(mount_error_deg))
-        true = start * rot * mount
+        true = to_true * start * rot * mount
         sim_att.append(np.degrees(rotation_to_attitude(true)))
     # the point on the table axis is any: take the one that makes s . a_nominal = 0, the
     # convention of the fit (the component along the axis is unobservable)
@@ -135,7 +143,7 @@ def turntable_plan_text(seed: int = 0, duration_s: float = 600.0, tilted: bool =
         housing = housing - a_nom * (housing @ a_nom)
         lines += ["[[segment]]", f"label = '{label}'", f"attitude_deg = {_fmt(att)}",
                   f"sim_attitude_deg = {_fmt(sim_att[c])}",
-                  f"table_axis_enu = {_fmt(TABLE_AXIS)}",
+                  f"table_axis_enu = {_fmt(TABLE_AXIS)}", f"sim_table_axis_enu = {_fmt(true_axis)}",
                   f"lever_arm_m = {_fmt(housing)}", f"sim_lever_arm_m = {_fmt(s_true[c])}",
                   "rate_shape = 'smooth'", f"rate_profile = {rate_profile(dur, max_dps)}"]
     return "\n".join(lines) + "\n"
