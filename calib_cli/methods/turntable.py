@@ -460,7 +460,7 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     # the measurement noise widened to the residual level (stats.accel_noise_inflation), so
     # the covariance says how little such a fit is worth
     inflation = 1.0
-    for _attempt in range(4):
+    for _attempt in range(6):
         theta = mean.copy()
         for k in range(max(1, opt.passes)):
             out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation, sig_g,
@@ -471,7 +471,8 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
         r = float(np.sqrt(np.mean(np.square(out.innov)))) if out.innov else 1.0
         if np.all(np.isfinite(out.theta)) and r < 1.3:
             break
-        inflation *= min(max(r, 2.0), 100.0) if np.isfinite(r) else 10.0
+        # widen step by step (a diverged attempt's residuals overstate the mismatch)
+        inflation *= min(max(r, 2.0), 10.0) if np.isfinite(r) else 10.0
     if not np.all(np.isfinite(out.theta)):
         raise EstimationError("the turntable filter diverged")
     return _result(rec, cycles, L, out, opt, s_known, sig_a * inflation, sig_g, block_n,
