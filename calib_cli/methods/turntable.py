@@ -161,8 +161,6 @@ class _Blocks:
     wg: np.ndarray  # (3, nb, 3, 21) mean dR^T [e_c x] cumulative sum
     wabs: np.ndarray  # (nb,) mean |w|
     dw_raw: np.ndarray  # (nb, 3) mean angular acceleration (also with the tangential term off)
-    cr: np.ndarray  # (nb, 3, 3, 21) d(mean centripetal term)/dtheta_gyro per component of r
-    dwx: np.ndarray  # (nb, 3, 21) d(mean dw)/dtheta_gyro
     m: int  # samples per block
 
 
@@ -207,16 +205,7 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
     qbar = np.zeros((nb, 3, 21))
     wg = np.zeros((3, nb, 3, 21))
     ex = [skew(e) for e in np.eye(3)]
-    fsb = f[:n].reshape(nb, block_n, 3)
-    # sensitivity of the mean centripetal term w x (w x r) to the gyro parameters, per
-    # component c of r: mean_m (-[(w x e_c) x] - [w x][e_c x]) dw_m/dtheta_gyro
-    cr = np.zeros((nb, 3, 3, 21))
     for m in range(block_n):
-        wm = wb[:, m]
-        Xm = _dw_dtheta(Ginv, wm, fsb[:, m])
-        Wx = _skew_rows(wm)
-        for c in range(3):
-            cr[:, c] += (-_skew_rows(np.cross(wm, np.eye(3)[c])) - Wx @ ex[c]) @ Xm
         r_sum += R
         qbar += qc
         for c in range(3):
@@ -237,36 +226,10 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
     e1 = e0 + block_n
     dw_raw = ((wpad[e1] + wpad[e1 - 1]) - (wpad[e0] + wpad[e0 - 1])) / (2 * dtb.sum(axis=1)[:, None])
     dwm = dw_raw if tangential else np.zeros((nb, 3))
-    # sensitivity of the mean angular acceleration to the gyro parameters (same telescoping)
-    fpad = np.concatenate([f[:1], f, f[n - 1:n] if n == len(f) else f[n:n + 1]])
-
-    def xs(i):
-        return _dw_dtheta(Ginv, wpad[i], fpad[i])
-    dwx = (xs(e1) + xs(e1 - 1) - xs(e0) - xs(e0 - 1)) / (2 * dtb.sum(axis=1)[:, None, None])
     return _Blocks(t=t[:n:block_n], a_mean=A[:n].reshape(nb, block_n, 3).mean(axis=1),
                    r_mean=r_sum / block_n, r_end=R, cen=cen, dw=dwm, q=q,
                    qbar=qbar / block_n, wg=wg / block_n, dw_raw=dw_raw,
-                   cr=cr / block_n, dwx=dwx if tangential else np.zeros_like(dwx),
                    wabs=np.linalg.norm(wb, axis=2).mean(axis=1), m=block_n)
-
-
-def _skew_rows(v: np.ndarray) -> np.ndarray:
-    """(N, 3) -> (N, 3, 3) cross-product matrices."""
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def _dw_dtheta(Ginv, w, f) -> np.ndarray:
-    """(N, 3, 21) derivative of the corrected rate w = Ginv (W - d - D f) by (d, G, D)."""
-    nb = len(w)
-    X = np.zeros((nb, 3, 21))
-    X[:, :, 0:3] = -Ginv
-    X[:, :, 3:12] = -(Ginv[None, :, :, None] * w[:, None, None, :]).reshape(nb, 3, 9)
-    X[:, :, 12:21] = -(Ginv[None, :, :, None] * f[:, None, None, :]).reshape(nb, 3, 9)
-    return X
 
 
 def _rot(phi):
@@ -379,11 +342,6 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             gam = Rh.T @ g_n
             Wg = gam[0] * b.wg[0, j] + gam[1] * b.wg[1, j] + gam[2] * b.wg[2, j]  # (3, 21)
             KW = Kc @ Wg
-            # the centripetal and tangential operators come from the gyros too
-            for i in range(3):
-                r_i = s_c + cur["P"][i]
-                dop = np.tensordot(r_i, b.cr[j], axes=(0, 0)) - skew(r_i) @ b.dwx[j]
-                KW[i] = KW[i] + Kc[i] @ dop
             for i in range(3):
                 h[i] = cur["ab"][i] + Kc[i] @ U[i] + KW[i] @ x[iG]
                 H[i, iG] = KW[i]
