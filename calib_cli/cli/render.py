@@ -70,7 +70,7 @@ def render_summary(res) -> None:
     err_console.print(params_table(res.params, res.sigma, res.units,
                                    title=f"calibration ({res.method})"))
     st = res.stats
-    if "g_error_rms_after" in st:
+    if "g_error_rms_after" in st and st["g_error_rms_after"] is not None:
         before = st.get("g_error_rms_before")
         b = "n/a (counts)" if before is None else f"{before * 1e3 / 9.80665:.3f} mg"
         floor = st.get("g_error_floor")

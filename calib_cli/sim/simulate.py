@@ -13,7 +13,9 @@ continuously (transition samples have segment index -1). Per segment kind:
 - rotating: about ``table_axis_enu`` at ``table_rate_dps`` or along
   ``rate_profile = [[t_s, rate_dps], ...]`` (piecewise linear knots from the
   segment start; the duration is the last knot). Each rotating segment is a
-  lever-arm cycle.
+  lever-arm cycle. ``rate_shape = "smooth"`` joins the knots with smoothsteps
+  (continuous angular acceleration) instead of straight ramps.
+  ``sim_table_axis_enu``: the true table axis where it differs from the plan's.
 
 Top-level simulation keys: ``sample_rate_hz`` (100), ``transition_s`` (4),
 ``temperature_c`` (constant) or ``temperature_profile = [[t_s, degC], ...]``,
@@ -78,7 +80,46 @@ def _rate_profile(seg: PlanSegment, fs: float, t0: float):
     k = np.clip(np.searchsorted(kt, t, side="right") - 1, 0, len(kt) - 2)
     dt = t - kt[k]
     theta = seg_area[k] + kr[k] * dt + 0.5 * slope[k] * dt**2
+    if seg.extra.get("rate_shape", "linear") == "smooth":
+        # smoothstep between knots: the angular acceleration is continuous (a real table's)
+        span = np.diff(kt)[k]
+        u = dt / span
+        dr = np.diff(kr)[k]
+        rate = kr[k] + dr * (3 * u**2 - 2 * u**3)
+        accel = dr * (6 * u - 6 * u**2) / span
+        area = np.diff(kt) * (kr[:-1] + kr[1:]) / 2  # the smoothstep has the linear ramp's area
+        seg_area = np.concatenate([[0.0], np.cumsum(area)])
+        theta = seg_area[k] + span * (kr[k] * u + dr * (u**3 - u**4 / 2))
     return t0 + t, theta, rate, accel
+
+
+def _table_errors(plan: Plan, tau, theta, rate, accel, rng):
+    """The true table motion of a low-grade table: the nominal profile with a
+    relative rate error (plan key ``sim_table_rate_error``, 1-sigma, drawn per
+    segment) and a smooth rate wobble (``sim_table_wobble_dps``: three random
+    sinusoids of 0.05-0.5 Hz, this total amplitude). Without the keys the
+    motion is the nominal one (and no random numbers are drawn)."""
+    scale_sd = float(plan.extra.get("sim_table_rate_error", 0.0))
+    wobble = float(plan.extra.get("sim_table_wobble_dps", 0.0)) * D2R
+    if scale_sd == 0.0 and wobble == 0.0:
+        return theta, rate, accel
+    k = 1.0 + scale_sd * rng.standard_normal()
+    th, rt, ac = theta * k, rate * k, accel * k
+    if wobble > 0:
+        freqs = rng.uniform(0.05, 0.5, 3)
+        phases = rng.uniform(0, 2 * np.pi, 3)
+        amp = wobble / np.sqrt(3)
+        # the wobble fades in over the first second so the segment starts at the nominal rate
+        env = np.clip(tau, 0.0, 1.0)
+        for f, p in zip(freqs, phases):
+            w = 2 * np.pi * f
+            s = np.sin(w * tau + p) - np.sin(p)
+            c = np.cos(w * tau + p)
+            rt = rt + amp * env * s
+            ac = ac + amp * (env * w * c + (tau < 1.0) * s)
+        th = theta[0] + k * (theta - theta[0]) + np.concatenate(
+            [[0.0], np.cumsum(((rt - k * rate)[1:] + (rt - k * rate)[:-1]) / 2 * np.diff(tau))])
+    return th, rt, ac
 
 
 def _temperature(plan: Plan, t: np.ndarray):
@@ -103,6 +144,10 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
         from calib_cli.sim.align_cases import nav_truth  # alignment needs a navigation-grade unit
 
         truth = nav_truth(rng)
+    if truth is None and plan.kind == "turntable":
+        from calib_cli.sim.turntable_plans import turntable_truth  # lever arms, proof masses, D
+
+        truth = turntable_truth(plan, rng)
     truth = truth or default_truth(layout, rng)
     if not same_layout(truth.model.layout, layout):
         truth = Truth(truth.model.__class__(truth.model.effects, layout), truth.params,
@@ -170,9 +215,11 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
             current = start * Rotation.from_rotvec(phi)
         else:  # rotating
             t, theta, rate, acc = _rate_profile(seg, fs, t_next)
-            kin = kn.table_kinematics(t, seg.table_axis_enu, theta, rate, acc, start, site)
-            add(kin, index, cycle, theta, rate)
-            current = axis_angle(seg.table_axis_enu, theta[-1] - theta[0]) * start
+            th, rt, ac = _table_errors(plan, t - t_next, theta, rate, acc, rng)
+            axis = np.asarray(seg.extra.get("sim_table_axis_enu", seg.table_axis_enu), float)
+            kin = kn.table_kinematics(t, axis, th, rt, ac, start, site)
+            add(kin, index, cycle, theta, rate)  # the table's own (nominal) angle and rate
+            current = axis_angle(axis, th[-1] - th[0]) * start
             cycle += 1
         prev_was_turn = kind == "turn"
         true_att.append(rotation_to_attitude(start))

@@ -1,0 +1,592 @@
+"""Rotating-table calibration on a low-grade single-axis table (docs/turntable.md).
+
+Model (CONTRACT.md section 2): accelerometer bias b and lower-triangular K
+(the instrument frame fixed by the accelerometers); gyro bias d, full G and
+g-sensitivity D; per rotating cycle the lever arm s (two components
+perpendicular to the table axis) and, optionally, the six proof-mass offsets
+p_ij. Accelerometer i reads b_i + K_i . f(s + p_i) with
+f(r) = f_ref + w x (w x r) + dw/dt x r; the gyros read d + G w + D f_ref.
+
+Estimator: an error-state Kalman filter over the whole record. The state is
+the attitude error phi (ENU, small rotation) and the parameter vector theta.
+The attitude is propagated with the corrected gyros (earth rate included);
+phi random-walks with the gyro white noise. Measurements, on blocks of
+``block_s`` seconds (default 0.2 s):
+
+- the block mean of the accelerometer readings against the model
+  b + K (mean(R)^T g + mean([w x]^2) r_i + [mean(dw) x] r_i), in which
+  mean(R) is the mean attitude over the block (exact averaging of the
+  rotating gravity), mean([w x]^2) the mean centripetal operator from the
+  corrected gyros, and mean(dw) = (w(end) - w(start)) / T from the gyro
+  rates at the block edges (the tangential term; ``tangential=False``
+  drops it);
+- the direction of the table axis: mean(R) a_b = a_enu, a_b the table axis in
+  body axes, estimated per cycle (two small angles: the mounting error).
+
+The table angle and rate recorded by the table are not used. The filter
+runs twice: the first pass linearises about a neutral unit, the second
+about the first pass's estimate (the prior then keeps its original mean, as
+an offset of the error state), so the result is the Gauss-Newton solution
+of the linearised problem. For constant parameters the forward filter's
+final estimate and covariance are the smoothed ones; the filter's covariance
+over time gives the sigma history (when each lever arm and proof-mass offset
+became observable).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from calib_cli.data import CalibrationResult, Recording
+from calib_cli.errors import EstimationError, InputError
+from calib_cli.model.effects import Layout
+from calib_cli.model.frames import attitude_to_rotation, skew
+
+K_LOWER = [(0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2)]
+P_OFF = [(i, j) for i in range(3) for j in range(3) if i != j]
+
+
+@dataclass(frozen=True)
+class TurntableOptions:
+    """lever_arm: "off" (no lever-arm terms), "known" (each cycle's plan
+    ``lever_arm_m``), "estimate". proof_mass: "off" | "estimate".
+    tangential: include dw/dt x r. block_s: measurement block (s).
+    passes: filter passes (>= 2 recommended). axis_sigma: how well the table
+    axis stays fixed (rad, 1-sigma per block). history_every: sigma history
+    sample interval (s)."""
+
+    lever_arm: str = "estimate"
+    proof_mass: str = "off"
+    tangential: bool = True
+    block_s: float = 0.2
+    passes: int = 2
+    axis_sigma: float = 1e-3
+    accel_skip: float = 0.02  # rad/s^2: with tangential off, blocks accelerating faster are skipped
+    history_every: float = 2.0
+    noise: dict | None = None  # {"accel": (3,), "gyro": (3,)} per-sample sigma; else from data
+
+
+@dataclass
+class _Layout:
+    """Index map of the parameter vector theta."""
+
+    n_cycles: int
+    est_s: bool
+    est_p: bool
+    idx: dict = field(default_factory=dict)
+    size: int = 0
+
+    def __post_init__(self):
+        def add(name, n):
+            self.idx[name] = np.arange(self.size, self.size + n)
+            self.size += n
+        add("ab", 3)
+        add("K", 6)
+        add("gb", 3)
+        add("G", 9)
+        add("D", 9)
+        if self.est_s:
+            add("s", 2 * self.n_cycles)
+        if self.est_p:
+            add("p", 6)
+        add("u", 2 * self.n_cycles)
+
+    @property
+    def gyro(self) -> np.ndarray:
+        return np.concatenate([self.idx["gb"], self.idx["G"], self.idx["D"]])
+
+
+@dataclass(frozen=True)
+class _Cycle:
+    seg_index: int
+    sl: slice
+    a_enu: np.ndarray
+    a_nom: np.ndarray  # table axis in body axes, nominal
+    basis: np.ndarray  # (3, 2) orthonormal, perpendicular to a_nom
+    rot_nom: Rotation
+    s_plan: np.ndarray | None
+
+
+def _perp_basis(a: np.ndarray) -> np.ndarray:
+    k = int(np.argmax(np.abs(a)))
+    if abs(abs(a[k]) - 1.0) < 1e-12:  # a body axis: the basis is the other two axes
+        return np.eye(3)[:, [j for j in range(3) if j != k]]
+    e = np.eye(3)[int(np.argmin(np.abs(a)))]
+    b1 = np.cross(a, e)
+    b1 /= np.linalg.norm(b1)
+    b2 = np.cross(a, b1)
+    return np.column_stack([b1, b2])
+
+
+def _third_diff_sigma(x: np.ndarray) -> np.ndarray:
+    """Per-column white-noise sigma from third differences (robust: MAD)."""
+    d = np.diff(x, 3, axis=0)
+    mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+    return 1.4826 * mad / np.sqrt(20.0)
+
+
+def _unpack(theta: np.ndarray, L: _Layout, cycles) -> dict:
+    K = np.zeros((3, 3))
+    for v, (i, j) in zip(theta[L.idx["K"]], K_LOWER):
+        K[i, j] = v
+    P = np.zeros((3, 3))
+    if L.est_p:
+        for v, (i, j) in zip(theta[L.idx["p"]], P_OFF):
+            P[i, j] = v
+    s = np.zeros((len(cycles), 3))
+    if L.est_s:
+        v = theta[L.idx["s"]].reshape(-1, 2)
+        for c, cy in enumerate(cycles):
+            s[c] = cy.basis @ v[c]
+    return {"ab": theta[L.idx["ab"]], "K": K, "gb": theta[L.idx["gb"]],
+            "G": theta[L.idx["G"]].reshape(3, 3), "D": theta[L.idx["D"]].reshape(3, 3),
+            "s": s, "P": P, "u": theta[L.idx["u"]].reshape(-1, 2)}
+
+
+@dataclass
+class _Blocks:
+    """Per-block quantities of one cycle, computed at the linearisation point."""
+
+    t: np.ndarray  # (nb,) block start time
+    a_mean: np.ndarray  # (nb, 3) mean accelerometer reading
+    r_mean: np.ndarray  # (nb, 3, 3) mean of dR (block-start frame -> sample frame)
+    r_end: np.ndarray  # (nb, 3, 3) dR at the next block's start
+    cen: np.ndarray  # (nb, 3, 3) mean [w x]^2
+    dw: np.ndarray  # (nb, 3) mean angular acceleration
+    q: np.ndarray  # (nb, 3, 21) sum dR dw/dtheta_gyro dt
+    qbar: np.ndarray  # (nb, 3, 21) block mean of the cumulative sum
+    wg: np.ndarray  # (3, nb, 3, 21) mean dR^T [e_c x] cumulative sum
+    wabs: np.ndarray  # (nb,) mean |w|
+    dw_raw: np.ndarray  # (nb, 3) mean angular acceleration (also with the tangential term off)
+    m: int  # samples per block
+
+
+def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: bool,
+            s_known: np.ndarray | None) -> _Blocks:
+    sl = cy.sl
+    t = rec.time[sl]
+    A = rec.accel[sl]
+    W = rec.gyro[sl]
+    n = (len(t) // block_n) * block_n
+    nb = n // block_n
+    if nb < 10:
+        raise EstimationError(f"rotating segment {cy.seg_index + 1} is too short "
+                              f"({len(t)} samples) for the turntable fit")
+    Kinv = np.linalg.inv(par["K"])
+    Ginv = np.linalg.inv(par["G"])
+    f = (A - par["ab"]) @ Kinv.T  # specific force at the proof masses
+    w0 = (W - par["gb"] - f @ par["D"].T) @ Ginv.T
+    # the gyros' D sees the force at the reference point: remove the proof-mass terms
+    if np.any(par["P"]):
+        dw0 = np.gradient(w0, t, axis=0)
+        for i in range(3):
+            pi = par["P"][i]
+            f[:, i] -= (np.cross(w0, np.cross(w0, pi)) + np.cross(dw0, pi))[:, i]
+    w = (W - par["gb"] - f @ par["D"].T) @ Ginv.T
+    dt = np.diff(t, append=t[-1] + (t[-1] - t[-2]))
+    # per-block scans over the samples of all blocks at once; the attitude is
+    # integrated with the mid-interval rate (trapezoidal), else it lags half a sample
+    wmid = np.concatenate([0.5 * (w[1:] + w[:-1]), w[-1:]])
+    fmid = np.concatenate([0.5 * (f[1:] + f[:-1]), f[-1:]])
+    wb = w[:n].reshape(nb, block_n, 3)
+    wmb = wmid[:n].reshape(nb, block_n, 3)
+    fb = fmid[:n].reshape(nb, block_n, 3)
+    dtb = dt[:n].reshape(nb, block_n)
+    # cumulative sensitivity qc = sum_{l<m} dR_l dw_l/dtheta_gyro dt (block-start frame) of the
+    # attitude at sample m, with dw/dtheta_gyro = -Ginv [I | e_j w_k | e_j f_k]; its block mean
+    # (axis measurement) and mean_m dR_m^T [e_c x] qc_m (gravity measurement) enter the
+    # Jacobians of the block means
+    R = np.tile(np.eye(3), (nb, 1, 1))
+    r_sum = np.zeros((nb, 3, 3))
+    qc = np.zeros((nb, 3, 21))
+    qbar = np.zeros((nb, 3, 21))
+    wg = np.zeros((3, nb, 3, 21))
+    ex = [skew(e) for e in np.eye(3)]
+    for m in range(block_n):
+        r_sum += R
+        qbar += qc
+        for c in range(3):
+            wg[c] += np.swapaxes(R, 1, 2) @ (ex[c] @ qc)
+        RG = (R * dtb[:, m, None, None]) @ Ginv
+        qc[:, :, 0:3] -= RG
+        qc[:, :, 3:12] -= (RG[:, :, :, None] * wmb[:, m, None, None, :]).reshape(nb, 3, 9)
+        qc[:, :, 12:21] -= (RG[:, :, :, None] * fb[:, m, None, None, :]).reshape(nb, 3, 9)
+        R = R @ Rotation.from_rotvec(wmb[:, m] * dtb[:, m, None]).as_matrix()
+    q = qc
+    # mean centripetal operator [w x]^2 = w w^T - |w|^2 I
+    ww = np.einsum("bmi,bmj->bij", wb, wb) / block_n
+    cen = ww - np.trace(ww, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+    # mean angular acceleration over the block's samples: the mean of the central
+    # differences (w[i+1] - w[i-1]) / 2dt, which telescopes to the rates at the block edges
+    wpad = np.concatenate([w[:1], w, w[n - 1:n] if n == len(w) else w[n:n + 1]])
+    e0 = np.arange(nb) * block_n + 1  # index of the block's first sample in wpad
+    e1 = e0 + block_n
+    dw_raw = ((wpad[e1] + wpad[e1 - 1]) - (wpad[e0] + wpad[e0 - 1])) / (2 * dtb.sum(axis=1)[:, None])
+    dwm = dw_raw if tangential else np.zeros((nb, 3))
+    return _Blocks(t=t[:n:block_n], a_mean=A[:n].reshape(nb, block_n, 3).mean(axis=1),
+                   r_mean=r_sum / block_n, r_end=R, cen=cen, dw=dwm, q=q,
+                   qbar=qbar / block_n, wg=wg / block_n, dw_raw=dw_raw,
+                   wabs=np.linalg.norm(wb, axis=2).mean(axis=1), m=block_n)
+
+
+def _rot(phi):
+    return Rotation.from_rotvec(phi).as_matrix()
+
+
+def _select(rec: Recording) -> list[_Cycle]:
+    if rec.gyro is None:
+        raise InputError("the turntable fit needs gyro data")
+    if rec.layout.redundant:
+        raise InputError("the turntable fit is for a triad; use `calib fit rimu` for a RIMU")
+    if rec.in_counts("accel") or rec.in_counts("gyro"):
+        raise InputError("the turntable fit needs data in SI units (import with a scale)")
+    out = []
+    for i, seg in enumerate(rec.segments):
+        if seg.kind != "rotating":
+            continue
+        if seg.table_axis_enu is None or seg.attitude is None:
+            raise InputError(f"rotating segment {seg.label!r} needs table_axis_enu and "
+                             "attitude_deg (the nominal mounting) in the plan")
+        rot = attitude_to_rotation(seg.attitude)
+        a_enu = np.asarray(seg.table_axis_enu, float) / np.linalg.norm(seg.table_axis_enu)
+        a_nom = rot.inv().apply(a_enu)
+        k = int(np.argmax(np.abs(a_nom)))
+        if abs(abs(a_nom[k]) - 1) < 1e-9:
+            a_nom = np.sign(a_nom[k]) * np.eye(3)[k]
+        out.append(_Cycle(i, seg.slice, a_enu, a_nom, _perp_basis(a_nom), rot,
+                          None if seg.lever_arm is None else np.asarray(seg.lever_arm, float)))
+    if not out:
+        raise EstimationError("no rotating segments: the turntable fit needs rotation cycles")
+    return out
+
+
+@dataclass
+class _PassOut:
+    theta: np.ndarray
+    P: np.ndarray
+    innov: list
+    nis: list
+    hist_t: list
+    hist_s: list
+    lowrate: list
+
+
+def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: TurntableOptions,
+                 sig_a, sig_g, block_n, s_known, record_history: bool, first: bool) -> _PassOut:
+    par = _unpack(theta_lin, L, cycles)
+    if s_known is not None:
+        par["s"] = s_known
+    n = L.size
+    ns = 3 + n
+    g_n = rec.site.specific_force_enu
+    g_sk = skew(g_n)
+    w_e = rec.site.earth_rate_enu
+    iG = 3 + L.gyro
+    x = np.zeros(ns)
+    if first:
+        x[3:] = prior_mean - theta_lin
+    P = np.zeros((ns, ns))
+    P[3:, 3:] = np.diag(prior_sd**2)
+    innov, nis, hist_t, hist_s, lowrate = [], [], [], [], []
+    hist_idx = []
+    if record_history:
+        if L.est_s:
+            hist_idx += list(3 + L.idx["s"])
+        if L.est_p:
+            hist_idx += list(3 + L.idx["p"])
+    next_hist = -np.inf
+    for c, cy in enumerate(cycles):
+        b = _blocks(rec, cy, par, block_n, opt.tangential, s_known)
+        nb = len(b.t)
+        T = b.m / rec.sample_rate
+        E = _rot(-w_e * T)
+        # coarse attitude: gravity from the first block, the table axis from the plan
+        cur = _unpack(theta_lin + x[3:], L, cycles)
+        f0 = np.linalg.solve(cur["K"], b.a_mean[0] - cur["ab"])
+        a_b = cy.a_nom + cy.basis @ cur["u"][c]
+        a_b /= np.linalg.norm(a_b)
+        rot0, _ = Rotation.align_vectors([g_n / np.linalg.norm(g_n), cy.a_enu],
+                                         [f0 / np.linalg.norm(f0), a_b])
+        Rh = rot0.as_matrix()
+        # a new cycle: the attitude error starts fresh, uncorrelated with theta
+        x[:3] = 0.0
+        P[:3, :] = 0.0
+        P[:, :3] = 0.0
+        P[:3, :3] = np.eye(3) * np.radians(2.0) ** 2
+        q_phi = block_n * (sig_g**2).mean() * (1.0 / rec.sample_rate) ** 2
+        Nperp = _perp_basis(cy.a_enu).T  # (2, 3)
+        skip = np.zeros(nb, bool)
+        if not opt.tangential:
+            fast = np.linalg.norm(b.dw_raw, axis=1) > opt.accel_skip
+            skip = fast | np.roll(fast, 1) | np.roll(fast, -1)
+        sA = slice(0, 3)
+        for j in range(nb):
+            cur = _unpack(theta_lin + x[3:], L, cycles)
+            s_c = s_known[c] if s_known is not None else cur["s"][c]
+            a_b = cy.a_nom + cy.basis @ cur["u"][c]
+            a_b /= np.linalg.norm(a_b)
+            Rbar = Rh @ b.r_mean[j]
+            gb_ = Rbar.T @ g_n
+            Cw = b.cen[j] + (skew(b.dw[j]) if opt.tangential else 0.0)
+            H = np.zeros((5, ns))
+            h = np.zeros(5)
+            dfdphi = Rbar.T @ g_sk
+            Kc = cur["K"]
+            U = np.zeros((3, 3))
+            for i in range(3):
+                r_i = s_c + cur["P"][i]
+                U[i] = gb_ + Cw @ r_i
+            gam = Rh.T @ g_n
+            Wg = gam[0] * b.wg[0, j] + gam[1] * b.wg[1, j] + gam[2] * b.wg[2, j]  # (3, 21)
+            KW = Kc @ Wg
+            for i in range(3):
+                h[i] = cur["ab"][i] + Kc[i] @ U[i] + KW[i] @ x[iG]
+                H[i, iG] = KW[i]
+                H[i, sA] = Kc[i] @ dfdphi
+                H[i, 3 + L.idx["ab"][i]] = 1.0
+                for q_, (ii, jj) in enumerate(K_LOWER):
+                    if ii == i:
+                        H[i, 3 + L.idx["K"][q_]] = U[i, jj]
+                if L.est_s:
+                    H[i, 3 + L.idx["s"][2 * c:2 * c + 2]] = Kc[i] @ Cw @ cy.basis
+                if L.est_p:
+                    for q_, (ii, jj) in enumerate(P_OFF):
+                        if ii == i:
+                            H[i, 3 + L.idx["p"][q_]] = Kc[i] @ Cw[:, jj]
+            # table axis fixed in ENU: Rbar a_b = a_enu (two components)
+            ra = Rbar @ a_b
+            Hg = -Nperp @ skew(ra) @ Rh @ b.qbar[j]
+            h[3:] = Nperp @ ra + Hg @ x[iG]
+            H[3:, iG] = Hg
+            H[3:, sA] = -Nperp @ skew(ra)
+            H[3:, 3 + L.idx["u"][2 * c:2 * c + 2]] = Nperp @ Rbar @ cy.basis
+            z = np.concatenate([b.a_mean[j], Nperp @ cy.a_enu])
+            r_extra = (2 * b.wabs[j] * np.linalg.norm(s_c)) ** 2 * (sig_g**2).mean() / b.m
+            if opt.tangential:
+                r_extra += (sig_g**2).mean() / 2 / T**2 * (s_c @ s_c)
+            Rm = np.diag(np.concatenate([sig_a**2 / b.m + r_extra,
+                                         np.full(2, opt.axis_sigma**2)]))
+            if skip[j]:  # the table accelerates and the tangential term is off: axis only
+                H, h, z, Rm = H[3:], h[3:], z[3:], Rm[3:, 3:]
+            # the state x holds phi = 0 after each reset; theta part is x[3:]
+            v = z - h
+            PH = P @ H.T
+            S = H @ PH + Rm
+            Kg = np.linalg.solve(S, PH.T).T
+            x = x + Kg @ v
+            P = P - Kg @ PH.T
+            P = 0.5 * (P + P.T)
+            if not skip[j] and j >= nb // 2:  # the second half of each cycle: converged state
+                innov.append(v[:3] * np.sqrt(b.m) / sig_a)
+            nis.append(float(v @ np.linalg.solve(S, v)))
+            if b.wabs[j] < np.radians(0.5):
+                fcorr = np.linalg.solve(Kc, b.a_mean[j] - cur["ab"])
+                lowrate.append((np.linalg.norm(b.a_mean[j]), np.linalg.norm(fcorr)))
+            # reset: absorb phi into the attitude
+            Rh = _rot(x[:3]) @ Rh
+            x[:3] = 0.0
+            # propagate to the next block start
+            B = Rh @ b.q[j]  # (3, 21)
+            x[:3] = B @ x[iG]
+            Pg = P[np.ix_(iG, np.arange(ns))]  # (21, ns)
+            BP = B @ Pg  # (3, ns)
+            P[:3, :] += BP
+            P[:, :3] += BP.T
+            P[:3, :3] += BP[:, iG] @ B.T + np.eye(3) * q_phi
+            Rh = E @ Rh @ b.r_end[j]
+            Rh = _rot(x[:3]) @ Rh
+            x[:3] = 0.0
+            if record_history and b.t[j] >= next_hist:
+                hist_t.append(b.t[j])
+                hist_s.append(np.sqrt(np.diag(P)[hist_idx]))
+                next_hist = b.t[j] + opt.history_every
+    return _PassOut(theta_lin + x[3:], P[3:, 3:], innov, nis, hist_t, hist_s, lowrate)
+
+
+def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()) -> CalibrationResult:
+    """Fit the turntable model to a raw recording with rotating segments."""
+    opt = options
+    if opt.lever_arm not in ("off", "known", "estimate"):
+        raise InputError(f"lever_arm must be off, known or estimate, got {opt.lever_arm!r}")
+    if opt.proof_mass not in ("off", "estimate"):
+        raise InputError(f"proof_mass must be off or estimate, got {opt.proof_mass!r}")
+    if opt.proof_mass == "estimate" and opt.lever_arm == "off":
+        raise InputError("proof-mass offsets need the lever-arm terms (--lever-arm known|estimate)")
+    cycles = _select(rec)
+    nc = len(cycles)
+    s_known = None
+    if opt.lever_arm == "known":
+        missing = [rec.segments[cy.seg_index].label for cy in cycles if cy.s_plan is None]
+        if missing:
+            raise InputError(f"--lever-arm known needs lever_arm_m in the plan for every rotating "
+                             f"segment; missing: {', '.join(missing)}")
+        s_known = np.array([cy.s_plan for cy in cycles])
+    elif opt.lever_arm == "off":
+        s_known = np.zeros((nc, 3))
+    L = _Layout(nc, opt.lever_arm == "estimate", opt.proof_mass == "estimate")
+    fs = rec.sample_rate
+    block_n = max(1, int(round(opt.block_s * fs)))
+    on = np.concatenate([np.arange(rec.segments[cy.seg_index].start,
+                                   rec.segments[cy.seg_index].stop) for cy in cycles])
+    if opt.noise is not None:
+        sig_a = np.asarray(opt.noise["accel"], float) * np.ones(3)
+        sig_g = np.asarray(opt.noise["gyro"], float) * np.ones(3)
+    else:
+        sig_a = _third_diff_sigma(rec.accel[on])
+        sig_g = _third_diff_sigma(rec.gyro[on])
+    # prior: wide around a neutral unit (and the plan's lever arms where given)
+    mean = np.zeros(L.size)
+    sd = np.zeros(L.size)
+    mean[L.idx["K"][[0, 2, 5]]] = 1.0
+    mean[L.idx["G"][[0, 4, 8]]] = 1.0
+    sd[L.idx["ab"]] = 1.0
+    sd[L.idx["K"]] = 0.05
+    sd[L.idx["gb"]] = 0.05
+    sd[L.idx["G"]] = 0.05
+    sd[L.idx["D"]] = 2e-3
+    if L.est_s:
+        for c, cy in enumerate(cycles):
+            if cy.s_plan is not None:
+                mean[L.idx["s"][2 * c:2 * c + 2]] = cy.basis.T @ cy.s_plan
+        sd[L.idx["s"]] = 0.5
+    if L.est_p:
+        sd[L.idx["p"]] = 0.05
+    sd[L.idx["u"]] = np.radians(3.0)
+    # a model that does not explain the data (e.g. lever arms ignored) leaves accelerometer
+    # residuals far above the noise and can drag the attitude off; the fit then restarts with
+    # the measurement noise widened to the residual level (stats.accel_noise_inflation), so
+    # the covariance says how little such a fit is worth
+    inflation = 1.0
+    for _attempt in range(6):
+        theta = mean.copy()
+        for k in range(max(1, opt.passes)):
+            out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation, sig_g,
+                               block_n, s_known, record_history=True, first=k == 0)
+            if not np.all(np.isfinite(out.theta)):
+                break
+            theta = out.theta
+        r = float(np.sqrt(np.mean(np.square(out.innov)))) if out.innov else 1.0
+        if np.all(np.isfinite(out.theta)) and r < 1.3:
+            break
+        # widen step by step (a diverged attempt's residuals overstate the mismatch)
+        inflation *= min(max(r, 2.0), 10.0) if np.isfinite(r) else 10.0
+    if not np.all(np.isfinite(out.theta)):
+        raise EstimationError("the turntable filter diverged")
+    return _result(rec, cycles, L, out, opt, s_known, sig_a * inflation, sig_g, block_n,
+                   inflation, sd)
+
+
+def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, inflation,
+            prior_sd_vec):
+    theta, P = out.theta, out.P
+    par = _unpack(theta, L, cycles)
+    nc = len(cycles)
+    rows, order = [], []
+
+    def emit(key, shape, entries):
+        for flat, coeffs in entries:
+            row = np.zeros(L.size)
+            for i, v in coeffs:
+                row[i] += v
+            rows.append(row)
+            order.append((key, flat))
+
+    emit("accel_bias", (3,), [(i, [(L.idx["ab"][i], 1.0)]) for i in range(3)])
+    emit("accel_K", (3, 3), [(3 * i + j, [(L.idx["K"][q], 1.0)]) for q, (i, j) in enumerate(K_LOWER)])
+    emit("gyro_bias", (3,), [(i, [(L.idx["gb"][i], 1.0)]) for i in range(3)])
+    emit("gyro_K", (3, 3), [(q, [(L.idx["G"][q], 1.0)]) for q in range(9)])
+    emit("gyro_D", (3, 3), [(q, [(L.idx["D"][q], 1.0)]) for q in range(9)])
+    if L.est_s:
+        ent = []
+        for c, cy in enumerate(cycles):
+            for e in range(3):
+                co = [(L.idx["s"][2 * c + m], cy.basis[e, m]) for m in range(2)
+                      if abs(cy.basis[e, m]) > 0]
+                if co:
+                    ent.append((3 * c + e, co))
+        emit("lever_arm", (nc, 3), ent)
+    if L.est_p:
+        emit("proof_mass_offsets", (3, 3), [(3 * i + j, [(L.idx["p"][q], 1.0)])
+                                            for q, (i, j) in enumerate(P_OFF)])
+    T = np.array(rows)
+    cov = T @ P @ T.T
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    # an entry the data did not determine (sigma still above half its prior): sigma null
+    prior_sd = np.sqrt(np.diag(T @ np.diag(prior_sd_vec**2) @ T.T))
+    unobs = sd > 0.5 * prior_sd
+    sd = np.where(unobs, np.nan, sd)
+    params = {"accel_bias": par["ab"], "accel_K": par["K"], "gyro_bias": par["gb"],
+              "gyro_K": par["G"], "gyro_D": par["D"]}
+    if opt.lever_arm != "off":
+        params["lever_arm"] = par["s"] if L.est_s else s_known
+    if L.est_p:
+        params["proof_mass_offsets"] = par["P"]
+    sigma = {k: np.zeros(np.shape(v)) for k, v in params.items()}
+    for (key, flat), s in zip(order, sd):
+        sigma[key].reshape(-1)[flat] = s
+    units = {"accel_bias": "m/s^2", "accel_K": "-", "gyro_bias": "rad/s", "gyro_K": "-",
+             "gyro_D": "(rad/s)/(m/s^2)", "lever_arm": "m", "proof_mass_offsets": "m"}
+    innov = np.array(out.innov)
+    lowrate = np.array(out.lowrate) if out.lowrate else np.zeros((0, 2))
+    g = rec.site.gravity
+    a_b = []
+    for c, cy in enumerate(cycles):
+        v = cy.a_nom + cy.basis @ par["u"][c]
+        a_b.append(v / np.linalg.norm(v))
+    u_sd = np.sqrt(np.diag(P)[L.idx["u"]]).reshape(-1, 2)
+    stats = {
+        "accel_residual_rms": float(np.sqrt(np.mean(innov**2)) * np.mean(sig_a)) if len(innov)
+        else None,
+        "normalized_innovation_rms": float(np.sqrt(np.mean(innov**2))) if len(innov) else None,
+        "nis_mean": float(np.mean(out.nis)) if out.nis else None,
+        "g_error_rms_before": float(np.sqrt(np.mean((lowrate[:, 0] - g) ** 2))) if len(lowrate)
+        else None,
+        "g_error_rms_after": float(np.sqrt(np.mean((lowrate[:, 1] - g) ** 2))) if len(lowrate)
+        else None,
+        "unobservable": [f"{k}[{','.join(str(int(i)) for i in np.unravel_index(f, np.shape(params[k])))}]"
+                         for (k, f), u in zip(order, unobs) if u],
+        "n_cycles": len(cycles),
+        "cycles": [rec.segments[cy.seg_index].label for cy in cycles],
+        "lever_arm_mode": opt.lever_arm, "proof_mass_mode": opt.proof_mass,
+        "tangential": bool(opt.tangential), "block_s": block_n / rec.sample_rate,
+        "passes": int(opt.passes),
+        "accel_noise_inflation": float(inflation),
+        "noise_accel": [float(v) for v in sig_a], "noise_gyro": [float(v) for v in sig_g],
+        "table_axis_body": [[float(v) for v in a] for a in a_b],
+        "table_axis_body_sigma_rad": [[float(v) for v in r] for r in u_sd],
+        "g_error_floor": float(np.sqrt(np.mean(sig_a**2) / block_n)),
+        "g_error_note": f"|mean f| - g over blocks of {block_n / rec.sample_rate:g} s where the "
+                        "table is at rest",
+    }
+    tables = {}
+    if out.hist_t:
+        labels = []
+        if L.est_s:
+            for c, cy in enumerate(cycles):
+                for m in range(2):
+                    e = int(np.argmax(np.abs(cy.basis[:, m])))
+                    tag = "xyz"[e] if abs(abs(cy.basis[e, m]) - 1) < 1e-12 else f"b{m + 1}"
+                    labels.append(f"lever_arm[{c}].{tag}")
+        if L.est_p:
+            labels += [f"p_{'xyz'[i]}{'xyz'[j]}" for i, j in P_OFF]
+        tables["sigma_history_time"] = np.array(out.hist_t)
+        tables["sigma_history"] = np.array(out.hist_s)
+        tables["sigma_history_labels"] = labels
+    layout = Layout(n_cycles=len(cycles))
+    model = [{"name": "bias", "sensor": "accel"},
+             {"name": "scale_misalignment", "sensor": "accel", "structure": "lower"},
+             {"name": "bias", "sensor": "gyro"},
+             {"name": "scale_misalignment", "sensor": "gyro", "structure": "full"},
+             {"name": "g_sensitivity", "sensor": "gyro"}]
+    if opt.lever_arm != "off":
+        model.append({"name": "lever_arm", "sensor": "accel", "tangential": bool(opt.tangential)})
+    if L.est_p:
+        model.append({"name": "proof_mass_offsets", "sensor": "accel",
+                      "tangential": bool(opt.tangential)})
+    return CalibrationResult(method="turntable", params={k: np.asarray(v) for k, v in params.items()},
+                             sigma=sigma, units={k: units[k] for k in params}, covariance=cov,
+                             cov_order=order, stats=stats, tables=tables, model=model,
+                             raw_units=dict(rec.units), layout=layout, serial=rec.serial)

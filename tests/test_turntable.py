@@ -1,0 +1,170 @@
+"""Rotating-table calibration (calib fit turntable): fast checks on simulated data.
+
+The many-seed validation is tests/test_turntable_slow.py (make validate).
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from calib_cli.io.plan import parse_plan
+from calib_cli.methods.turntable import TurntableOptions, fit_turntable
+from calib_cli.sim.simulate import _table_errors, simulate
+from calib_cli.sim.turntable_plans import TABLE_AXIS, cycle_attitudes, turntable_plan_text
+
+
+def _z(res, truth):
+    """Normalized errors of every estimated entry (sigma > 0)."""
+    out = []
+    for k, v in res.params.items():
+        s = res.sigma[k]
+        m = s > 0
+        out.append(((v - truth[k])[m] / s[m]).ravel())
+    return np.concatenate(out)
+
+
+@pytest.fixture(scope="module")
+def short_rec():
+    plan = parse_plan(turntable_plan_text(3, duration_s=240.0))
+    return simulate(plan, None, 3)
+
+
+def test_plan_geometry():
+    cyc = cycle_attitudes(tilted=True, tilt_deg=5.0)
+    assert len(cyc) == 9
+    from calib_cli.model.frames import attitude_to_rotation
+
+    for _label, att, a_b in cyc:
+        rot = attitude_to_rotation(np.radians(att))
+        np.testing.assert_allclose(rot.apply(a_b), TABLE_AXIS, atol=1e-9)
+    for _label, _att, a_b in cyc[3:]:
+        # tilted 5 deg from its instrument axis, one axis orthogonal to the table axis
+        assert np.degrees(np.arccos(np.max(np.abs(a_b)))) == pytest.approx(5.0)
+        assert np.sum(np.abs(a_b) < 1e-12) == 1
+
+
+def test_table_errors_only_on_request():
+    plan = parse_plan(turntable_plan_text(0, duration_s=60.0))
+    tau = np.arange(0, 60, 0.01)
+    theta, rate, acc = tau * 1.0, np.ones_like(tau), np.zeros_like(tau)
+    th, rt, ac = _table_errors(plan, tau, theta, rate, acc, np.random.default_rng(1))
+    assert np.abs(rt - rate).max() > 1e-3  # the true motion is not the recorded one
+    # the angle is the integral of the true rate
+    np.testing.assert_allclose(np.gradient(th, tau)[5:-5], rt[5:-5], atol=1e-4)
+    bare = parse_plan(turntable_plan_text(0, duration_s=60.0, rate_error=0.0, wobble_dps=0.0))
+    rng = np.random.default_rng(1)
+    th2, rt2, _ = _table_errors(bare, tau, theta, rate, acc, rng)
+    assert th2 is theta and rt2 is rate
+    assert rng.standard_normal() == np.random.default_rng(1).standard_normal()
+
+
+def test_standard_cycles_within_sigma(short_rec):
+    res = fit_turntable(short_rec, TurntableOptions(proof_mass="estimate"))
+    truth = short_rec.truth["params"]
+    z = _z(res, truth)
+    assert len(z) == 3 + 6 + 3 + 9 + 9 + 6 + 6
+    assert np.abs(z).max() < 4.5, np.round(z, 2)
+    assert 0.5 < np.sqrt(np.mean(z**2)) < 1.6
+    # lever arms within 5 mm (sub-mm in fact), axial entries fixed at 0 with sigma 0
+    assert np.abs(res.params["lever_arm"] - truth["lever_arm"]).max() < 5e-3
+    for c in range(3):
+        assert res.params["lever_arm"][c, c] == 0 and res.sigma["lever_arm"][c, c] == 0
+    assert res.params["lever_arm"].shape == (3, 3)
+    assert res.stats["accel_noise_inflation"] == 1.0
+    # sigma history: non-increasing on the whole, ends at the reported sigma
+    h = res.tables["sigma_history"]
+    assert h.shape[1] == len(res.tables["sigma_history_labels"]) == 12
+    assert np.all(h[-1] <= h[0])
+
+
+def test_table_records_are_not_used(short_rec):
+    """The table's angle and rate are imprecise: the fit must not need or use them."""
+    opt = TurntableOptions(passes=1)
+    a = fit_turntable(short_rec, opt)
+    b = fit_turntable(short_rec.with_(table_angle=None, table_rate=None), opt)
+    for k in a.params:
+        np.testing.assert_array_equal(a.params[k], b.params[k])
+
+
+def test_variants_ordering(short_rec):
+    """Lever arms estimated beat lever arms measured on the housing (+-5 mm), which beat
+    lever arms ignored, on accelerometer scale factors and biases."""
+    truth = short_rec.truth["params"]
+    err = {}
+    for mode in ("off", "known", "estimate"):
+        r = fit_turntable(short_rec, TurntableOptions(lever_arm=mode,
+                                                      proof_mass="estimate" if mode == "estimate"
+                                                      else "off"))
+        err[mode] = (np.sqrt(np.mean((r.params["accel_bias"] - truth["accel_bias"]) ** 2)),
+                     np.sqrt(np.mean(np.diag(r.params["accel_K"] - truth["accel_K"]) ** 2)))
+        if mode == "off":
+            assert r.stats["accel_noise_inflation"] > 3  # the data says the model is wrong
+    for i in range(2):
+        assert err["estimate"][i] * 2 < err["known"][i] < err["off"][i], err
+
+
+def test_tilted_cycles_proof_mass():
+    plan = parse_plan(turntable_plan_text(5, duration_s=150.0, tilted=True, tilted_duration_s=80.0))
+    rec = simulate(plan, None, 5)
+    res = fit_turntable(rec, TurntableOptions(proof_mass="estimate"))
+    truth = rec.truth["params"]
+    assert res.params["lever_arm"].shape == (9, 3)
+    # s . a = 0 for every cycle's nominal axis
+    for c, (_l, _att, a) in enumerate(cycle_attitudes(tilted=True)):
+        assert abs(res.params["lever_arm"][c] @ a) < 1e-12
+    z = _z(res, truth)
+    assert np.abs(z).max() < 4.5
+    sp = res.sigma["proof_mass_offsets"][~np.eye(3, dtype=bool)]
+    assert np.all(sp < 1e-3)
+
+
+def test_tangential_off_skips_accelerations(short_rec):
+    res = fit_turntable(short_rec, TurntableOptions(tangential=False, proof_mass="off"))
+    truth = short_rec.truth["params"]
+    z = _z(res, truth)
+    # proof masses (5 mm) are not modelled here; all else within the fast bound
+    assert np.abs(z).max() < 4.5, np.round(z, 2)
+    assert res.stats["tangential"] is False
+
+
+def test_cli_simulate_fit_show(tmp_path, run_cli):
+    plan = tmp_path / "plan.toml"
+    plan.write_text(turntable_plan_text(2, duration_s=120.0))
+    raw, cal = tmp_path / "raw.h5", tmp_path / "cal.h5"
+    code, _, err = run_cli("simulate", str(plan), "--out", str(raw), "--seed", "2")
+    assert code == 0, err
+    png = tmp_path / "hist.png"
+    code, out, err = run_cli("fit", "turntable", str(raw), "--out", str(cal), "--json",
+                             "--proof-mass", "estimate", "--plot", str(png))
+    assert code == 0, err
+    obj = json.loads(out)
+    assert obj["method"] == "turntable"
+    assert np.shape(obj["params"]["lever_arm"]) == (3, 3)
+    assert np.shape(obj["sigma"]["proof_mass_offsets"]) == (3, 3)
+    for key in ("accel_residual_rms", "unobservable", "g_error_rms_before", "g_error_rms_after"):
+        assert key in obj["stats"]
+    assert png.stat().st_size > 1000
+    code, out, _ = run_cli("show", str(cal), "--json")
+    assert code == 0 and json.loads(out)["params"]["accel_K"][0][1] == 0.0
+
+
+def test_cli_errors(tmp_path, run_cli):
+    text = turntable_plan_text(2, duration_s=60.0)
+    plan = tmp_path / "plan.toml"
+    plan.write_text("\n".join(ln for ln in text.splitlines() if not ln.startswith("lever_arm_m")))
+    raw = tmp_path / "raw.h5"
+    assert run_cli("simulate", str(plan), "--out", str(raw))[0] == 0
+    code, _, err = run_cli("fit", "turntable", str(raw), "--out", str(tmp_path / "c.h5"),
+                           "--lever-arm", "known")
+    assert code == 3 and "lever_arm_m" in err and str(raw) in err
+    assert not (tmp_path / "c.h5").exists()
+    static = tmp_path / "static.toml"
+    static.write_text("kind = 'turntable'\n[[segment]]\nlabel = 'a'\nattitude_deg = [0, 0, 0]\n"
+                      "duration_s = 5\n")
+    raw2 = tmp_path / "raw2.h5"
+    assert run_cli("simulate", str(static), "--out", str(raw2))[0] == 0
+    code, _, err = run_cli("fit", "turntable", str(raw2), "--out", str(tmp_path / "d.h5"))
+    assert code == 4 and "rotating" in err
