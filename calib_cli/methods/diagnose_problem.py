@@ -1,0 +1,175 @@
+"""The data side of ``calib diagnose``: which samples, their true inputs
+(the plan's attitudes and table motion), short time bins, and the noise floor.
+
+A recording becomes a ``Problem``: per-sample kinematics of every usable
+segment (static positions with a known attitude; rotating segments with the
+table motion as recorded, else the plan's nominal rate), the measured outputs,
+and a partition of the samples into short bins (``BIN_S`` seconds, never
+crossing a segment). Every model is compared with the data through bin means
+of the per-sample prediction, so the comparison is exact for any effect
+while the fits stay small.
+
+Noise floor: the per-sample white noise of each channel from the data's own
+high-frequency content (second differences within segments, robust MAD),
+so "explained down to the noise" is a number. A bin mean of n samples has
+sigma / sqrt(n); residuals are reported in those units (CONTRACT.md
+section 5). The within-segment scatter of the bin means of static segments
+is reported beside it (``bin_scatter_ratio``): a ratio well above 1 says
+the noise is not white (coloured or drifting), which the stochastic
+candidates then test.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib_cli.data import Recording
+from calib_cli.errors import EstimationError
+from calib_cli.methods.rimu import segment_kinematics
+from calib_cli.model import kinematics as kn
+from calib_cli.model.effects import Layout
+from calib_cli.model.frames import attitude_to_rotation
+
+BIN_S = 0.5  # s: bin length
+METHODS = ("accel", "align", "turntable", "rimu")
+
+
+@dataclass
+class Problem:
+    method: str
+    sensors: tuple
+    kin: kn.Kinematics  # per usable sample
+    y: dict  # sensor -> (N, n) measured
+    starts: np.ndarray  # (M,) first sample of each bin
+    counts: np.ndarray  # (M,) samples per bin
+    bin_seg: np.ndarray  # (M,) raw segment index of each bin
+    bin_t: np.ndarray  # (M,) mean time of each bin
+    sigma: dict  # sensor -> (n,) per-sample white-noise sigma
+    ymean: dict  # sensor -> (M, n) bin means of the data
+    seg_labels: list
+    seg_kinds: list
+    skipped: list
+    units: dict
+    layout: object
+    scatter_ratio: dict  # sensor -> (n,) bin scatter / white prediction (static segments)
+    g: float
+    cycle_axes: np.ndarray | None = None  # (n_cycles, 3) table axis in body axes per cycle
+
+    @property
+    def n_bins(self) -> int:
+        return len(self.starts)
+
+    def bin_mean(self, a: np.ndarray) -> np.ndarray:
+        """Bin means of a per-sample array (N, ...)."""
+        return np.add.reduceat(a, self.starts, axis=0) / self.counts.reshape(
+            (-1,) + (1,) * (a.ndim - 1))
+
+    def whitener(self, sensor: str) -> np.ndarray:
+        """(M, n) 1-sigma of each bin mean."""
+        return self.sigma[sensor][None, :] / np.sqrt(self.counts)[:, None]
+
+    # bin-level descriptors for the plots and signatures
+    def rate_norm(self) -> np.ndarray:
+        w = self.kin.w
+        return self.bin_mean(np.linalg.norm(w, axis=1))
+
+    def temp(self):
+        return None if self.kin.temp is None else self.bin_mean(self.kin.temp)
+
+
+def _noise_sigma(y: np.ndarray, seg_bounds) -> np.ndarray:
+    """Per-sample white-noise sigma from second differences within segments."""
+    d2 = []
+    for a, b in seg_bounds:
+        if b - a >= 3:
+            d2.append(y[a + 2:b] - 2 * y[a + 1:b - 1] + y[a:b - 2])
+    d = np.concatenate(d2)
+    mad = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(6.0)
+    sd = d.std(axis=0) / np.sqrt(6.0)
+    # quantised data (counts) can have a MAD of zero: fall back to the standard deviation
+    return np.where(mad > 0.3 * sd, mad, sd)
+
+
+def build_problem(rec: Recording, method: str, bin_s: float = BIN_S) -> Problem:
+    """The usable samples of a recording for the given method."""
+    if method not in ("accel", "turntable"):
+        raise EstimationError(f"diagnose --method {method}: not implemented yet "
+                              "(accel and turntable are; docs/diagnose.md)")
+    sensors = ("accel",) if method == "accel" else ("accel", "gyro")
+    if "gyro" in sensors and rec.gyro is None:
+        raise EstimationError("the recording has no gyro data (turntable needs both sensors)")
+    use, skipped = [], []
+    for s in rec.segments:
+        ok = s.attitude is not None and s.n >= 3
+        if method == "accel":
+            ok = ok and s.kind == "static"
+        else:
+            ok = ok and (s.kind == "static" or (s.kind == "rotating"
+                                                and s.table_axis_enu is not None))
+        (use if ok else skipped).append(s)
+    n_static = sum(s.kind == "static" for s in use)
+    if method == "accel" and n_static < 6:
+        raise EstimationError(f"{n_static} static segments with a known attitude; the accel "
+                              "base model (bias + full K) needs at least 6 positions")
+    if method == "turntable" and not any(s.kind == "rotating" for s in use):
+        raise EstimationError("no rotating segment with a table axis and a known start "
+                              "attitude: not a turntable recording")
+    parts, ys = [], {s: [] for s in sensors}
+    starts, counts, bin_seg, bounds = [], [], [], []
+    fs = rec.sample_rate
+    per_bin = max(int(round(bin_s * fs)), 1)
+    n0 = 0
+    cycle = 0
+    axes = []
+    for idx, s in zip([rec.segments.index(x) for x in use], use):
+        k = segment_kinematics(rec, s)
+        m = len(k)
+        cyc = np.full(m, cycle if s.kind == "rotating" else -1)
+        if s.kind == "rotating":
+            cycle += 1
+            axes.append(attitude_to_rotation(s.attitude).inv().apply(
+                np.asarray(s.table_axis_enu, float) / np.linalg.norm(s.table_axis_enu)))
+        k = k.with_(segment=np.full(m, idx), cycle=cyc,
+                    temp=None if rec.temp is None else np.asarray(rec.temp[s.slice], float))
+        parts.append(k)
+        for sen in sensors:
+            ys[sen].append(np.asarray((rec.accel if sen == "accel" else rec.gyro)[s.slice],
+                                      float))
+        nb = max(m // per_bin, 1)
+        edges = np.linspace(0, m, nb + 1).round().astype(int)
+        starts += list(n0 + edges[:-1])
+        counts += list(np.diff(edges))
+        bin_seg += [idx] * nb
+        bounds.append((n0, n0 + m))
+        n0 += m
+    kin = kn.Kinematics.concatenate(parts)
+    y = {sen: np.concatenate(v) for sen, v in ys.items()}
+    starts = np.array(starts)
+    counts = np.array(counts, float)
+    sigma = {sen: _noise_sigma(y[sen], bounds) for sen in sensors}
+    g = float(np.median(np.linalg.norm(kin.f, axis=1)))
+    pb = Problem(method, sensors, kin, y, starts, counts, np.array(bin_seg),
+                 np.zeros(len(starts)), sigma, {}, [s.label for s in rec.segments],
+                 [s.kind for s in rec.segments], [s.label for s in skipped], dict(rec.units),
+                 Layout(n_cycles=cycle) if not rec.layout.redundant else rec.layout, {}, g)
+    pb.cycle_axes = np.array(axes).reshape(-1, 3)
+    pb.bin_t = pb.bin_mean(kin.t)
+    pb.ymean = {sen: pb.bin_mean(y[sen]) for sen in sensors}
+    # scatter of bin means about their segment mean (static segments) against white noise
+    for sen in sensors:
+        z = (pb.ymean[sen]) / pb.whitener(sen)
+        acc, dof = 0.0, 0
+        for idx in np.unique(pb.bin_seg):
+            if rec.segments[idx].kind != "static":
+                continue
+            sel = pb.bin_seg == idx
+            if sel.sum() < 2:
+                continue
+            zz = z[sel]
+            acc = acc + ((zz - zz.mean(axis=0)) ** 2).sum(axis=0)
+            dof += sel.sum() - 1
+        pb.scatter_ratio[sen] = np.sqrt(acc / dof) if dof > 0 else np.full(y[sen].shape[1],
+                                                                            np.nan)
+    return pb
