@@ -76,6 +76,21 @@ class Diagnosis:
     notes: list = field(default_factory=list)
     noise_sigma: dict = field(default_factory=dict)
 
+    def by_segment(self) -> list:
+        """Residual RMS (noise units) per segment, base model and final model."""
+        pb = self.problem
+        out = []
+        res0 = self.fits[0].residual_blocks(pb)
+        res1 = self.fits[-1].residual_blocks(pb)
+        for idx in np.unique(pb.bin_seg):
+            sel = pb.bin_seg == idx
+            a = np.concatenate([res0[s][sel] for s in pb.sensors], axis=1)
+            b = np.concatenate([res1[s][sel] for s in pb.sensors], axis=1)
+            out.append({"segment": pb.seg_labels[idx], "kind": pb.seg_kinds[idx],
+                        "rms_initial": float(np.sqrt(np.mean(a ** 2))),
+                        "rms_final": float(np.sqrt(np.mean(b ** 2)))})
+        return out
+
     def to_json(self) -> dict:
         return {
             "method": self.method, "base_model": self.base_model,
@@ -88,6 +103,7 @@ class Diagnosis:
             "rounds": self.rounds,
             "noise_sigma_per_sample": {s: v for s, v in self.noise_sigma.items()},
             "bin_scatter_ratio": self.problem.scatter_ratio,
+            "residual_by_segment": self.by_segment(),
             "notes": self.notes,
         }
 
@@ -110,6 +126,13 @@ def base_spec(pb: Problem, base: str = "full") -> tuple[ModelSpec, list]:
                  "mount angles (nuisance)"]
         mount = True
     return ModelSpec(ImuModel(tuple(effects), pb.layout), mount), names
+
+
+def _zscore(d: float, k: int) -> float:
+    """Normal-equivalent z of a chi^2_k statistic (Wilson-Hilferty): ranks
+    candidates with different k by their p-value without underflow."""
+    v = 2.0 / (9.0 * k)
+    return float(((max(d, 0.0) / k) ** (1 / 3) - (1 - v)) / np.sqrt(v))
 
 
 def rms(fit: Fit) -> float:
@@ -190,12 +213,12 @@ def diagnose(rec: Recording, method: str, base: str = "full", alpha: float = ALP
         for c, f, params, sigma, k, d in tried:
             thr = float(stats.chi2.isf(alpha / m, k))
             p = float(stats.chi2.sf(max(d, 0.0), k))
-            logp = float(stats.chi2.logsf(max(d, 0.0), k))
+            logp = -_zscore(d, k)
             table.append({"candidate": c.key, "score": d, "threshold": thr, "dof": k,
                           "p_value": p})
             if d > thr and (best is None or logp < best[0]):
                 best = (logp, c, f, params, sigma, k, d, thr, p)
-        table.sort(key=lambda r: stats.chi2.logsf(max(r["score"], 0), r["dof"]))
+        table.sort(key=lambda r: -_zscore(r["score"], r["dof"]))
         rounds.append(table)
         if best is None:
             break
