@@ -163,7 +163,7 @@ def _clean(c: dc.Candidate, params: dict, sigma: dict) -> tuple[dict, dict]:
     reported as 0 with sigma 0."""
     if c.name == "lever_arm":
         v, s = params["lever_arm"].copy(), sigma["lever_arm"].copy()
-        bad = ~np.isfinite(s)
+        bad = ~np.isfinite(s) | (s == 0)
         v[bad], s[bad] = 0.0, 0.0
         params, sigma = dict(params, lever_arm=v), dict(sigma, lever_arm=s)
     return params, sigma

@@ -27,7 +27,15 @@ class Candidate:
 
     @property
     def key(self) -> str:
-        return f"{self.sensor} {self.name}".strip()
+        return effect_key(self.name, self.sensor)
+
+
+def effect_key(name: str, sensor: str) -> str:
+    """How a report names an effect on one sensor: "gyro temperature_drift",
+    "lever_arm", "accel_nonlinearity"."""
+    if not sensor or name.startswith(sensor + "_"):
+        return name
+    return f"{sensor} {name}"
 
 
 def _levels(u: np.ndarray, g: float) -> int:
@@ -45,8 +53,7 @@ def candidates(pb: Problem, model, base_structure: str, tried_names: set
     has_gyro = "gyro" in pb.sensors
 
     def add(name, sensor, **opts):
-        key = f"{sensor} {name}".strip()
-        if key in tried_names:
+        if effect_key(name, sensor) in tried_names:
             return
         e = make_effect(name, sensor or "accel", **opts)
         out.append(Candidate(name, sensor, e))
@@ -66,7 +73,7 @@ def candidates(pb: Problem, model, base_structure: str, tried_names: set
     if max(lv) >= 3:
         add("accel_nonlinearity", "accel")
     else:
-        why["accel accel_nonlinearity"] = ("every axis sees only +-g: the quadratic term "
+        why["accel_nonlinearity"] = ("every axis sees only +-g: the quadratic term "
                                            "needs inputs other than +-g on the axis (0 g counts)")
     if max(lv) >= 4:
         add("scale_asymmetry", "accel")
@@ -154,8 +161,9 @@ def describe(c: Candidate, params: dict, sigma: dict) -> str:
         return (f"size effect: the three proof masses sit apart (accelerometer {AX[i // 3]} "
                 f"offset along {AX[i % 3]} {_fmt(v, sg, 1e3, 'mm')})")
     if n == "time_offset":
+        lag = _fmt(float(params["time_offset"]), float(sigma["time_offset"]), 1e3, "ms")
         return ("time offset between the IMU and the table: the residual follows the rate "
-                f"change; the IMU lags by {_fmt(float(params['time_offset']), float(sigma['time_offset']), 1e3, 'ms')}")
+                f"change; the IMU lags by {lag}")
     if n == "g_sensitivity":
         i, v, sg = _largest(params, sigma, "gyro_D")
         return (f"gyro g-sensitivity: the gyro bias moves with the specific force (gyro "

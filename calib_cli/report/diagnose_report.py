@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from calib_cli.methods.diagnose import Diagnosis
+from calib_cli.methods.diagnose_candidates import effect_key
 from calib_cli.methods.diagnose_fit import predict_bins
 
 AX = "xyz"
@@ -131,7 +132,7 @@ def _step_plot(d: Diagnosis, k: int, path: Path):
     a2.plot(lim, lim, "k-", lw=0.8, label="1:1")
     a2.set_xlabel("fitted signature of the effect, noise units")
     a2.legend()
-    fig.suptitle(f"step {k + 1}: {st.sensor} {st.effect}".replace("  ", " ")
+    fig.suptitle(f"step {k + 1}: {effect_key(st.effect, st.sensor)}"
                  + f" (score {st.score:.1f}, threshold {st.threshold:.1f}; RMS "
                  f"{st.residual_rms_before:.2f} -> {st.residual_rms_after:.2f})")
     fig.tight_layout()
@@ -161,7 +162,7 @@ def write_report(d: Diagnosis, out_dir, source: str = "") -> list[str]:
         lines += ["No candidate effect passed its threshold: the base model explains the "
                   "data down to the noise.", ""]
     for k, st in enumerate(d.steps):
-        lines += [f"## Step {k + 1}: {st.sensor} {st.effect}".replace("  ", " "), "",
+        lines += [f"## Step {k + 1}: {effect_key(st.effect, st.sensor)}", "",
                   st.evidence + ".", "",
                   f"![step {k + 1}]({files[k + 1]})", ""]
     lines += ["## Candidates per round", ""]

@@ -15,6 +15,7 @@ import numpy as np
 
 from calib_cli.io.plan import parse_plan
 from calib_cli.methods.diagnose import base_spec
+from calib_cli.methods.diagnose_candidates import effect_key
 from calib_cli.methods.diagnose_fit import ModelSpec, fit_model
 from calib_cli.methods.diagnose_problem import build_problem
 from calib_cli.model.effects import make_effect
@@ -65,7 +66,7 @@ CASES = {
     "lever_arm": ("turntable", "lever_arm", "", "full"),
     "proof_mass_offsets": ("turntable", "proof_mass_offsets", "", "full"),
     "time_offset": ("turntable", "time_offset", "", "full"),
-    "g_sensitivity": ("turntable", "g_sensitivity", "gyro", "full"),
+    "gyro g_sensitivity": ("turntable", "g_sensitivity", "gyro", "full"),
     "gyro temperature_drift": ("turntable", "temperature_drift", "gyro", "full"),
     "gyro scale_asymmetry": ("turntable", "scale_asymmetry", "gyro", "full"),
     "gyro misalignment": ("turntable", "misalignment", "gyro", "diagonal"),
@@ -144,4 +145,4 @@ def first_key(d) -> str | None:
     if not d.steps:
         return None
     s = d.steps[0]
-    return f"{s.sensor} {s.effect}".strip()
+    return effect_key(s.effect, s.sensor)

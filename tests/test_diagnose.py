@@ -1,0 +1,141 @@
+"""calib diagnose: fast checks with fixed seeds (the many-case rates are in
+tests/test_diagnose_slow.py, `make validate`)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from calib_cli.io.plan import parse_plan
+from calib_cli.methods.diagnose import diagnose
+from calib_cli.sim import diagnose_cases as C
+from calib_cli.sim.simulate import plan_layout, simulate
+from calib_cli.sim.truth import truth_from_dict
+
+
+@pytest.mark.parametrize("case,seed", [("accel_nonlinearity", 3), ("accel temperature_drift", 4),
+                                       ("lever_arm", 5), ("gyro g_sensitivity", 6),
+                                       ("time_offset", 7), ("accel misalignment", 8)])
+def test_hidden_effect_named_first_and_gap_closed(case, seed):
+    d = C.run_case(case, seed)
+    assert C.first_key(d) == case, d.rounds[0][:3]
+    assert d.residual_rms_final <= 1.2 * d.noise_rms
+    assert d.residual_rms_initial > d.residual_rms_final
+    st = d.steps[0]
+    assert st.score > st.threshold
+    assert st.residual_rms_after < st.residual_rms_before
+
+
+@pytest.mark.parametrize("method,seed", [("accel", 11), ("turntable", 12)])
+def test_no_hidden_effect_adds_nothing(method, seed):
+    d = C.run_case(None, seed, method=method)
+    assert d.steps == []
+    assert d.residual_rms_final == d.residual_rms_initial
+    assert abs(d.residual_rms_final - d.noise_rms) < 0.1
+    assert d.rounds and all(r["score"] < r["threshold"] for r in d.rounds[0])
+
+
+def test_lever_arm_values_within_sigma():
+    rng = np.random.default_rng(21)
+    truth = C.hidden_effect_truth("lever_arm", rng)
+    d = C.run_case("lever_arm", 21, truth=truth)
+    st = d.steps[0]
+    assert st.effect == "lever_arm"
+    est, sig = st.params["lever_arm"], st.sigma["lever_arm"]
+    true = truth.params["lever_arm"]
+    axes = d.problem.cycle_axes
+    # the axial component is a convention (s . a = 0): compare the perpendicular parts
+    true_perp = true - (true * axes).sum(axis=1)[:, None] * axes
+    assert np.allclose((est * axes).sum(axis=1), 0.0, atol=1e-9)
+    ok = sig > 0
+    z = (est - true_perp)[ok] / sig[ok]
+    assert np.all(np.abs(z) < 4.5), z
+    assert np.all(sig[~ok] == 0) and np.all(est[~ok] == 0)
+
+
+def test_two_effects_resolved_in_two_steps():
+    plan = C.plan_of("turntable")
+    raw = {"params": {"accel_bias_mg": [2.0, -1.5, 3.0], "gyro_bias_dps": [0.2, -0.1, 0.05],
+                      "lever_arm_mm": [[3, -2, 0], [0, 2.5, 1], [1.5, 0, -2], [1, 1, 1]],
+                      "gyro_D": [[1e-4, 0, 0], [0, 0, 0], [0, 0, 2e-4]]}}
+    truth = truth_from_dict(raw, plan_layout(plan))
+    d = diagnose(simulate(plan, truth, seed=2), "turntable")
+    assert [f"{s.sensor} {s.effect}".strip() for s in d.steps] == ["lever_arm",
+                                                                   "gyro g_sensitivity"]
+    assert d.residual_rms_final <= 1.2 * d.noise_rms
+    D = d.steps[1].params["gyro_D"]
+    assert abs(D[2, 2] - 2e-4) < 4.5 * d.steps[1].sigma["gyro_D"][2, 2]
+
+
+SIX = """name = "six"
+kind = "static"
+sample_rate_hz = 50.0
+[site]
+latitude_deg = 45.0
+""" + "".join(f'[[segment]]\nlabel = "p{i}"\nattitude_deg = [{a}, {b}, 0]\nduration_s = 5.0\n'
+              for i, (a, b) in enumerate([(0, -90), (0, 90), (90, 0), (-90, 0), (0, 0),
+                                          (180, 0)]))
+
+
+def test_untested_effects_say_why():
+    d = diagnose(simulate(parse_plan(SIX), seed=1), "accel")
+    assert "needs rotation" in d.untested["lever_arm"]
+    assert "intermediate tilts" in d.untested["accel scale_asymmetry"]
+    assert "no temperature" in d.untested["accel temperature_drift"]
+    # the six positions have 0 g on two axes: nonlinearity is testable
+    assert "accel_nonlinearity" not in d.untested
+
+
+def test_cli_json_contract_and_report(tmp_path, capsys):
+    from calib_cli.cli.main import cli
+
+    plan = tmp_path / "tt.toml"
+    plan.write_text(C.TURNTABLE_PLAN)
+    truth = tmp_path / "truth.toml"
+    truth.write_text('[params]\naccel_bias_mg = [1, 2, 3]\n'
+                     'lever_arm_mm = [[3, -2, 0], [0, 2.5, 1], [1.5, 0, -2], [1, 1, 1]]\n')
+    raw, out, rep = tmp_path / "raw.h5", tmp_path / "diag.h5", tmp_path / "rep"
+    assert cli.main(["simulate", str(plan), "--out", str(raw), "--truth", str(truth),
+                     "--seed", "4"], standalone_mode=False) in (0, None)
+    capsys.readouterr()
+    cli.main(["diagnose", str(raw), "--method", "turntable", "--out", str(out), "--json",
+              "--report", str(rep)], standalone_mode=False)
+    j = json.loads(capsys.readouterr().out)
+    for k in ("method", "base_model", "steps", "residual_rms_initial", "residual_rms_final",
+              "noise_rms"):
+        assert k in j
+    assert j["method"] == "turntable"
+    st = j["steps"][0]
+    assert st["effect"] == "lever_arm"
+    for k in ("params", "sigma", "score", "threshold", "residual_rms_before",
+              "residual_rms_after", "evidence"):
+        assert k in st
+    assert np.array(st["params"]["lever_arm"]).shape == (4, 3)
+    assert "lever arm" in st["evidence"]
+    assert (rep / "summary.md").is_file() and (rep / "disagreement.png").is_file()
+    assert (rep / "step1_lever_arm.png").is_file()
+    cli.main(["show", str(out), "--json"], standalone_mode=False)
+    j2 = json.loads(capsys.readouterr().out)
+    assert j2["steps"][0]["effect"] == "lever_arm"
+    import h5py
+
+    with h5py.File(out) as h5:
+        assert h5.attrs["kind"] == "diagnosis"
+        assert "initial" in h5["residuals"] and "step1" in h5["residuals"]
+
+
+def test_cli_unimplemented_method_exit_4(tmp_path):
+    import subprocess
+    import sys
+
+    plan = tmp_path / "six.toml"
+    plan.write_text(SIX)
+    raw = tmp_path / "raw.h5"
+    subprocess.run([sys.executable, "-m", "calib_cli", "simulate", str(plan), "--out", str(raw)],
+                   check=True, capture_output=True)
+    r = subprocess.run([sys.executable, "-m", "calib_cli", "diagnose", str(raw), "--method",
+                        "rimu", "--out", str(tmp_path / "d.h5")], capture_output=True, text=True)
+    assert r.returncode == 4
+    assert not (tmp_path / "d.h5").exists()
