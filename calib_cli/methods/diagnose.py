@@ -75,6 +75,7 @@ class Diagnosis:
     fits: list  # Fit after the base and after each step
     notes: list = field(default_factory=list)
     noise_sigma: dict = field(default_factory=dict)
+    final_p_value: float = float("nan")  # chi^2 test of the final model against white noise
 
     def by_segment(self) -> list:
         """Residual RMS (noise units) per segment, base model and final model."""
@@ -99,6 +100,7 @@ class Diagnosis:
             "residual_rms_final": self.residual_rms_final,
             "noise_rms": self.noise_rms,
             "gap_left": self.residual_rms_final / self.noise_rms,
+            "final_fit_p_value": self.final_p_value,
             "untested": self.untested,
             "rounds": self.rounds,
             "noise_sigma_per_sample": {s: v for s, v in self.noise_sigma.items()},
@@ -235,10 +237,14 @@ def diagnose(rec: Recording, method: str, base: str = "full", alpha: float = ALP
                        and r["score"] > r["threshold"]), None)
         before, after = rms(cur), rms(f)
         words = dc.describe(c, params, sigma)
+        excess = cur.chi2 - (len(cur.r) - cur.n_free)
+        share = d / excess if excess > 0 else float("nan")
+        left = f.chi2 - (len(f.r) - f.n_free)
         ev = (f"{words}. Likelihood ratio {d:.1f} against threshold {thr:.1f} "
               f"({k} parameters, {m} candidates tried); residual RMS {before:.2f} -> "
               f"{after:.2f} noise units; the residuals correlate {corr:.2f} with its "
-              "signature")
+              f"signature; it explains {100 * min(share, 9.99):.0f} % of the excess over the "
+              f"noise, leaving {max(left, 0.0) / max(excess, 1e-300) * 100:.0f} %")
         if runner:
             ev += f"; also above threshold but weaker: {runner}"
         steps.append(Step(c.name, c.sensor, params, sigma, d, thr, k, p, corr, before, after,
@@ -248,17 +254,29 @@ def diagnose(rec: Recording, method: str, base: str = "full", alpha: float = ALP
         fits.append(cur)
     n_after = rms(cur)
     floor = white_rms(cur)
-    if n_after > 1.2 * floor:
-        notes.append(f"the final model leaves {n_after / floor:.2f}x the noise floor: part "
-                     "of the gap is not explained by any effect of the catalogue in the form "
-                     "it has (or by the stochastic terms, not tested here)")
+    dof = len(cur.r) - cur.n_free
+    p_fit = float(stats.chi2.sf(cur.chi2, dof))
+    if p_fit < alpha:
+        notes.append(f"the final model leaves {n_after / floor:.2f}x the noise floor (chi^2 "
+                     f"{cur.chi2:.0f} for {dof} degrees of freedom, p = {p_fit:.2g}): part of "
+                     "the gap is not explained by any effect of the catalogue in the form it "
+                     "has, or the noise is not white")
+        if rounds and rounds[-1]:
+            near = rounds[-1][0]
+            excess = cur.chi2 - dof
+            notes.append(f"nearest catalogue effect left: {near['candidate']} (score "
+                         f"{near['score']:.1f} against threshold {near['threshold']:.1f}); it "
+                         f"would explain {100 * max(near['score'], 0) / max(excess, 1e-300):.0f}"
+                         " % of the remaining excess")
     untested_all.setdefault("accel bias_random_walk", "stochastic terms are not tested by "
                             "diagnose yet (calib allan on a long static record)")
     untested_all.setdefault("bias_instability", "flicker needs a long free-running record: "
                             "use calib allan")
     out_base = names
-    return Diagnosis(method, out_base, steps, r0, n_after, floor, untested_all, rounds, pb,
-                     fits, notes, {s: pb.sigma[s] for s in pb.sensors})
+    out = Diagnosis(method, out_base, steps, r0, n_after, floor, untested_all, rounds, pb,
+                    fits, notes, {s: pb.sigma[s] for s in pb.sensors})
+    out.final_p_value = p_fit
+    return out
 
 
 __all__ = ["diagnose", "Diagnosis", "Step", "MOUNT_KEY"]
