@@ -104,6 +104,8 @@ class Diagnosis:
             "untested": self.untested,
             "rounds": self.rounds,
             "noise_sigma_per_sample": {s: v for s, v in self.noise_sigma.items()},
+            "noise_sigma_high_frequency": self.problem.sigma_hf,
+            "noise_estimate": self.problem.noise_mode,
             "bin_scatter_ratio": self.problem.scatter_ratio,
             "residual_by_segment": self.by_segment(),
             "notes": self.notes,
@@ -114,9 +116,11 @@ def base_spec(pb: Problem, base: str = "full") -> tuple[ModelSpec, list]:
     """The method's base model: (spec, its names for the JSON)."""
     effects = [make_effect("bias", "accel")]
     if pb.method == "accel":
-        st = "diagonal" if base == "diagonal" else "full"
+        st = "diagonal" if base == "diagonal" else ("lower" if pb.scalar else "full")
         effects.append(make_effect("scale_misalignment", "accel", structure=st))
         names = ["accel_bias", f"accel_K ({st})"]
+        if pb.scalar:
+            names.append("gravity direction of each position (nuisance: attitudes unknown)")
         mount = False
     else:  # turntable: lower-triangular accel K, the unit's mount angles as nuisance
         st = "diagonal" if base == "diagonal" else "lower"
@@ -172,10 +176,15 @@ def _clean(c: dc.Candidate, params: dict, sigma: dict) -> tuple[dict, dict]:
 
 
 def diagnose(rec: Recording, method: str, base: str = "full", alpha: float = ALPHA,
-             max_steps: int = MAX_STEPS) -> Diagnosis:
-    pb = build_problem(rec, method)
+             max_steps: int = MAX_STEPS, noise: str = "auto") -> Diagnosis:
+    pb = build_problem(rec, method, noise=noise)
     spec, names = base_spec(pb, base)
-    cur = fit_model(pb, spec, refresh=True)
+    start = None
+    if pb.start:
+        start = dict(pb.start)
+        if base == "diagonal":
+            start["accel_K"] = np.diag(np.diag(start["accel_K"]))
+    cur = fit_model(pb, spec, start=start, refresh=True)
     fits = [cur]
     r0 = rms(cur)
     steps, rounds = [], []
@@ -236,7 +245,7 @@ def diagnose(rec: Recording, method: str, base: str = "full", alpha: float = ALP
         runner = next((r["candidate"] for r in table if r["candidate"] != c.key
                        and r["score"] > r["threshold"]), None)
         before, after = rms(cur), rms(f)
-        words = dc.describe(c, params, sigma)
+        words = dc.describe(c, params, sigma, pb)
         excess = cur.chi2 - (len(cur.r) - cur.n_free)
         share = d / excess if excess > 0 else float("nan")
         left = f.chi2 - (len(f.r) - f.n_free)

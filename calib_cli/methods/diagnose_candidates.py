@@ -60,7 +60,8 @@ def candidates(pb: Problem, model, base_structure: str, tried_names: set
 
     # misalignment: only from a diagonal base
     if base_structure == "diagonal":
-        add("misalignment", "accel", structure="lower" if pb.method == "turntable" else "full")
+        add("misalignment", "accel",
+            structure="lower" if (pb.method == "turntable" or pb.scalar) else "full")
         if has_gyro:
             add("misalignment", "gyro", structure="full")
     else:
@@ -145,8 +146,12 @@ def _largest(params, sigma, key):
 AX = "xyz"
 
 
-def describe(c: Candidate, params: dict, sigma: dict) -> str:
-    """The effect in a calibration engineer's words, with its largest term."""
+def describe(c: Candidate, params: dict, sigma: dict, pb: Problem | None = None) -> str:
+    """The effect in a calibration engineer's words, with its largest term (data in
+    counts: output-side values divided by the counts per SI unit, approximately SI)."""
+    if pb is not None:
+        params = {k: np.asarray(v, float) / pb.scale_of(k) for k, v in params.items()}
+        sigma = {k: np.asarray(v, float) / pb.scale_of(k) for k, v in sigma.items()}
     n, s = c.name, c.sensor
     if n == "lever_arm":
         L = np.asarray(params["lever_arm"])

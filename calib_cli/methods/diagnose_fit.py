@@ -76,16 +76,39 @@ class Fit:
         return out
 
 
-def _rotate_kin(kin, mount):
-    if mount is None or not np.any(mount):
+def n_nuisance(pb: Problem, spec: ModelSpec) -> int:
+    """Mount angles (3) and two tilt angles per position of unknown attitude."""
+    return (3 if spec.mount else 0) + (2 * len(pb.tilt_basis) if pb.tilt_basis is not None
+                                       else 0)
+
+
+def _nuisance_kin(pb: Problem, spec: ModelSpec, nuis):
+    """The problem's kinematics under the nuisance parameters: the unit's
+    mount rotation, and the gravity direction of each position of unknown
+    attitude (u_i + a e1_i + b e2_i, normalised, times g)."""
+    kin = pb.kin
+    if nuis is None or len(nuis) == 0:
         return kin
-    R = Rotation.from_rotvec(mount).as_matrix()
-    return kin.with_(f=kin.f @ R, w=kin.w @ R, dw=kin.dw @ R)
+    i = 0
+    if spec.mount:
+        if np.any(nuis[:3]):
+            R = Rotation.from_rotvec(nuis[:3]).as_matrix()
+            kin = kin.with_(f=kin.f @ R, w=kin.w @ R, dw=kin.dw @ R)
+        i = 3
+    if pb.tilt_basis is not None:
+        ab = np.asarray(nuis[i:], float).reshape(-1, 2)
+        d = pb.tilt_u + ab[:, :1] * pb.tilt_basis[:, 0] + ab[:, 1:] * pb.tilt_basis[:, 1]
+        fseg = pb.g * d / np.linalg.norm(d, axis=1)[:, None]
+        on = pb.tilt_index >= 0
+        f = kin.f.copy()
+        f[on] = fseg[pb.tilt_index[on]]
+        kin = kin.with_(f=f)
+    return kin
 
 
 def predict_bins(pb: Problem, spec: ModelSpec, params: dict, mount=None) -> dict:
-    """sensor -> (M, n) bin means of the model's prediction."""
-    kin = _rotate_kin(pb.kin, mount)
+    """sensor -> (M, n) bin means of the model's prediction (mount: the nuisance vector)."""
+    kin = _nuisance_kin(pb, spec, mount)
     out = spec.model.predict(params, kin, sensors=pb.sensors)
     return {s: pb.bin_mean(out[s]) for s in pb.sensors}
 
@@ -99,13 +122,6 @@ def _residual(pb: Problem, spec: ModelSpec, params: dict, mount) -> np.ndarray:
             z = spec.stochastic[s].whiten(z)
         parts.append(z.ravel())
     return np.concatenate(parts)
-
-
-def _steps(packing: Packing) -> np.ndarray:
-    """Finite-difference steps: 1e-3 of each entry's typical size (the models are
-    nearly linear in their parameters, so the step size hardly matters)."""
-    typ = packing.scales()
-    return np.where(typ > 0, typ, 1.0) * 1e-3
 
 
 def fit_model(pb: Problem, spec: ModelSpec, start: dict | None = None,
@@ -122,14 +138,16 @@ def fit_model(pb: Problem, spec: ModelSpec, start: dict | None = None,
     base = model.neutral_params()
     if start:
         base.update({k: np.asarray(v, float) for k, v in start.items() if k in base})
-    labels = packing.labels() + ([(MOUNT_KEY, i) for i in range(3)] if spec.mount else [])
+    nn = n_nuisance(pb, spec)
+    labels = packing.labels() + [(MOUNT_KEY, i) for i in range(nn)]
     nm = packing.size
     theta = packing.pack(base)
-    if spec.mount:
-        theta = np.concatenate([theta, np.zeros(3) if start_mount is None else start_mount])
-    typ = np.concatenate([packing.scales(), np.full(3 if spec.mount else 0, 1e-3)])
+    theta = np.concatenate([theta, np.zeros(nn) if start_mount is None else start_mount])
+    unit = np.concatenate([np.full(int(m.sum()), pb.scale_of(sp.key))
+                           for sp, m in zip(packing.specs, packing.masks)] or [np.zeros(0)])
+    typ = np.concatenate([packing.scales() * unit, np.full(nn, 1e-3)])
     typ = np.where(typ > 0, typ, 1.0)
-    steps = np.concatenate([_steps(packing), np.full(3 if spec.mount else 0, 1e-5)])
+    steps = np.concatenate([typ[:nm] * 1e-3, np.full(nn, 1e-6)])
     nfev = 0
 
     lever = model.has("lever_arm") and pb.cycle_axes is not None and len(pb.cycle_axes)
@@ -138,7 +156,7 @@ def fit_model(pb: Problem, spec: ModelSpec, start: dict | None = None,
         nonlocal nfev
         nfev += 1
         p = packing.unpack(th[:nm], base)
-        r = _residual(pb, spec, p, th[nm:] if spec.mount else None)
+        r = _residual(pb, spec, p, th[nm:])
         if lever:  # the lever arm's axial component is unobservable: s . a = 0
             r = np.concatenate([r, (p["lever_arm"] * pb.cycle_axes).sum(axis=1) / AXIAL_TOL])
         return r
@@ -190,8 +208,8 @@ def fit_model(pb: Problem, spec: ModelSpec, start: dict | None = None,
     if lever:  # entries pinned by the axial convention: sigma 0
         sig["lever_arm"] = np.where(sig["lever_arm"] < 2 * AXIAL_TOL, 0.0, sig["lever_arm"])
     r = r[:len(r) - n_con]
-    mount = theta[nm:] if spec.mount else None
-    if spec.mount:
+    mount = theta[nm:]
+    if nn:
         sig[MOUNT_KEY] = np.sqrt(np.abs(np.diag(cov)[nm:]))
     return Fit(spec, packing, params, mount, theta, labels, J, r, cov, unobs, sig, nfev, n_con)
 

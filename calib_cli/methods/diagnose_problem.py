@@ -56,6 +56,28 @@ class Problem:
     scatter_ratio: dict  # sensor -> (n,) bin scatter / white prediction (static segments)
     g: float
     cycle_axes: np.ndarray | None = None  # (n_cycles, 3) table axis in body axes per cycle
+    # positions of unknown attitude (accel "scalar" mode): gravity direction u_i (U, 3)
+    # at the start, two unit vectors perpendicular to it (U, 2, 3), and per sample the
+    # position it belongs to (N,), -1 for none
+    tilt_u: np.ndarray | None = None
+    tilt_basis: np.ndarray | None = None
+    tilt_index: np.ndarray | None = None
+    start: dict | None = None  # starting parameter values (scalar mode: ellipsoid fit)
+    unit_scale: dict | None = None  # sensor -> data units per SI unit (1 for SI; counts: ~K)
+    scatter_dof: int = 0
+    noise_mode: str = "hf"
+    sigma_hf: dict | None = None  # the high-frequency estimate, before apply_noise
+
+    def scale_of(self, key: str) -> float:
+        """Factor on a parameter's typical size for this data's output units."""
+        for s in ("accel", "gyro"):
+            if key.startswith(s + "_") and self.unit_scale:
+                return self.unit_scale.get(s, 1.0)
+        return 1.0
+
+    @property
+    def scalar(self) -> bool:
+        return self.tilt_basis is not None
 
     @property
     def n_bins(self) -> int:
@@ -92,8 +114,32 @@ def _noise_sigma(y: np.ndarray, seg_bounds) -> np.ndarray:
     return np.where(mad > 0.3 * sd, mad, sd)
 
 
-def build_problem(rec: Recording, method: str, bin_s: float = BIN_S) -> Problem:
-    """The usable samples of a recording for the given method."""
+def build_problem(rec: Recording, method: str, bin_s: float = BIN_S,
+                  noise: str = "auto") -> Problem:
+    """The usable samples of a recording for the given method.
+
+    noise: "hf" (white noise from the high-frequency content) or "auto" (the
+    same, raised to the within-segment scatter of the bin means where that
+    is significantly larger: coloured or drifting noise; see apply_noise)."""
+    pb = _build(rec, method, bin_s)
+    pb.noise_mode = noise
+    if noise == "auto":
+        apply_noise(pb)
+    return pb
+
+
+def apply_noise(pb: Problem) -> None:
+    """Raise each channel's sigma by its bin-scatter ratio where the ratio is
+    significantly above 1 (3 sigma of its own sampling error)."""
+    for s in pb.sensors:
+        ratio = pb.scatter_ratio.get(s)
+        if ratio is None or pb.scatter_dof <= 0:
+            continue
+        lim = 1.0 + 3.0 / np.sqrt(2.0 * pb.scatter_dof)
+        pb.sigma[s] = pb.sigma[s] * np.where(np.isfinite(ratio) & (ratio > lim), ratio, 1.0)
+
+
+def _build(rec: Recording, method: str, bin_s: float) -> Problem:
     if method not in ("accel", "turntable"):
         raise EstimationError(f"diagnose --method {method}: not implemented yet "
                               "(accel and turntable are; docs/diagnose.md)")
@@ -101,8 +147,10 @@ def build_problem(rec: Recording, method: str, bin_s: float = BIN_S) -> Problem:
     if "gyro" in sensors and rec.gyro is None:
         raise EstimationError("the recording has no gyro data (turntable needs both sensors)")
     use, skipped = [], []
+    statics = [s for s in rec.segments if s.kind == "static" and s.n >= 3]
+    scalar = method == "accel" and any(s.attitude is None for s in statics)
     for s in rec.segments:
-        ok = s.attitude is not None and s.n >= 3
+        ok = (s.attitude is not None or scalar) and s.n >= 3
         if method == "accel":
             ok = ok and s.kind == "static"
         else:
@@ -110,9 +158,12 @@ def build_problem(rec: Recording, method: str, bin_s: float = BIN_S) -> Problem:
                                                 and s.table_axis_enu is not None))
         (use if ok else skipped).append(s)
     n_static = sum(s.kind == "static" for s in use)
-    if method == "accel" and n_static < 6:
-        raise EstimationError(f"{n_static} static segments with a known attitude; the accel "
-                              "base model (bias + full K) needs at least 6 positions")
+    if method == "accel" and n_static < (9 if scalar else 6):
+        raise EstimationError(f"{n_static} static segments{'' if scalar else ' with a known attitude'};"
+                              " the accel base model needs at least "
+                              f"{9 if scalar else 6} positions")
+    if scalar:
+        return _scalar_problem(rec, use, skipped, bin_s)
     if method == "turntable" and not any(s.kind == "rotating" for s in use):
         raise EstimationError("no rotating segment with a table axis and a known start "
                               "attitude: not a turntable recording")
@@ -157,9 +208,32 @@ def build_problem(rec: Recording, method: str, bin_s: float = BIN_S) -> Problem:
     pb.cycle_axes = np.array(axes).reshape(-1, 3)
     pb.bin_t = pb.bin_mean(kin.t)
     pb.ymean = {sen: pb.bin_mean(y[sen]) for sen in sensors}
-    # scatter of bin means about their segment mean (static segments) against white noise
-    for sen in sensors:
-        z = (pb.ymean[sen]) / pb.whitener(sen)
+    _scatter(pb, rec)
+    pb.unit_scale = _unit_scale(pb, rec)
+    return pb
+
+
+def _unit_scale(pb: Problem, rec: Recording) -> dict:
+    out = {}
+    for s in pb.sensors:
+        if not rec.in_counts(s):
+            out[s] = 1.0
+        elif pb.start and s == "accel":
+            out[s] = float(np.mean(np.abs(np.diag(pb.start["accel_K"]))))
+        else:  # counts per SI unit from the spread of the bin means against the inputs
+            x = pb.bin_mean(pb.kin.f if s == "accel" else pb.kin.w)
+            y = pb.ymean[s]
+            sx = np.linalg.norm(x - x.mean(axis=0), axis=1).mean()
+            sy = np.linalg.norm(y - y.mean(axis=0), axis=1).mean()
+            out[s] = float(sy / sx) if sx > 0 else 1.0
+    return out
+
+
+def _scatter(pb: Problem, rec: Recording) -> None:
+    """Scatter of bin means about their segment mean (static segments) against white noise."""
+    for sen in pb.sensors:
+        y = pb.y
+        ym, wh = pb.ymean[sen], pb.whitener(sen)
         acc, dof = 0.0, 0
         for idx in np.unique(pb.bin_seg):
             if rec.segments[idx].kind != "static":
@@ -167,9 +241,66 @@ def build_problem(rec: Recording, method: str, bin_s: float = BIN_S) -> Problem:
             sel = pb.bin_seg == idx
             if sel.sum() < 2:
                 continue
-            zz = z[sel]
-            acc = acc + ((zz - zz.mean(axis=0)) ** 2).sum(axis=0)
+            zz = (ym[sel] - ym[sel].mean(axis=0)) / wh[sel]
+            acc = acc + (zz ** 2).sum(axis=0)
             dof += sel.sum() - 1
         pb.scatter_ratio[sen] = np.sqrt(acc / dof) if dof > 0 else np.full(y[sen].shape[1],
                                                                             np.nan)
+        pb.scatter_dof = int(dof)
+    pb.sigma_hf = {s: v.copy() for s, v in pb.sigma.items()}
+
+
+def _scalar_problem(rec: Recording, use, skipped, bin_s: float) -> Problem:
+    """Static positions of unknown attitude: each position's gravity direction is a
+    nuisance (two tilt angles), started from the ellipsoid fit of the position means
+    (the scalar method's start, lower-triangular K)."""
+    from scipy.spatial.transform import Rotation
+
+    from calib_cli.methods.accel_lsq import ellipsoid_start
+
+    g = rec.site.gravity
+    means = np.array([np.asarray(rec.accel[s.slice], float).mean(axis=0) for s in use])
+    b0, K0 = ellipsoid_start(means, g)
+    u = np.linalg.solve(K0, (means - b0).T).T
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    basis = []
+    for v in u:
+        a = np.eye(3)[int(np.argmin(np.abs(v)))]
+        e1 = np.cross(v, a)
+        e1 /= np.linalg.norm(e1)
+        basis.append([e1, np.cross(v, e1)])
+    parts, ys, starts, counts, bin_seg, bounds, tix = [], [], [], [], [], [], []
+    per_bin = max(int(round(bin_s * rec.sample_rate)), 1)
+    n0 = 0
+    for j, s in enumerate(use):
+        t = rec.time[s.slice]
+        m = len(t)
+        rot = Rotation.identity(m)
+        k = kn.from_attitude(t, rot, rec.site)
+        k = k.with_(f=np.tile(g * u[j], (m, 1)), w=np.zeros((m, 3)), dw=np.zeros((m, 3)),
+                    segment=np.full(m, rec.segments.index(s)), cycle=np.full(m, -1),
+                    temp=None if rec.temp is None else np.asarray(rec.temp[s.slice], float))
+        parts.append(k)
+        ys.append(np.asarray(rec.accel[s.slice], float))
+        nb = max(m // per_bin, 1)
+        edges = np.linspace(0, m, nb + 1).round().astype(int)
+        starts += list(n0 + edges[:-1])
+        counts += list(np.diff(edges))
+        bin_seg += [rec.segments.index(s)] * nb
+        bounds.append((n0, n0 + m))
+        tix.append(np.full(m, j))
+        n0 += m
+    kin = kn.Kinematics.concatenate(parts)
+    y = {"accel": np.concatenate(ys)}
+    pb = Problem("accel", ("accel",), kin, y, np.array(starts), np.array(counts, float),
+                 np.array(bin_seg), np.zeros(len(starts)),
+                 {"accel": _noise_sigma(y["accel"], bounds)}, {},
+                 [s.label for s in rec.segments], [s.kind for s in rec.segments],
+                 [s.label for s in skipped], dict(rec.units), Layout(), {}, g,
+                 np.zeros((0, 3)), u, np.array(basis), np.concatenate(tix),
+                 {"accel_bias": b0, "accel_K": K0})
+    pb.bin_t = pb.bin_mean(kin.t)
+    pb.ymean = {"accel": pb.bin_mean(y["accel"])}
+    _scatter(pb, rec)
+    pb.unit_scale = _unit_scale(pb, rec)
     return pb

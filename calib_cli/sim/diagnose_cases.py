@@ -29,15 +29,17 @@ latitude_deg = 50.45
 height_m = 180.0
 """
 
-# static multi-position: the six axis positions plus eight 45-degree tilts
-# (intermediate inputs tell nonlinearity from asymmetry), temperature up and down
+# static multi-position: the six axis positions, eight 45-degree tilts
+# and twelve at 30 and 60 degrees (intermediate inputs tell nonlinearity from
+# asymmetry), temperature up and down
 _STATIC_ATT = [(0, -90, 0), (0, 90, 0), (90, 0, 0), (-90, 0, 0), (0, 0, 0), (180, 0, 0),
                (45, 0, 0), (-45, 0, 0), (0, 45, 0), (0, -45, 0), (135, 0, 0), (-135, 0, 0),
-               (0, 135, 0), (45, 45, 0)]
+               (0, 135, 0), (45, 45, 0), (30, 0, 0), (-60, 0, 0), (0, 30, 0), (0, -60, 0),
+               (150, 0, 0), (0, 120, 0), (-30, -30, 0), (60, 60, 0)]
 
 ACCEL_PLAN = ('name = "diag-static"\nkind = "static"\nsample_rate_hz = 50.0\n'
               'transition_s = 2.0\n'
-              'temperature_profile = [[0, 20.0], [60, 35.0], [130, 25.0], [200, 32.0]]\n'
+              'temperature_profile = [[0, 20.0], [80, 35.0], [170, 25.0], [300, 32.0]]\n'
               + _SITE + "".join(
                   f'[[segment]]\nlabel = "p{i}"\nattitude_deg = [{a}, {b}, {c}]\n'
                   'duration_s = 10.0\n' for i, (a, b, c) in enumerate(_STATIC_ATT)))
