@@ -98,3 +98,69 @@ if __name__ == "__main__":
     print(md)
     if len(sys.argv) > 2:
         open(sys.argv[2], "w").write(md + "\n")
+
+
+# -- the real recordings (shared/datasets) ---------------------------------
+
+
+def _xsens(root):
+    from pathlib import Path
+
+    from calib_cli.io.plan import parse_plan
+    from calib_cli.io.textlog import import_text
+    from calib_cli.validate_datasets import XSENS_PLAN
+
+    d = Path(root) / "imu_tk_xsens_mti"
+    return import_text(d / "xsens_acc.mat", parse_plan(XSENS_PLAN, "xsens.toml"),
+                       d / "xsens_gyro.mat", accel_units="count", gyro_units="count")
+
+
+def _ferraris(root):
+    from pathlib import Path
+
+    from calib_cli.io.plan import parse_plan
+    from calib_cli.io.textlog import import_text
+    from calib_cli.validate_datasets import ferraris_plan
+
+    d = Path(root) / "imucal_ferraris"
+    return import_text(d / "annotated_session.csv", parse_plan(ferraris_plan(360.0)),
+                       columns="time=samples,ax=acc_x,ay=acc_y,az=acc_z,gx=gyr_x,gy=gyr_y,"
+                               "gz=gyr_z,segment=part",
+                       accel_units="count", gyro_units="count", rate=204.8,
+                       time_unit="sample", sort=True)
+
+
+def _keep_segments(rec, keep):
+    """The recording with only the static segments whose index is in ``keep``."""
+    segs = tuple(s for i, s in enumerate(rec.segments) if i in keep)
+    return rec.with_(segments=segs)
+
+
+def real_datasets(root) -> list[dict]:
+    """Diagnose the real recordings; for the Xsens (38 positions) also each half of
+    the positions on its own, and with white (high-frequency) noise weights, to see
+    whether the evidence holds up."""
+    from calib_cli.methods.diagnose_candidates import effect_key
+
+    out = []
+
+    def row(name, rec, noise="auto"):
+        d = diagnose(rec, "accel", noise=noise)
+        j = d.to_json()
+        out.append({"data": name, "noise": noise, "positions": int(len(set(d.problem.bin_seg))),
+                    "steps": [(effect_key(s.effect, s.sensor), round(s.score, 1),
+                               round(s.threshold, 1), s.evidence) for s in d.steps],
+                    "rms0": d.residual_rms_initial, "rms1": d.residual_rms_final,
+                    "floor": d.noise_rms, "scatter": j["bin_scatter_ratio"]["accel"],
+                    "untested": d.untested, "diag": d})
+
+    xs = _xsens(root)
+    row("xsens (38 positions, attitudes unknown)", xs)
+    row("xsens", xs, noise="hf")
+    idx = [i for i, s in enumerate(xs.segments) if s.kind == "static"]
+    row("xsens, odd positions", _keep_segments(xs, set(idx[0::2])))
+    row("xsens, even positions", _keep_segments(xs, set(idx[1::2])))
+    fe = _ferraris(root)
+    row("ferraris annotated (6 positions)", fe)
+    row("ferraris annotated", fe, noise="hf")
+    return out
