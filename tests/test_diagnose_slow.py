@@ -48,7 +48,7 @@ def test_named_first_and_gap_closed(rates, case):
     assert r["gap_ok"] >= 0.95, r
 
 
-@pytest.mark.parametrize("method", ["accel", "turntable"])
+@pytest.mark.parametrize("method", ["accel", "turntable", "rimu"])
 def test_no_effect_adds_nothing(rates, method):
     r = next(r for r in rates if r["case"] == f"none ({method})")
     assert r["nothing_added"] >= 0.95, r

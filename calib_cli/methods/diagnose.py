@@ -122,6 +122,13 @@ def base_spec(pb: Problem, base: str = "full") -> tuple[ModelSpec, list]:
         if pb.scalar:
             names.append("gravity direction of each position (nuisance: attitudes unknown)")
         mount = False
+    elif pb.method == "rimu":  # b, ks, dEl, dAz per sensor (a common rotation is in them)
+        effects = []
+        names = []
+        for s in pb.sensors:
+            effects += [make_effect("bias", s), make_effect("installation", s)]
+            names += [f"{s}_bias", f"{s}_scale_error", f"{s}_dEl", f"{s}_dAz"]
+        mount = False
     else:  # turntable: lower-triangular accel K, the unit's mount angles as nuisance
         st = "diagonal" if base == "diagonal" else "lower"
         gst = "diagonal" if base == "diagonal" else "full"

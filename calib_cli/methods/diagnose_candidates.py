@@ -58,8 +58,12 @@ def candidates(pb: Problem, model, base_structure: str, tried_names: set
         e = make_effect(name, sensor or "accel", **opts)
         out.append(Candidate(name, sensor, e))
 
+    redundant = pb.layout.redundant
     # misalignment: only from a diagonal base
-    if base_structure == "diagonal":
+    if redundant:
+        why["misalignment"] = ("a redundant unit's base model has each sensor's direction "
+                               "(dEl, dAz): there is no triad misalignment")
+    elif base_structure == "diagonal":
         add("misalignment", "accel",
             structure="lower" if (pb.method == "turntable" or pb.scalar) else "full")
         if has_gyro:
@@ -69,8 +73,9 @@ def candidates(pb: Problem, model, base_structure: str, tried_names: set
                                "(use --base diagonal to test it)")
 
     # accelerometer input levels per axis
-    fb = pb.bin_mean(pb.kin.f)
-    lv = [_levels(fb[:, i], pb.g) for i in range(3)]
+    axes = pb.layout.axes()
+    fb = pb.bin_mean(pb.kin.f) @ axes.T  # input along each channel
+    lv = [_levels(fb[:, i], pb.g) for i in range(fb.shape[1])]
     if max(lv) >= 3:
         add("accel_nonlinearity", "accel")
     else:
@@ -85,8 +90,8 @@ def candidates(pb: Problem, model, base_structure: str, tried_names: set
     else:
         why["accel scale_asymmetry"] = "every axis sees only +-g: needs inputs of other sizes"
     if has_gyro:
-        wb = pb.bin_mean(pb.kin.w)
-        both = [np.any(wb[:, i] > 0.05) and np.any(wb[:, i] < -0.05) for i in range(3)]
+        wb = pb.bin_mean(pb.kin.w) @ axes.T
+        both = [np.any(wb[:, i] > 0.05) and np.any(wb[:, i] < -0.05) for i in range(wb.shape[1])]
         if any(both):
             add("scale_asymmetry", "gyro")
         else:
@@ -104,7 +109,11 @@ def candidates(pb: Problem, model, base_structure: str, tried_names: set
     # rotation
     if rotating:
         add("lever_arm", "")
-        add("proof_mass_offsets", "")
+        if redundant:
+            why["proof_mass_offsets"] = ("the redundant-unit model puts all sensors at one "
+                                         "point (CONTRACT section 2)")
+        else:
+            add("proof_mass_offsets", "")
         add("time_offset", "")
     else:
         for name in ("lever_arm", "proof_mass_offsets", "time_offset"):
@@ -146,12 +155,25 @@ def _largest(params, sigma, key):
 AX = "xyz"
 
 
+class _Channels:
+    """Channel names: x, y, z of a triad; sensor numbers of a redundant unit."""
+
+    redundant = False
+
+    def __getitem__(self, i):
+        return f"#{i}" if self.redundant else AX[i]
+
+
+CH = _Channels()
+
+
 def describe(c: Candidate, params: dict, sigma: dict, pb: Problem | None = None) -> str:
     """The effect in a calibration engineer's words, with its largest term (data in
     counts: output-side values divided by the counts per SI unit, approximately SI)."""
     if pb is not None:
         params = {k: np.asarray(v, float) / pb.scale_of(k) for k, v in params.items()}
         sigma = {k: np.asarray(v, float) / pb.scale_of(k) for k, v in sigma.items()}
+    CH.redundant = bool(pb is not None and pb.layout.redundant)
     n, s = c.name, c.sensor
     if n == "lever_arm":
         L = np.asarray(params["lever_arm"])
@@ -163,7 +185,7 @@ def describe(c: Candidate, params: dict, sigma: dict, pb: Problem | None = None)
                 f"{_fmt(v, sg, 1e3, 'mm')})")
     if n == "proof_mass_offsets":
         i, v, sg = _largest(params, sigma, "proof_mass_offsets")
-        return (f"size effect: the three proof masses sit apart (accelerometer {AX[i // 3]} "
+        return (f"size effect: the three proof masses sit apart (accelerometer {CH[i // 3]} "
                 f"offset along {AX[i % 3]} {_fmt(v, sg, 1e3, 'mm')})")
     if n == "time_offset":
         lag = _fmt(float(params["time_offset"]), float(sigma["time_offset"]), 1e3, "ms")
@@ -172,23 +194,23 @@ def describe(c: Candidate, params: dict, sigma: dict, pb: Problem | None = None)
     if n == "g_sensitivity":
         i, v, sg = _largest(params, sigma, "gyro_D")
         return (f"gyro g-sensitivity: the gyro bias moves with the specific force (gyro "
-                f"{AX[i // 3]} per g along {AX[i % 3]}: "
+                f"{CH[i // 3]} per g along {AX[i % 3]}: "
                 f"{_fmt(v, sg, 180 / np.pi * 3600 * G0, 'deg/h/g')})")
     if n == "accel_nonlinearity":
         i, v, sg = _largest(params, sigma, "accel_nonlinearity")
         return (f"accelerometer nonlinearity: the scale factor changes with the input, a "
-                f"term in f^2 (axis {AX[i]}: {_fmt(v, sg, G0 * 1e6, 'ug/g^2')})")
+                f"term in f^2 (axis {CH[i]}: {_fmt(v, sg, G0 * 1e6, 'ug/g^2')})")
     if n == "scale_asymmetry":
         key = f"{s}_scale_asymmetry"
         i, v, sg = _largest(params, sigma, key)
         return (f"{s} scale-factor asymmetry: different scale for positive and negative "
-                f"inputs (axis {AX[i]}: {_fmt(v, sg, 1e6, 'ppm')})")
+                f"inputs (axis {CH[i]}: {_fmt(v, sg, 1e6, 'ppm')})")
     if n == "temperature_drift":
         i, v, sg = _largest(params, sigma, f"{s}_temp_bias")
         j, w, sw = _largest(params, sigma, f"{s}_temp_scale")
         f, u = ((1e3 / G0, "mg/degC") if s == "accel" else (180 / np.pi * 3600, "deg/h/degC"))
-        return (f"{s} thermal drift: bias and scale follow the temperature (bias {AX[i]} "
-                f"{_fmt(v, sg, f, u)}; scale {AX[j]} {_fmt(w, sw, 1e6, 'ppm/degC')})")
+        return (f"{s} thermal drift: bias and scale follow the temperature (bias {CH[i]} "
+                f"{_fmt(v, sg, f, u)}; scale {CH[j]} {_fmt(w, sw, 1e6, 'ppm/degC')})")
     if n == "misalignment":
         i, v, sg = _largest(params, sigma, f"{s}_misalignment")
         return (f"{s} axis misalignment / cross-coupling: axis {AX[i // 3]} senses input "

@@ -140,10 +140,17 @@ def apply_noise(pb: Problem) -> None:
 
 
 def _build(rec: Recording, method: str, bin_s: float) -> Problem:
-    if method not in ("accel", "turntable"):
+    if method not in ("accel", "turntable", "rimu"):
         raise EstimationError(f"diagnose --method {method}: not implemented yet "
-                              "(accel and turntable are; docs/diagnose.md)")
+                              "(accel, turntable and rimu are; docs/diagnose.md)")
+    if method == "rimu" and not rec.layout.redundant:
+        raise EstimationError("--method rimu needs a redundant-unit recording (plan kind "
+                              "\"rimu\" with a [rimu] geometry)")
+    if method != "rimu" and rec.layout.redundant:
+        raise EstimationError("a redundant-unit recording: use --method rimu")
     sensors = ("accel",) if method == "accel" else ("accel", "gyro")
+    if method == "rimu" and rec.gyro is None:
+        sensors = ("accel",)
     if "gyro" in sensors and rec.gyro is None:
         raise EstimationError("the recording has no gyro data (turntable needs both sensors)")
     use, skipped = [], []
@@ -164,6 +171,9 @@ def _build(rec: Recording, method: str, bin_s: float) -> Problem:
                               f"{9 if scalar else 6} positions")
     if scalar:
         return _scalar_problem(rec, use, skipped, bin_s)
+    if method == "rimu" and len(use) < 4:
+        raise EstimationError(f"{len(use)} segments with a known attitude; the RIMU base model "
+                              "needs at least 4 positions")
     if method == "turntable" and not any(s.kind == "rotating" for s in use):
         raise EstimationError("no rotating segment with a table axis and a known start "
                               "attitude: not a turntable recording")
@@ -204,7 +214,8 @@ def _build(rec: Recording, method: str, bin_s: float) -> Problem:
     pb = Problem(method, sensors, kin, y, starts, counts, np.array(bin_seg),
                  np.zeros(len(starts)), sigma, {}, [s.label for s in rec.segments],
                  [s.kind for s in rec.segments], [s.label for s in skipped], dict(rec.units),
-                 Layout(n_cycles=cycle) if not rec.layout.redundant else rec.layout, {}, g)
+                 Layout(n_cycles=cycle) if not rec.layout.redundant else
+                 Layout(rec.layout.n, rec.layout.el0, rec.layout.az0, cycle), {}, g)
     pb.cycle_axes = np.array(axes).reshape(-1, 3)
     pb.bin_t = pb.bin_mean(kin.t)
     pb.ymean = {sen: pb.bin_mean(y[sen]) for sen in sensors}

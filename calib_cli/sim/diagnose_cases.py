@@ -57,7 +57,20 @@ TURNTABLE_PLAN = ('name = "diag-turntable"\nkind = "turntable"\nsample_rate_hz =
                             for i, (a, b, c) in enumerate([(0, 0, 0), (0, -90, 0), (90, 0, 0),
                                                            (30, 40, 0)])))
 
-PLANS = {"accel": ACCEL_PLAN, "turntable": TURNTABLE_PLAN}
+# a redundant unit (tetrahedron profile, 9 sensors) on a rate table: six static
+# positions and four rotating cycles, temperature up and down
+RIMU_PLAN = ('name = "diag-rimu"\nkind = "rimu"\nsample_rate_hz = 50.0\ntransition_s = 2.0\n'
+             'temperature_profile = [[0, 20.0], [70, 35.0], [140, 24.0], [220, 30.0]]\n'
+             + _SITE + '[rimu]\nprofile = "tetrahedron"\n'
+             + "".join(f'[[segment]]\nlabel = "s{i}"\nattitude_deg = [{a}, {b}, {c}]\n'
+                       'duration_s = 6.0\n'
+                       for i, (a, b, c) in enumerate(_STATIC_ATT[:6]))
+             + "".join(f'[[segment]]\nlabel = "r{i}"\nattitude_deg = [{a}, {b}, {c}]\n'
+                       f'table_axis_enu = [0, 0, 1]\nrate_profile = {_PROFILE}\n'
+                       for i, (a, b, c) in enumerate([(0, 0, 0), (0, -90, 0), (90, 0, 0),
+                                                      (30, 40, 0)])))
+
+PLANS = {"accel": ACCEL_PLAN, "turntable": TURNTABLE_PLAN, "rimu": RIMU_PLAN}
 
 # case key -> (method, effect name, sensor, base, options)
 CASES = {
@@ -72,7 +85,17 @@ CASES = {
     "gyro temperature_drift": ("turntable", "temperature_drift", "gyro", "full"),
     "gyro scale_asymmetry": ("turntable", "scale_asymmetry", "gyro", "full"),
     "gyro misalignment": ("turntable", "misalignment", "gyro", "diagonal"),
+    "rimu: accel_nonlinearity": ("rimu", "accel_nonlinearity", "accel", "full"),
+    "rimu: gyro g_sensitivity": ("rimu", "g_sensitivity", "gyro", "full"),
+    "rimu: gyro temperature_drift": ("rimu", "temperature_drift", "gyro", "full"),
+    "rimu: lever_arm": ("rimu", "lever_arm", "", "full"),
 }
+
+
+def expected(case: str) -> str:
+    """The effect key the workflow should name first for a case."""
+    _, name, sensor, _ = CASES[case]
+    return effect_key(name, sensor)
 
 
 def _effect(method, name, sensor):
@@ -102,6 +125,14 @@ def effect_sigma(case: str) -> dict:
 
 def _base_truth(plan, rng, base: str) -> Truth:
     t = default_truth(plan_layout(plan), rng)
+    if plan.kind == "rimu":  # installation errors of a real unit: about 1 mrad, 0.1 %
+        p = dict(t.params)
+        for k in p:
+            if k.endswith(("_dEl", "_dAz")):
+                p[k] = p[k] * 0.1
+            elif k.endswith("_scale_error"):
+                p[k] = p[k] * 0.2
+        t = Truth(t.model, p, t.noise)
     if base == "diagonal":
         p = dict(t.params)
         for k in ("accel_K", "gyro_K"):

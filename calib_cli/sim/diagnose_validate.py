@@ -24,7 +24,7 @@ def case_rates(case: str | None, n: int, method: str | None = None, seed0: int =
     for k in range(n):
         d = C.run_case(case, seed0 + 7 * k, method=method)
         key = C.first_key(d)
-        if case is not None and key == case:
+        if case is not None and key == C.expected(case):
             first += 1
         elif case is not None:
             wrong[str(key)] = wrong.get(str(key), 0) + 1
@@ -88,7 +88,7 @@ def table(rows: list[dict]) -> str:
 
 def run_all(n: int) -> tuple[list[dict], str]:
     rows = [case_rates(c, n) for c in C.CASES]
-    rows += [case_rates(None, n, method=m) for m in ("accel", "turntable")]
+    rows += [case_rates(None, n, method=m) for m in ("accel", "turntable", "rimu")]
     return rows, table(rows)
 
 
