@@ -17,7 +17,8 @@ from calib_cli.sim.truth import truth_from_dict
 
 @pytest.mark.parametrize("case,seed", [("accel_nonlinearity", 3), ("accel temperature_drift", 4),
                                        ("lever_arm", 5), ("gyro g_sensitivity", 6),
-                                       ("time_offset", 7), ("accel misalignment", 8)])
+                                       ("time_offset", 7), ("accel misalignment", 8),
+                                       ("rimu: gyro g_sensitivity", 9)])
 def test_hidden_effect_named_first_and_gap_closed(case, seed):
     d = C.run_case(case, seed)
     assert C.first_key(d) == C.expected(case), d.rounds[0][:3]
@@ -136,6 +137,6 @@ def test_cli_unimplemented_method_exit_4(tmp_path):
     subprocess.run([sys.executable, "-m", "calib_cli", "simulate", str(plan), "--out", str(raw)],
                    check=True, capture_output=True)
     r = subprocess.run([sys.executable, "-m", "calib_cli", "diagnose", str(raw), "--method",
-                        "rimu", "--out", str(tmp_path / "d.h5")], capture_output=True, text=True)
+                        "align", "--out", str(tmp_path / "d.h5")], capture_output=True, text=True)
     assert r.returncode == 4
     assert not (tmp_path / "d.h5").exists()

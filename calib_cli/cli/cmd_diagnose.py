@@ -46,10 +46,14 @@ def _render(j: dict) -> None:
                                       "(misalignment becomes a candidate).")
 @click.option("--alpha", type=float, default=0.01, show_default=True,
               help="False-alarm probability per round (shared over its candidates).")
+@click.option("--noise", type=click.Choice(["auto", "hf"]), default="auto", show_default=True,
+              help="Noise floor: hf = white noise from the high-frequency content; auto = the "
+                   "same, raised to the within-segment scatter of 0.5 s means where that is "
+                   "significantly larger (coloured or drifting noise).")
 @click.option("--json", "as_json", is_flag=True, help="One JSON object (contract section 5).")
 @click.option("--report", "report_dir", type=click.Path(file_okay=False),
               help="Write PNG plots and summary.md to this directory.")
-def diagnose_cmd(raw, method, out, base, alpha, as_json, report_dir):
+def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir):
     """Find the missing effect, name it, add it and show the gap shrink."""
     from calib_cli.io.diag_h5 import write_diagnosis
     from calib_cli.methods.diagnose import diagnose
@@ -57,7 +61,7 @@ def diagnose_cmd(raw, method, out, base, alpha, as_json, report_dir):
     if not 0 < alpha < 1:
         raise click.BadParameter("--alpha must be in (0, 1)")
     rec = read_raw(raw)
-    d = diagnose(rec, method, base=base, alpha=alpha)
+    d = diagnose(rec, method, base=base, alpha=alpha, noise=noise)
     j = to_jsonable(d.to_json())
     pb = d.problem
     residuals = {"initial": d.fits[0].residual_blocks(pb)}
