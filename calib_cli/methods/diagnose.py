@@ -26,6 +26,7 @@ from scipy import stats
 
 from calib_cli.data import Recording
 from calib_cli.methods import diagnose_candidates as dc
+from calib_cli.methods import diagnose_stoch as ds
 from calib_cli.methods.diagnose_fit import MOUNT_KEY, Fit, ModelSpec, columns, fit_model
 from calib_cli.methods.diagnose_problem import Problem, build_problem
 from calib_cli.model.effects import make_effect
@@ -171,6 +172,42 @@ def _new_entries(cand_fit: Fit, cur: Fit, keys: set) -> tuple[dict, dict, int]:
     return params, sigma, k
 
 
+def _try_random_walk(pb: Problem, cur: Fit, c: dc.Candidate):
+    """(candidate, fit, params, sigma, k, score) of a bias random walk on one sensor,
+    or None when no channel wanders. Score: the likelihood ratio with the
+    deterministic parameters refitted under the random walk (diagnose_stoch)."""
+    s = c.sensor
+    if s in cur.spec.stochastic:
+        return None
+    z = cur.residual_blocks(pb)[s]
+    wh = pb.whitener(s)
+    q = ds.fit_q(pb.bin_t, z, wh)
+    if not np.any(q > 0):
+        return None
+    w = ds.RandomWalkWhitener(pb.bin_t, wh, q)
+    spec = ModelSpec(cur.spec.model, cur.spec.mount, {**cur.spec.stochastic, s: w})
+    f = fit_model(pb, spec, start=cur.params, start_mount=cur.mount)
+    white_logdet = ds.log_det_white(wh)[1:].sum()
+    first = float((z[0] ** 2).sum())  # the white model's first bin; the filter's is 0
+    score = (cur.chi2 - first + white_logdet) - (f.chi2 + w.logdet[1:].sum())
+    # rough sigma of q from the curvature of log L in log q
+    sig = np.full_like(q, np.nan)
+    zf = f.residual_blocks(pb)[s]
+    raw = zf  # whitened; undo to noise units through the filter is not needed for the width
+    del raw
+    e = -(cur.residual_blocks(pb)[s])
+    ll = []
+    for fac in (1 / 1.3, 1.0, 1.3):
+        nu, logs = ds.kalman(e * wh, wh ** 2, pb.bin_t, q * fac)
+        ll.append(-0.5 * (nu[1:] ** 2 + logs[1:]).sum(axis=0))
+    h = (ll[0] - 2 * ll[1] + ll[2]) / np.log(1.3) ** 2
+    ok = (h < 0) & (q > 0)
+    sig[ok] = q[ok] / np.sqrt(-h[ok])
+    key = f"{s}_bias_rw"
+    k = int((q > 0).sum())
+    return (c, f, {key: q}, {key: sig}, k, float(score))
+
+
 def _clean(c: dc.Candidate, params: dict, sigma: dict) -> tuple[dict, dict]:
     """Contract conventions: the lever arm's axial component (unobservable) is
     reported as 0 with sigma 0."""
@@ -208,6 +245,14 @@ def diagnose(rec: Recording, method: str, base: str = "full", alpha: float = ALP
         tried = []
         known = columns(cur)
         for c in cands:
+            if c.name == "bias_random_walk":
+                got = _try_random_walk(pb, cur, c)
+                if got is None:
+                    untested_all.setdefault(c.key, "no wander: the likelihood is largest "
+                                            "without it")
+                else:
+                    tried.append(got)
+                continue
             model = cur.spec.model.with_effect(c.effect)
             cspec = ModelSpec(model, cur.spec.mount, cur.spec.stochastic)
             keys = {s.key for s in c.effect.specs(pb.layout)}
@@ -241,11 +286,12 @@ def diagnose(rec: Recording, method: str, base: str = "full", alpha: float = ALP
         if best is None:
             break
         _, c, f, params, sigma, k, d, thr, p = best
-        # final refit with a fresh Jacobian: honest sigma for the reported values
-        f = fit_model(pb, f.spec, start=f.params, start_mount=f.mount, refresh=True)
-        keys = set(params)
-        params, sigma, k = _new_entries(f, cur, keys)
-        params, sigma = _clean(c, params, sigma)
+        if c.name != "bias_random_walk":
+            # final refit with a fresh Jacobian: honest sigma for the reported values
+            f = fit_model(pb, f.spec, start=f.params, start_mount=f.mount, refresh=True)
+            keys = set(params)
+            params, sigma, k = _new_entries(f, cur, keys)
+            params, sigma = _clean(c, params, sigma)
         diff = cur.r - f.r
         corr = float(-(cur.r @ (f.r - cur.r)) / (np.linalg.norm(cur.r) * np.linalg.norm(diff)
                                                  + 1e-300))
@@ -284,10 +330,9 @@ def diagnose(rec: Recording, method: str, base: str = "full", alpha: float = ALP
                          f"{near['score']:.1f} against threshold {near['threshold']:.1f}); it "
                          f"would explain {100 * max(near['score'], 0) / max(excess, 1e-300):.0f}"
                          " % of the remaining excess")
-    untested_all.setdefault("accel bias_random_walk", "stochastic terms are not tested by "
-                            "diagnose yet (calib allan on a long static record)")
-    untested_all.setdefault("bias_instability", "flicker needs a long free-running record: "
-                            "use calib allan")
+    untested_all.setdefault("bias_instability", "flicker (a sum of Gauss-Markov processes "
+                            "spanning decades of correlation time) needs a long free-running "
+                            "record: use calib allan")
     out_base = names
     out = Diagnosis(method, out_base, steps, r0, n_after, floor, untested_all, rounds, pb,
                     fits, notes, {s: pb.sigma[s] for s in pb.sensors})

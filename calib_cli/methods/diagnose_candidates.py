@@ -106,6 +106,12 @@ def candidates(pb: Problem, model, base_structure: str, tried_names: set
                                              f"{np.ptp(pb.kin.temp):.2f} degC (needs >= 1 degC)")
         else:
             add("temperature_drift", s)
+    # a wandering bias: the residuals' time structure (Kalman likelihood, diagnose_stoch)
+    for s in pb.sensors:
+        if pb.n_bins < 20:
+            why[f"{s} bias_random_walk"] = "fewer than 20 bins (10 s): too short to see a wander"
+        else:
+            add("bias_random_walk", s)
     # rotation
     if rotating:
         add("lever_arm", "")
@@ -215,6 +221,8 @@ def describe(c: Candidate, params: dict, sigma: dict, pb: Problem | None = None)
         i, v, sg = _largest(params, sigma, f"{s}_misalignment")
         return (f"{s} axis misalignment / cross-coupling: axis {AX[i // 3]} senses input "
                 f"along {AX[i % 3]} ({_fmt(v, sg, 1e3, 'mrad')})")
+    if n == "bias_random_walk" and pb is not None:  # values are in data units already
+        pass
     if n == "bias_random_walk":
         key = f"{s}_bias_rw"
         v = np.asarray(params[key])

@@ -85,6 +85,8 @@ CASES = {
     "gyro temperature_drift": ("turntable", "temperature_drift", "gyro", "full"),
     "gyro scale_asymmetry": ("turntable", "scale_asymmetry", "gyro", "full"),
     "gyro misalignment": ("turntable", "misalignment", "gyro", "diagonal"),
+    "accel bias_random_walk": ("accel", "bias_random_walk", "accel", "full"),
+    "gyro bias_random_walk": ("turntable", "bias_random_walk", "gyro", "full"),
     "rimu: accel_nonlinearity": ("rimu", "accel_nonlinearity", "accel", "full"),
     "rimu: gyro g_sensitivity": ("rimu", "g_sensitivity", "gyro", "full"),
     "rimu: gyro temperature_drift": ("rimu", "temperature_drift", "gyro", "full"),
@@ -148,7 +150,15 @@ def hidden_effect_truth(case: str, rng, scale=(5.0, 10.0), params: dict | None =
     t = _base_truth(plan, rng, base)
     eff = _effect(method, name, sensor)
     p = dict(t.params)
-    if params is None:
+    if params is None and name == "bias_random_walk":
+        # no refit sigma for a process: a wander over the record of U(5, 10) times the
+        # noise of one 0.5 s bin mean (per channel, random sign irrelevant)
+        n_bin = 0.5 * plan.sample_rate
+        white = np.asarray(t.noise[f"{sensor}_white"], float)
+        span = _span(plan)
+        p[f"{sensor}_bias_rw"] = (rng.uniform(*scale, size=3) * white / np.sqrt(n_bin)
+                                  / np.sqrt(span))
+    elif params is None:
         for key, sig in effect_sigma(case).items():
             sig = np.asarray(sig, float)
             ok = np.isfinite(sig) & (sig > 0)
@@ -157,6 +167,16 @@ def hidden_effect_truth(case: str, rng, scale=(5.0, 10.0), params: dict | None =
     else:
         p.update(params)
     return Truth(ImuModel(t.model.effects + (eff,), t.model.layout), p, t.noise)
+
+
+@lru_cache(maxsize=None)
+def _span_of(method: str) -> float:
+    rec = simulate(plan_of(method), seed=0)
+    return float(rec.time[-1] - rec.time[0])
+
+
+def _span(plan) -> float:
+    return _span_of(next(m for m, txt in PLANS.items() if plan_of(m) is plan))
 
 
 def run_case(case: str | None, seed: int, method: str | None = None, truth=None):
