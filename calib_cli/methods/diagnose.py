@@ -27,6 +27,7 @@ from scipy import stats
 from calib_cli.data import Recording
 from calib_cli.methods import diagnose_candidates as dc
 from calib_cli.methods import diagnose_stoch as ds
+from calib_cli.methods.blas_threads import one_blas_thread
 from calib_cli.methods.diagnose_fit import MOUNT_KEY, Fit, ModelSpec, columns, fit_model
 from calib_cli.methods.diagnose_problem import Problem, build_problem
 from calib_cli.model.effects import make_effect
@@ -221,6 +222,13 @@ def _clean(c: dc.Candidate, params: dict, sigma: dict) -> tuple[dict, dict]:
 
 def diagnose(rec: Recording, method: str, base: str = "full", alpha: float = ALPHA,
              max_steps: int = MAX_STEPS, noise: str = "auto") -> Diagnosis:
+    """Run the workflow on a recording (module docstring)."""
+    with one_blas_thread():
+        return _diagnose(rec, method, base, alpha, max_steps, noise)
+
+
+def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: int,
+              noise: str) -> Diagnosis:
     pb = build_problem(rec, method, noise=noise)
     spec, names = base_spec(pb, base)
     start = None

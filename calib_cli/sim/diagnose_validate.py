@@ -164,3 +164,14 @@ def real_datasets(root) -> list[dict]:
     row("ferraris annotated (6 positions)", fe)
     row("ferraris annotated", fe, noise="hf")
     return out
+
+
+def real_table(rows: list[dict]) -> str:
+    lines = ["| recording | noise | positions | steps (score / threshold) | RMS base -> final "
+             "| floor | bin scatter ratio |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        st = "; ".join(f"{k} ({s:.0f} / {t:.1f})" for k, s, t, _ in r["steps"]) or "none"
+        sc = ", ".join(f"{x:.2f}" for x in r["scatter"])
+        lines.append(f"| {r['data']} | {r['noise']} | {r['positions']} | {st} | "
+                     f"{r['rms0']:.2f} -> {r['rms1']:.2f} | {r['floor']:.2f} | {sc} |")
+    return "\n".join(lines)
