@@ -183,8 +183,9 @@ def _try_random_walk(pb: Problem, cur: Fit, c: dc.Candidate):
     z = cur.residual_blocks(pb)[s]
     wh = pb.whitener(s)
     q = ds.fit_q(pb.bin_t, z, wh)
-    if not np.any(q > 0):
-        return None
+    key = f"{s}_bias_rw"
+    if not np.any(q > 0):  # tested: the likelihood is largest without a wander
+        return (c, cur, {key: q}, {key: np.full_like(q, np.nan)}, len(q), 0.0)
     w = ds.RandomWalkWhitener(pb.bin_t, wh, q)
     spec = ModelSpec(cur.spec.model, cur.spec.mount, {**cur.spec.stochastic, s: w})
     f = fit_model(pb, spec, start=cur.params, start_mount=cur.mount)
@@ -204,7 +205,6 @@ def _try_random_walk(pb: Problem, cur: Fit, c: dc.Candidate):
     h = (ll[0] - 2 * ll[1] + ll[2]) / np.log(1.3) ** 2
     ok = (h < 0) & (q > 0)
     sig[ok] = q[ok] / np.sqrt(-h[ok])
-    key = f"{s}_bias_rw"
     k = int((q > 0).sum())
     return (c, f, {key: q}, {key: sig}, k, float(score))
 
@@ -313,8 +313,11 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
         ev = (f"{words}. Likelihood ratio {d:.1f} against threshold {thr:.1f} "
               f"({k} parameters, {m} candidates tried); residual RMS {before:.2f} -> "
               f"{after:.2f} noise units; the residuals correlate {corr:.2f} with its "
-              f"signature; it explains {100 * min(share, 9.99):.0f} % of the excess over the "
-              f"noise, leaving {max(left, 0.0) / max(excess, 1e-300) * 100:.0f} %")
+              "signature; " + (f"it explains {100 * min(share, 9.99):.0f} % of the excess "
+                               f"over the noise, leaving "
+                               f"{max(left, 0.0) / excess * 100:.0f} %" if excess > 0 else
+                               "the model was already at the noise floor before it (a weak "
+                               "step: read it with care)"))
         if runner:
             ev += f"; also above threshold but weaker: {runner}"
         steps.append(Step(c.name, c.sensor, params, sigma, d, thr, k, p, corr, before, after,
