@@ -174,18 +174,22 @@ def _new_entries(cand_fit: Fit, cur: Fit, keys: set) -> tuple[dict, dict, int]:
 
 
 def _try_random_walk(pb: Problem, cur: Fit, c: dc.Candidate):
-    """(candidate, fit, params, sigma, k, score) of a bias random walk on one sensor,
-    or None when no channel wanders. Score: the likelihood ratio with the
-    deterministic parameters refitted under the random walk (diagnose_stoch)."""
+    """(candidate, fit, params, sigma, k, score, within-segment score) of a bias random
+    walk on one sensor. Score: the likelihood ratio over the whole record with the
+    model refitted under the walk; the within-segment score (the walk restarting at
+    every segment, diagnose_stoch) must pass too, because offsets between positions
+    visited in sequence are what any position-dependent misfit also produces."""
     s = c.sensor
     if s in cur.spec.stochastic:
         return None
     z = cur.residual_blocks(pb)[s]
     wh = pb.whitener(s)
+    reset = np.concatenate([[True], pb.bin_seg[1:] != pb.bin_seg[:-1]])
+    q_in, lr_in = ds.within_segment_lr(pb.bin_t, z, wh, reset)
     q = ds.fit_q(pb.bin_t, z, wh)
     key = f"{s}_bias_rw"
     if not np.any(q > 0):  # tested: the likelihood is largest without a wander
-        return (c, cur, {key: q}, {key: np.full_like(q, np.nan)}, len(q), 0.0)
+        return (c, cur, {key: q}, {key: np.full_like(q, np.nan)}, len(q), 0.0, 0.0)
     w = ds.RandomWalkWhitener(pb.bin_t, wh, q)
     spec = ModelSpec(cur.spec.model, cur.spec.mount, {**cur.spec.stochastic, s: w})
     f = fit_model(pb, spec, start=cur.params, start_mount=cur.mount)
@@ -194,19 +198,16 @@ def _try_random_walk(pb: Problem, cur: Fit, c: dc.Candidate):
     score = (cur.chi2 - first + white_logdet) - (f.chi2 + w.logdet[1:].sum())
     # rough sigma of q from the curvature of log L in log q
     sig = np.full_like(q, np.nan)
-    zf = f.residual_blocks(pb)[s]
-    raw = zf  # whitened; undo to noise units through the filter is not needed for the width
-    del raw
-    e = -(cur.residual_blocks(pb)[s])
+    e = z * wh
     ll = []
     for fac in (1 / 1.3, 1.0, 1.3):
-        nu, logs = ds.kalman(e * wh, wh ** 2, pb.bin_t, q * fac)
+        nu, logs = ds.kalman(e, wh ** 2, pb.bin_t, q * fac)
         ll.append(-0.5 * (nu[1:] ** 2 + logs[1:]).sum(axis=0))
     h = (ll[0] - 2 * ll[1] + ll[2]) / np.log(1.3) ** 2
     ok = (h < 0) & (q > 0)
     sig[ok] = q[ok] / np.sqrt(-h[ok])
     k = int((q > 0).sum())
-    return (c, f, {key: q}, {key: sig}, k, float(score))
+    return (c, f, {key: q}, {key: sig}, k, float(score), float(lr_in.sum()))
 
 
 def _clean(c: dc.Candidate, params: dict, sigma: dict) -> tuple[dict, dict]:
@@ -251,15 +252,14 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
         for k, v in why.items():
             untested_all.setdefault(k, v)
         tried = []
+        within: dict = {}
         known = columns(cur)
         for c in cands:
             if c.name == "bias_random_walk":
                 got = _try_random_walk(pb, cur, c)
-                if got is None:
-                    untested_all.setdefault(c.key, "no wander: the likelihood is largest "
-                                            "without it")
-                else:
-                    tried.append(got)
+                if got is not None:
+                    within[c.key] = got[6]
+                    tried.append(got[:6])
                 continue
             model = cur.spec.model.with_effect(c.effect)
             cspec = ModelSpec(model, cur.spec.mount, cur.spec.stochastic)
@@ -287,6 +287,10 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
             logp = -_zscore(d, k)
             table.append({"candidate": c.key, "score": d, "threshold": thr, "dof": k,
                           "p_value": p})
+            if c.key in within:  # a wander must show inside the segments too
+                table[-1]["within_segment_score"] = within[c.key]
+                if within[c.key] <= thr:
+                    continue
             if d > thr and (best is None or logp < best[0]):
                 best = (logp, c, f, params, sigma, k, d, thr, p)
         table.sort(key=lambda r: -_zscore(r["score"], r["dof"]))

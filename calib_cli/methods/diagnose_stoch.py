@@ -9,9 +9,13 @@ the innovations nu_b with variance S_b, so
     log L(q) = -1/2 sum_b (log S_b + nu_b^2 / S_b)       (first bin: diffuse start)
 
 and nu_b / sqrt(S_b) are the whitened residuals a generalised least-squares
-refit minimises. The candidate's score is the likelihood ratio
-2 (log L(q) - log L(0)) with the deterministic parameters refitted under the
-random walk; q is found per channel on a logarithmic grid. The whitened
+refit minimises. The candidate's evidence comes from the wander *within*
+segments only: q (per channel, on a logarithmic grid) and the score
+2 (log L(q) - log L(0)) use a walk that restarts at every segment, because
+offsets between positions visited one after the other are what any
+position-dependent misfit (attitude errors, an effect in a form the
+catalogue lacks) also produces. Once added, the walk runs through the whole
+record with that q. The whitened
 residuals stand in for the residuals afterwards ("explained down to the
 noise": the innovations are white).
 """
@@ -21,12 +25,13 @@ from __future__ import annotations
 import numpy as np
 
 
-def kalman(e: np.ndarray, v: np.ndarray, t: np.ndarray, q: np.ndarray):
+def kalman(e: np.ndarray, v: np.ndarray, t: np.ndarray, q: np.ndarray, reset=None):
     """Innovations of a random walk plus white noise, per channel.
 
     e: (M, n) residuals (data units); v: (M, n) white variances; t: (M,) s;
-    q: (n,) density (unit/sqrt(s)). Returns (nu / sqrt(S), log S), both (M, n),
-    the first bin 0 (diffuse start)."""
+    q: (n,) density (unit/sqrt(s)); reset: (M,) bool, bins where the walk starts
+    afresh (diffuse: each segment's level free). Returns (nu / sqrt(S), log S),
+    both (M, n), 0 at the first bin and at every reset."""
     M, n = e.shape
     out = np.zeros((M, n))
     logs = np.zeros((M, n))
@@ -35,6 +40,9 @@ def kalman(e: np.ndarray, v: np.ndarray, t: np.ndarray, q: np.ndarray):
     q2 = np.asarray(q, float) ** 2
     dt = np.diff(t)
     for b in range(1, M):
+        if reset is not None and reset[b]:
+            x, P = e[b].copy(), v[b].copy()
+            continue
         P = P + q2 * dt[b - 1]
         S = P + v[b]
         nu = e[b] - x
@@ -72,7 +80,22 @@ def log_det_white(wh: np.ndarray) -> np.ndarray:
     return out
 
 
-def fit_q(t, z, wh, n_grid: int = 28) -> np.ndarray:
+def within_segment_lr(t, z, wh, reset, n_grid: int = 28):
+    """(q, LR per channel) of a random walk from the wander *within* segments only
+    (the walk restarts at every segment): offsets between positions, which any
+    position-dependent misfit also makes, are no evidence for it."""
+    q = fit_q(t, z, wh, n_grid, reset)
+    e, v = z * wh, wh ** 2
+    keep = ~np.asarray(reset, bool)
+    keep[0] = False
+    nu0, logs0 = kalman(e, v, t, np.zeros_like(q), reset)  # white, each segment's level free
+    ll0 = -0.5 * (nu0[keep] ** 2 + logs0[keep]).sum(axis=0)
+    nu, logs = kalman(e, v, t, q, reset)
+    ll = -0.5 * (nu[keep] ** 2 + logs[keep]).sum(axis=0)
+    return q, np.where(q > 0, 2 * (ll - ll0), 0.0)
+
+
+def fit_q(t, z, wh, n_grid: int = 28, reset=None) -> np.ndarray:
     """Per-channel maximum-likelihood q on a log grid (residuals z in noise units)."""
     t = np.asarray(t, float)
     span = max(t[-1] - t[0], 1e-9)
@@ -83,11 +106,14 @@ def fit_q(t, z, wh, n_grid: int = 28) -> np.ndarray:
     v = wh ** 2
     best_ll = np.full(z.shape[1], -np.inf)
     best_q = np.zeros(z.shape[1])
-    ll0 = -0.5 * ((z[1:] ** 2) + log_det_white(wh)[1:]).sum(axis=0)
+    keep = np.ones(len(t), bool) if reset is None else ~np.asarray(reset, bool)
+    keep[0] = False
+    nu0, logs0 = kalman(e, v, t, np.zeros(z.shape[1]), reset)  # q = 0: the white model
+    ll0 = -0.5 * (nu0[keep] ** 2 + logs0[keep]).sum(axis=0)
     for g in grid:
         q = g * base
-        nu, logs = kalman(e, v, t, q)
-        ll = -0.5 * (nu[1:] ** 2 + logs[1:]).sum(axis=0)
+        nu, logs = kalman(e, v, t, q, reset)
+        ll = -0.5 * (nu[keep] ** 2 + logs[keep]).sum(axis=0)
         better = ll > best_ll
         best_ll = np.where(better, ll, best_ll)
         best_q = np.where(better, q, best_q)

@@ -151,8 +151,9 @@ def hidden_effect_truth(case: str, rng, scale=(5.0, 10.0), params: dict | None =
     eff = _effect(method, name, sensor)
     p = dict(t.params)
     if params is None and name == "bias_random_walk":
-        # no refit sigma for a process: a wander over the record of U(5, 10) times the
-        # noise of one 0.5 s bin mean (per channel, random sign irrelevant)
+        # no refit sigma for a process: a wander over the record of U(5, 10) times
+        # the noise of one 0.5 s bin mean, per channel (q / sigma(q) of the fitted
+        # walk is then 4-10, docs/diagnose.md)
         n_bin = 0.5 * plan.sample_rate
         white = np.asarray(t.noise[f"{sensor}_white"], float)
         span = _span(plan)
