@@ -338,8 +338,18 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
                      f"{cur.chi2:.0f} for {dof} degrees of freedom, p = {p_fit:.2g}): part of "
                      "the gap is not explained by any effect of the catalogue in the form it "
                      "has, or the noise is not white")
-        if rounds and rounds[-1]:
-            near = rounds[-1][0]
+        gated = [r for r in (rounds[-1] if rounds else [])
+                 if "within_segment_score" in r and r["score"] > r["threshold"]
+                 and r["within_segment_score"] <= r["threshold"]]
+        for r in gated:
+            notes.append(f"a wandering bias ({r['candidate']}) would fit the offsets between "
+                         f"positions (score {r['score']:.0f}) but shows no wander within them "
+                         f"(within-segment score {r['within_segment_score']:.1f} against "
+                         f"{r['threshold']:.1f}): the positions differ by more than the model "
+                         "allows (check the attitudes, or an effect outside the catalogue)")
+        eligible = [r for r in (rounds[-1] if rounds else []) if r not in gated]
+        if eligible:
+            near = eligible[0]
             excess = cur.chi2 - dof
             notes.append(f"nearest catalogue effect left: {near['candidate']} (score "
                          f"{near['score']:.1f} against threshold {near['threshold']:.1f}); it "
