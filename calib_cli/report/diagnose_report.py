@@ -167,10 +167,13 @@ def write_report(d: Diagnosis, out_dir, source: str = "") -> list[str]:
                   f"![step {k + 1}]({files[k + 1]})", ""]
     lines += ["## Candidates per round", ""]
     for i, rnd in enumerate(d.rounds):
-        lines += [f"Round {i + 1}:", "", "| candidate | score | threshold | dof | p |",
-                  "|---|---|---|---|---|"]
+        lines += [f"Round {i + 1}:", "",
+                  "| candidate | score | threshold | dof | p | within-segment score |",
+                  "|---|---|---|---|---|---|"]
         lines += [f"| {r['candidate']} | {r['score']:.1f} | {r['threshold']:.1f} | {r['dof']} "
-                  f"| {r['p_value']:.2g} |" for r in rnd]
+                  f"| {r['p_value']:.2g} | "
+                  + (f"{r['within_segment_score']:.1f}" if "within_segment_score" in r else "")
+                  + " |" for r in rnd]
         lines.append("")
     if d.untested:
         lines += ["## Not tested", ""] + [f"- {k}: {v}" for k, v in d.untested.items()] + [""]
