@@ -168,3 +168,43 @@ def test_cli_unimplemented_method_exit_4(tmp_path):
                         "align", "--out", str(tmp_path / "d.h5")], capture_output=True, text=True)
     assert r.returncode == 4
     assert not (tmp_path / "d.h5").exists()
+
+
+HAND = """name = "hand-placed"
+kind = "static"
+sample_rate_hz = 50.0
+transition_s = 2.0
+[site]
+latitude_deg = 45.0
+[[segment]]
+label = "pos"
+repeat = "auto"
+sim_repeat = 24
+duration_s = 5.0
+"""
+
+
+def test_scalar_positions_of_unknown_attitude():
+    plan = parse_plan(HAND)
+    layout = plan_layout(plan)
+    clean = diagnose(simulate(plan, seed=31), "accel")
+    assert clean.problem.scalar and "gravity direction" in clean.base_model[-1]
+    assert clean.steps == []
+    k2 = [4e-4, -3e-4, 3e-4]  # 1/(m/s^2): about 4000 ug/g^2
+    truth = truth_from_dict({"params": {"accel_bias_mg": [5, -3, 2],
+                                        "accel_nonlinearity": k2}}, layout)
+    d = diagnose(simulate(plan, truth, seed=32), "accel")
+    assert C.first_key(d) in ("accel_nonlinearity", "accel scale_asymmetry")
+    assert d.residual_rms_final <= 1.2 * d.noise_rms
+
+
+def test_diagonal_base_names_misalignment_on_the_turntable():
+    plan = C.plan_of("turntable")
+    raw = {"params": {"accel_bias_mg": [1, 2, 3],
+                      "gyro_K": [[1.001, 0.004, 0], [0, 0.999, -0.003], [0.002, 0, 1.0]]}}
+    d = diagnose(simulate(plan, truth_from_dict(raw, plan_layout(plan)), seed=5), "turntable",
+                 base="diagonal")
+    assert "accel_K (diagonal)" in d.base_model
+    assert [C.first_key(d)] == ["gyro misalignment"]
+    M = d.steps[0].params["gyro_misalignment"]
+    assert abs(M[0, 1] - 0.004) < 4.5 * d.steps[0].sigma["gyro_misalignment"][0, 1]
