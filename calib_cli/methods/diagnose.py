@@ -124,6 +124,11 @@ def base_spec(pb: Problem, base: str = "full") -> tuple[ModelSpec, list]:
         if pb.scalar:
             names.append("gravity direction of each position (nuisance: attitudes unknown)")
         mount = False
+    elif pb.method == "align":  # biases and attitude (the positions' common attitude)
+        effects.append(make_effect("bias", "gyro"))
+        names = ["accel_bias", "gyro_bias",
+                 "attitude (from the two-position alignment; 3 angles refitted)"]
+        mount = True
     elif pb.method == "rimu":  # b, ks, dEl, dAz per sensor (a common rotation is in them)
         effects = []
         names = []

@@ -60,7 +60,11 @@ def candidates(pb: Problem, model, base_structure: str, tried_names: set
 
     redundant = pb.layout.redundant
     # misalignment: only from a diagonal base
-    if redundant:
+    if pb.method == "align":
+        why["misalignment"] = ("the alignment takes K as the identity (a navigation-grade "
+                               "unit): scale and misalignment are not estimated from two "
+                               "positions")
+    elif redundant:
         why["misalignment"] = ("a redundant unit's base model has each sensor's direction "
                                "(dEl, dAz): there is no triad misalignment")
     elif base_structure == "diagonal":

@@ -121,6 +121,8 @@ def build_problem(rec: Recording, method: str, bin_s: float = BIN_S,
     noise: "hf" (white noise from the high-frequency content) or "auto" (the
     same, raised to the within-segment scatter of the bin means where that
     is significantly larger: coloured or drifting noise; see apply_noise)."""
+    if method == "align":
+        rec = _aligned(rec)
     pb = _build(rec, method, bin_s)
     pb.noise_mode = noise
     if noise == "auto":
@@ -139,10 +141,29 @@ def apply_noise(pb: Problem) -> None:
         pb.sigma[s] = pb.sigma[s] * np.where(np.isfinite(ratio) & (ratio > lim), ratio, 1.0)
 
 
+def _aligned(rec: Recording) -> Recording:
+    """An align recording with the attitude of every static position from the
+    two-position alignment (calib fit align); the base model then refits the
+    biases and a common attitude correction (the mount nuisance)."""
+    from dataclasses import replace
+
+    from calib_cli.methods.align import fit_align
+
+    res = fit_align(rec)
+    atts = res.stats.get("attitudes_all") or []
+    statics = [i for i, s in enumerate(rec.segments) if s.kind == "static"]
+    if len(atts) != len(statics):
+        raise EstimationError(f"the alignment used {len(atts)} of the {len(statics)} static "
+                              "positions; diagnose --method align needs all of them")
+    segs = list(rec.segments)
+    for i, a in zip(statics, atts):
+        segs[i] = replace(segs[i], attitude=np.asarray(a, float))
+    return rec.with_(segments=tuple(segs))
+
+
 def _build(rec: Recording, method: str, bin_s: float) -> Problem:
-    if method not in ("accel", "turntable", "rimu"):
-        raise EstimationError(f"diagnose --method {method}: not implemented yet "
-                              "(accel, turntable and rimu are; docs/diagnose.md)")
+    if method not in METHODS:
+        raise EstimationError(f"diagnose --method {method}: unknown method")
     if method == "rimu" and not rec.layout.redundant:
         raise EstimationError("--method rimu needs a redundant-unit recording (plan kind "
                               "\"rimu\" with a [rimu] geometry)")
@@ -158,7 +179,7 @@ def _build(rec: Recording, method: str, bin_s: float) -> Problem:
     scalar = method == "accel" and any(s.attitude is None for s in statics)
     for s in rec.segments:
         ok = (s.attitude is not None or scalar) and s.n >= 3
-        if method == "accel":
+        if method in ("accel", "align"):
             ok = ok and s.kind == "static"
         else:
             ok = ok and (s.kind == "static" or (s.kind == "rotating"
@@ -171,6 +192,8 @@ def _build(rec: Recording, method: str, bin_s: float) -> Problem:
                               f"{9 if scalar else 6} positions")
     if scalar:
         return _scalar_problem(rec, use, skipped, bin_s)
+    if method == "align" and n_static < 2:
+        raise EstimationError("the alignment needs at least 2 static positions")
     if method == "rimu" and len(use) < 4:
         raise EstimationError(f"{len(use)} segments with a known attitude; the RIMU base model "
                               "needs at least 4 positions")
