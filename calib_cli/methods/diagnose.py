@@ -240,7 +240,7 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
     start = None
     if pb.start:
         start = dict(pb.start)
-        if base == "diagonal":
+        if base == "diagonal" and "accel_K" in start:
             start["accel_K"] = np.diag(np.diag(start["accel_K"]))
     cur = fit_model(pb, spec, start=start, refresh=True)
     fits = [cur]

@@ -221,9 +221,14 @@ def fit_model(pb: Problem, spec: ModelSpec, start: dict | None = None,
                        0.0)
         for _ in range(n_iter):
             dx = (V @ (inv * (V.T @ (Js.T @ -r)))) * sc
-            t2 = theta + dx
-            r2 = fun(t2)
-            c0, c1 = r @ r, r2 @ r2
+            c0 = r @ r
+            for _half in range(6):  # step halving where the model is not linear enough
+                t2 = theta + dx
+                r2 = fun(t2)
+                c1 = r2 @ r2
+                if np.isfinite(c1) and c1 <= c0:
+                    break
+                dx = dx / 2
             if not np.isfinite(c1) or c1 > c0:
                 break
             theta, r = t2, r2

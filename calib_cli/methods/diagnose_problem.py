@@ -121,9 +121,12 @@ def build_problem(rec: Recording, method: str, bin_s: float = BIN_S,
     noise: "hf" (white noise from the high-frequency content) or "auto" (the
     same, raised to the within-segment scatter of the bin means where that
     is significantly larger: coloured or drifting noise; see apply_noise)."""
+    start = None
     if method == "align":
-        rec = _aligned(rec)
+        rec, start = _aligned(rec)
     pb = _build(rec, method, bin_s)
+    if start is not None:
+        pb.start = start
     pb.noise_mode = noise
     if noise == "auto":
         apply_noise(pb)
@@ -158,7 +161,8 @@ def _aligned(rec: Recording) -> Recording:
     segs = list(rec.segments)
     for i, a in zip(statics, atts):
         segs[i] = replace(segs[i], attitude=np.asarray(a, float))
-    return rec.with_(segments=tuple(segs))
+    start = {k: np.asarray(res.params[k], float) for k in ("accel_bias", "gyro_bias")}
+    return rec.with_(segments=tuple(segs)), start
 
 
 def _build(rec: Recording, method: str, bin_s: float) -> Problem:
