@@ -1,0 +1,57 @@
+"""The "diagnosis" HDF5 kind (format version 1; docs/diagnose.md).
+
+    / (attrs)              provenance (io.h5.write_provenance) + method
+    /summary               str: the JSON object of `calib diagnose --json`
+    /bins/time             (M,) s, mean time of each bin
+    /bins/segment          (M,) raw segment index
+    /bins/count            (M,) samples per bin
+    /residuals/<stage>/<sensor>   (M, n) bin residual, data - model, in noise
+                           units; stage "initial" (base model), "step1", ...
+    /noise_sigma/<sensor>  (n,) per-sample white-noise sigma (data units)
+"""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+
+from calib_cli.errors import InputError
+from calib_cli.io.h5 import atomic_path, open_checked, write_provenance
+
+_STR = h5py.string_dtype()
+
+
+def write_diagnosis(path, summary: dict, bins: dict, residuals: dict, noise_sigma: dict,
+                    inputs=(), serial=None) -> None:
+    """summary: the JSON-able dict; bins: time/segment/count arrays;
+    residuals: {stage: {sensor: (M, n)}}."""
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
+        write_provenance(h5, "diagnosis", inputs, serial, {"method": summary["method"]})
+        h5.create_dataset("summary", data=json.dumps(summary), dtype=_STR)
+        b = h5.create_group("bins")
+        for k, v in bins.items():
+            b[k] = np.asarray(v)
+        r = h5.create_group("residuals")
+        for stage, per in residuals.items():
+            g = r.create_group(stage)
+            for s, v in per.items():
+                g[s] = np.asarray(v, float)
+        n = h5.create_group("noise_sigma")
+        for s, v in noise_sigma.items():
+            n[s] = np.asarray(v, float)
+
+
+def read_diagnosis(path) -> dict:
+    """The summary JSON object of a diagnosis file."""
+    p = str(path)
+    with open_checked(p, "diagnosis") as h5:
+        try:
+            raw = h5["summary"][()]
+        except KeyError:
+            raise InputError("missing field /summary", p) from None
+    try:
+        return json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
+    except json.JSONDecodeError as exc:
+        raise InputError(f"/summary is not valid JSON ({exc})", p) from None

@@ -1,0 +1,237 @@
+"""Which effects a model lacks, whether the experiment can excite them, and
+how a calibration engineer names them.
+
+``candidates`` returns the effects to try next (each a catalogue effect on one
+sensor) and, for the rest of the catalogue, why this experiment cannot test
+them. ``describe`` turns a fitted effect into words.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib_cli.methods.diagnose_problem import Problem
+from calib_cli.model.effects import Effect, make_effect
+
+G0 = 9.80665
+LEVEL_G = 0.05  # input levels closer than this (in g) count as one
+
+
+@dataclass(frozen=True)
+class Candidate:
+    name: str  # the contract's effect name
+    sensor: str  # "accel", "gyro" or "" (time offset: both)
+    effect: Effect
+
+    @property
+    def key(self) -> str:
+        return effect_key(self.name, self.sensor)
+
+
+def effect_key(name: str, sensor: str) -> str:
+    """How a report names an effect on one sensor: "gyro temperature_drift",
+    "lever_arm", "accel_nonlinearity"."""
+    if not sensor or name.startswith(sensor + "_"):
+        return name
+    return f"{sensor} {name}"
+
+
+def _levels(u: np.ndarray, g: float) -> int:
+    """Number of distinct input levels (LEVEL_G apart) along one axis."""
+    q = np.unique(np.round(u / (LEVEL_G * g)))
+    return len(q)
+
+
+def candidates(pb: Problem, model, base_structure: str, tried_names: set
+               ) -> tuple[list[Candidate], dict]:
+    """(candidates to try, {effect key: why it cannot be tested})."""
+    out: list[Candidate] = []
+    why: dict[str, str] = {}
+    rotating = pb.layout.n_cycles > 0
+    has_gyro = "gyro" in pb.sensors
+
+    def add(name, sensor, **opts):
+        if effect_key(name, sensor) in tried_names:
+            return
+        e = make_effect(name, sensor or "accel", **opts)
+        out.append(Candidate(name, sensor, e))
+
+    redundant = pb.layout.redundant
+    # misalignment: only from a diagonal base
+    if pb.method == "align":
+        why["misalignment"] = ("the alignment takes K as the identity (a navigation-grade "
+                               "unit): scale and misalignment are not estimated from two "
+                               "positions")
+    elif redundant:
+        why["misalignment"] = ("a redundant unit's base model has each sensor's direction "
+                               "(dEl, dAz): there is no triad misalignment")
+    elif base_structure == "diagonal":
+        add("misalignment", "accel",
+            structure="lower" if (pb.method == "turntable" or pb.scalar) else "full")
+        if has_gyro:
+            add("misalignment", "gyro", structure="full")
+    else:
+        why["misalignment"] = ("the base model already has full scale/misalignment "
+                               "(use --base diagonal to test it)")
+
+    # accelerometer input levels per axis
+    axes = pb.layout.axes()
+    fb = pb.bin_mean(pb.kin.f) @ axes.T  # input along each channel
+    lv = [_levels(fb[:, i], pb.g) for i in range(fb.shape[1])]
+    if max(lv) >= 3:
+        add("accel_nonlinearity", "accel")
+    else:
+        why["accel_nonlinearity"] = ("every axis sees only +-g: the quadratic term "
+                                           "needs inputs other than +-g on the axis (0 g counts)")
+    if max(lv) >= 4:
+        add("scale_asymmetry", "accel")
+    elif max(lv) == 3:
+        why["accel scale_asymmetry"] = ("the axes see only 0 and +-g, where a|u| and k2 u^2 "
+                                        "are the same signature: telling scale asymmetry from "
+                                        "nonlinearity needs intermediate tilts")
+    else:
+        why["accel scale_asymmetry"] = "every axis sees only +-g: needs inputs of other sizes"
+    if has_gyro:
+        wb = pb.bin_mean(pb.kin.w) @ axes.T
+        both = [np.any(wb[:, i] > 0.05) and np.any(wb[:, i] < -0.05) for i in range(wb.shape[1])]
+        if any(both):
+            add("scale_asymmetry", "gyro")
+        else:
+            why["gyro scale_asymmetry"] = "no axis is turned both ways at more than 3 deg/s"
+        add("g_sensitivity", "gyro")
+    # temperature
+    for s in pb.sensors:
+        if pb.kin.temp is None or not np.all(np.isfinite(pb.kin.temp)):
+            why[f"{s} temperature_drift"] = "no temperature recorded"
+        elif np.ptp(pb.kin.temp) < 1.0:
+            why[f"{s} temperature_drift"] = (f"the temperature spans only "
+                                             f"{np.ptp(pb.kin.temp):.2f} degC (needs >= 1 degC)")
+        else:
+            add("temperature_drift", s)
+    # a wandering bias: the residuals' time structure (Kalman likelihood, diagnose_stoch)
+    for s in pb.sensors:
+        if pb.n_bins < 20:
+            why[f"{s} bias_random_walk"] = "fewer than 20 bins (10 s): too short to see a wander"
+        else:
+            add("bias_random_walk", s)
+    # rotation
+    if rotating:
+        add("lever_arm", "")
+        if redundant:
+            why["proof_mass_offsets"] = ("the redundant-unit model puts all sensors at one "
+                                         "point (CONTRACT section 2)")
+        else:
+            add("proof_mass_offsets", "")
+        add("time_offset", "")
+    else:
+        for name in ("lever_arm", "proof_mass_offsets", "time_offset"):
+            why[name] = "needs rotation (a turntable): the experiment has only static positions"
+    return out, why
+
+
+def temperature_note(pb: Problem) -> str | None:
+    """Whether a thermal drift can be told from a bias random walk."""
+    if pb.kin.temp is None:
+        return None
+    T = pb.temp()
+    dT = np.diff(T)
+    if np.all(dT >= -1e-3) or np.all(dT <= 1e-3):
+        return ("the temperature is monotonic in time, so a thermal drift and a slow bias "
+                "drift (random walk) look alike here")
+    return None
+
+
+# -- words ---------------------------------------------------------------
+
+
+def _fmt(v, s, factor, unit):
+    if s is None or not np.isfinite(s):
+        return f"{v * factor:.3g} (unobservable) {unit}"
+    return f"{v * factor:.3g} +- {s * factor:.2g} {unit}"
+
+
+def _largest(params, sigma, key):
+    """(flat index, value, sigma) of the entry with the largest |value|/sigma."""
+    v = np.asarray(params[key], float).ravel()
+    s = np.asarray(sigma[key], float).ravel()
+    z = np.where(s > 0, np.abs(v) / np.where(s > 0, s, 1), 0)
+    z = np.where(np.isfinite(z), z, 0)
+    i = int(np.argmax(z))
+    return i, v[i], s[i]
+
+
+AX = "xyz"
+
+
+class _Channels:
+    """Channel names: x, y, z of a triad; sensor numbers of a redundant unit."""
+
+    redundant = False
+
+    def __getitem__(self, i):
+        return f"#{i}" if self.redundant else AX[i]
+
+
+CH = _Channels()
+
+
+def describe(c: Candidate, params: dict, sigma: dict, pb: Problem | None = None) -> str:
+    """The effect in a calibration engineer's words, with its largest term (data in
+    counts: output-side values divided by the counts per SI unit, approximately SI)."""
+    if pb is not None:
+        params = {k: np.asarray(v, float) / pb.scale_of(k) for k, v in params.items()}
+        sigma = {k: np.asarray(v, float) / pb.scale_of(k) for k, v in sigma.items()}
+    CH.redundant = bool(pb is not None and pb.layout.redundant)
+    n, s = c.name, c.sensor
+    if n == "lever_arm":
+        L = np.asarray(params["lever_arm"])
+        i, v, sg = _largest(params, sigma, "lever_arm")
+        mm = np.linalg.norm(L, axis=1) * 1e3
+        return ("lever arm: the accelerometers sit off the table axis, so the centripetal "
+                "acceleration grows with rate^2; distance from the axis "
+                + ", ".join(f"{x:.1f} mm" for x in mm) + " per cycle (largest term "
+                f"{_fmt(v, sg, 1e3, 'mm')})")
+    if n == "proof_mass_offsets":
+        i, v, sg = _largest(params, sigma, "proof_mass_offsets")
+        return (f"size effect: the three proof masses sit apart (accelerometer {CH[i // 3]} "
+                f"offset along {AX[i % 3]} {_fmt(v, sg, 1e3, 'mm')})")
+    if n == "time_offset":
+        lag = _fmt(float(params["time_offset"]), float(sigma["time_offset"]), 1e3, "ms")
+        return ("time offset between the IMU and the table: the residual follows the rate "
+                f"change; the IMU lags by {lag}")
+    if n == "g_sensitivity":
+        i, v, sg = _largest(params, sigma, "gyro_D")
+        return (f"gyro g-sensitivity: the gyro bias moves with the specific force (gyro "
+                f"{CH[i // 3]} per g along {AX[i % 3]}: "
+                f"{_fmt(v, sg, 180 / np.pi * 3600 * G0, 'deg/h/g')})")
+    if n == "accel_nonlinearity":
+        i, v, sg = _largest(params, sigma, "accel_nonlinearity")
+        return (f"accelerometer nonlinearity: the scale factor changes with the input, a "
+                f"term in f^2 (axis {CH[i]}: {_fmt(v, sg, G0 * 1e6, 'ug/g^2')})")
+    if n == "scale_asymmetry":
+        key = f"{s}_scale_asymmetry"
+        i, v, sg = _largest(params, sigma, key)
+        return (f"{s} scale-factor asymmetry: different scale for positive and negative "
+                f"inputs (axis {CH[i]}: {_fmt(v, sg, 1e6, 'ppm')})")
+    if n == "temperature_drift":
+        i, v, sg = _largest(params, sigma, f"{s}_temp_bias")
+        j, w, sw = _largest(params, sigma, f"{s}_temp_scale")
+        f, u = ((1e3 / G0, "mg/degC") if s == "accel" else (180 / np.pi * 3600, "deg/h/degC"))
+        return (f"{s} thermal drift: bias and scale follow the temperature (bias {CH[i]} "
+                f"{_fmt(v, sg, f, u)}; scale {CH[j]} {_fmt(w, sw, 1e6, 'ppm/degC')})")
+    if n == "misalignment":
+        i, v, sg = _largest(params, sigma, f"{s}_misalignment")
+        return (f"{s} axis misalignment / cross-coupling: axis {AX[i // 3]} senses input "
+                f"along {AX[i % 3]} ({_fmt(v, sg, 1e3, 'mrad')})")
+    if n == "bias_random_walk" and pb is not None:  # values are in data units already
+        pass
+    if n == "bias_random_walk":
+        key = f"{s}_bias_rw"
+        v = np.asarray(params[key])
+        f, u = ((1e6 / G0, "ug/sqrt(s)") if s == "accel" else (180 / np.pi * 3600,
+                                                                  "deg/h/sqrt(s)"))
+        return (f"{s} bias random walk: the bias wanders slowly over the record (density "
+                + ", ".join(f"{x * f:.3g}" for x in v) + f" {u})")
+    return n

@@ -1,0 +1,183 @@
+"""`calib diagnose --report DIR`: PNG plots and a Markdown summary.
+
+- disagreement.png: the base model's residuals (and the final model's) by
+  time, by segment, by table rate, by temperature and by tilt.
+- step<k>_<effect>.png: the residuals of the channel the effect moves most,
+  before and after adding it, against the effect's physical signature
+  (rate^2, specific force, f^2, temperature, rate change) and against the
+  fitted signature itself (the effect's contribution, noise units: points
+  on the 1:1 line before, flat after).
+- summary.md: the steps, scores and thresholds, gaps, untested effects.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from calib_cli.methods.diagnose import Diagnosis
+from calib_cli.methods.diagnose_candidates import effect_key
+from calib_cli.methods.diagnose_fit import predict_bins
+
+AX = "xyz"
+
+
+def _channels(pb):
+    out = []
+    for s in pb.sensors:
+        n = pb.y[s].shape[1]
+        out += [(s, i, f"{s} {AX[i] if n == 3 else i}") for i in range(n)]
+    return out
+
+
+def effect_contribution(d: Diagnosis, k: int) -> dict:
+    """sensor -> (M, n): what step k's effect adds to the prediction, noise units."""
+    pb = d.problem
+    f = d.fits[k + 1]
+    st = d.steps[k]
+    p0 = dict(f.params)
+    neutral = f.spec.model.neutral_params()
+    for key in st.params:
+        p0[key] = neutral[key]
+    a = predict_bins(pb, f.spec, f.params, f.mount)
+    b = predict_bins(pb, f.spec, p0, f.mount)
+    return {s: (a[s] - b[s]) / pb.whitener(s) for s in pb.sensors}
+
+
+def physical_signature(d: Diagnosis, k: int, sensor: str, ch: int):
+    """(x values per bin, axis label) of step k's effect for one channel."""
+    pb = d.problem
+    st = d.steps[k]
+    name = st.effect
+    if name in ("lever_arm", "proof_mass_offsets"):
+        return pb.bin_mean((pb.kin.w ** 2).sum(axis=1)), "table rate^2, (rad/s)^2"
+    if name == "time_offset":
+        w = pb.kin.w
+        n = np.linalg.norm(w, axis=1)
+        rc = (pb.kin.dw * w).sum(axis=1) / np.where(n > 0, n, 1.0)
+        return pb.bin_mean(rc), "rate change along the rate, rad/s^2"
+    if name == "temperature_drift" and pb.kin.temp is not None:
+        return pb.temp(), "temperature, degC"
+    if name == "g_sensitivity":
+        D = np.abs(np.asarray(st.params["gyro_D"]))
+        j = int(np.argmax(D[ch]))
+        return pb.bin_mean(pb.kin.f[:, j]), f"specific force along {AX[j]}, m/s^2"
+    if name in ("accel_nonlinearity", "scale_asymmetry"):
+        src = pb.kin.f if sensor == "accel" else pb.kin.w
+        u = "m/s^2" if sensor == "accel" else "rad/s"
+        return pb.bin_mean(src[:, ch]), f"input along {AX[ch]}, {u}"
+    if name == "misalignment":
+        M = np.abs(np.asarray(st.params[f"{sensor}_misalignment"]))
+        j = int(np.argmax(M[ch]))
+        src = pb.kin.f if sensor == "accel" else pb.kin.w
+        return pb.bin_mean(src[:, j]), f"input along {AX[j]}"
+    return pb.bin_t, "time, s"
+
+
+def _disagreement(d: Diagnosis, path: Path):
+    import matplotlib.pyplot as plt
+
+    pb = d.problem
+    stages = [("base model", d.fits[0])] + ([("final model", d.fits[-1])] if d.steps else [])
+    rate = np.degrees(np.sqrt(pb.bin_mean((pb.kin.w ** 2).sum(axis=1))))
+    tilt = np.degrees(np.arccos(np.clip(pb.bin_mean(pb.kin.f[:, 2]) / pb.g, -1, 1)))
+    temp = pb.temp()
+    xs = [("time, s", pb.bin_t), ("segment", pb.bin_seg.astype(float)),
+          ("rate, deg/s", rate), ("tilt of z from up, deg", tilt)]
+    if temp is not None:
+        xs.append(("temperature, degC", temp))
+    fig, axes = plt.subplots(len(xs), 1, figsize=(9, 2.3 * len(xs)))
+    for ax, (lab, x) in zip(np.atleast_1d(axes), xs):
+        for name, f in stages:
+            res = f.residual_blocks(pb)
+            z = np.sqrt(np.mean(np.concatenate([res[s] for s in pb.sensors], axis=1) ** 2,
+                                axis=1))
+            ax.plot(x, z, ".", ms=3, label=name, alpha=0.7)
+        ax.axhline(1.0, color="k", lw=0.8, ls="--")
+        ax.set_xlabel(lab)
+        ax.set_ylabel("RMS resid. / noise")
+    np.atleast_1d(axes)[0].legend(loc="upper right")
+    np.atleast_1d(axes)[0].set_title("Where the model and the data disagree (bin RMS over "
+                                     "channels, noise units; 1 = noise)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _step_plot(d: Diagnosis, k: int, path: Path):
+    import matplotlib.pyplot as plt
+
+    pb = d.problem
+    contrib = effect_contribution(d, k)
+    best, bs, bi = -1.0, None, 0
+    for s, i, _ in _channels(pb):
+        v = float(np.sqrt(np.mean(contrib[s][:, i] ** 2)))
+        if v > best:
+            best, bs, bi = v, s, i
+    before = d.fits[k].residual_blocks(pb)[bs][:, bi]
+    after = d.fits[k + 1].residual_blocks(pb)[bs][:, bi]
+    x, xl = physical_signature(d, k, bs, bi)
+    st = d.steps[k]
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4))
+    a1.plot(x, before, ".", ms=3, label="before")
+    a1.plot(x, after, ".", ms=3, label="after")
+    a1.set_xlabel(xl)
+    a1.set_ylabel(f"{bs} {AX[bi] if pb.y[bs].shape[1] == 3 else bi} residual / noise")
+    a1.legend()
+    sig = contrib[bs][:, bi]
+    a2.plot(sig, before, ".", ms=3, label="before")
+    a2.plot(sig, after, ".", ms=3, label="after")
+    lim = [float(np.min(sig)), float(np.max(sig))]
+    a2.plot(lim, lim, "k-", lw=0.8, label="1:1")
+    a2.set_xlabel("fitted signature of the effect, noise units")
+    a2.legend()
+    fig.suptitle(f"step {k + 1}: {effect_key(st.effect, st.sensor)}"
+                 + f" (score {st.score:.1f}, threshold {st.threshold:.1f}; RMS "
+                 f"{st.residual_rms_before:.2f} -> {st.residual_rms_after:.2f})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def write_report(d: Diagnosis, out_dir, source: str = "") -> list[str]:
+    """Write the PNGs and summary.md; returns the file names."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = ["disagreement.png"]
+    _disagreement(d, out / "disagreement.png")
+    for k, st in enumerate(d.steps):
+        name = f"step{k + 1}_{(st.sensor + '_' if st.sensor else '')}{st.effect}.png"
+        _step_plot(d, k, out / name)
+        files.append(name)
+    j = d.to_json()
+    lines = [f"# calib diagnose: {source or 'recording'} ({d.method})", "",
+             f"Base model: {', '.join(d.base_model)}.", "",
+             f"Noise floor (RMS white noise would leave after the final fit): "
+             f"{d.noise_rms:.3f} noise units. Residual RMS: {d.residual_rms_initial:.3f} with "
+             f"the base model, {d.residual_rms_final:.3f} at the end "
+             f"({j['gap_left']:.2f}x the floor).", "",
+             "![disagreement](disagreement.png)", ""]
+    if not d.steps:
+        lines += ["No candidate effect passed its threshold: the base model explains the "
+                  "data down to the noise.", ""]
+    for k, st in enumerate(d.steps):
+        lines += [f"## Step {k + 1}: {effect_key(st.effect, st.sensor)}", "",
+                  st.evidence + ".", "",
+                  f"![step {k + 1}]({files[k + 1]})", ""]
+    lines += ["## Candidates per round", ""]
+    for i, rnd in enumerate(d.rounds):
+        lines += [f"Round {i + 1}:", "",
+                  "| candidate | score | threshold | dof | p | within-segment score |",
+                  "|---|---|---|---|---|---|"]
+        lines += [f"| {r['candidate']} | {r['score']:.1f} | {r['threshold']:.1f} | {r['dof']} "
+                  f"| {r['p_value']:.2g} | "
+                  + (f"{r['within_segment_score']:.1f}" if "within_segment_score" in r else "")
+                  + " |" for r in rnd]
+        lines.append("")
+    if d.untested:
+        lines += ["## Not tested", ""] + [f"- {k}: {v}" for k, v in d.untested.items()] + [""]
+    if d.notes:
+        lines += ["## Notes", ""] + [f"- {n}" for n in d.notes] + [""]
+    (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
+    return files + ["summary.md"]
