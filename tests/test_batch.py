@@ -442,6 +442,10 @@ def test_auto_method_fits_each_plan_kind(tmp_path):
     plans = {"static": repo / "sample_data" / "twelve_position.toml",
              "rimu": repo / "sample_data" / "rimu_six_position.toml",
              "align": repo / "docs" / "examples" / "align_plan.toml"}
+    from calib_cli.sim.turntable_plans import turntable_plan_text
+
+    plans["turntable"] = tmp_path / "turntable.toml"
+    plans["turntable"].write_text(turntable_plan_text(2, duration_s=60.0))
     for kind, p in plans.items():
         write_raw(arch / f"{kind}.h5", simulate(load_plan(str(p)), seed=3))
     pipe = tmp_path / "pipeline.toml"
@@ -456,3 +460,4 @@ def test_auto_method_fits_each_plan_kind(tmp_path):
     assert "accel_K" in keys["static"]
     assert {"accel_bias", "gyro_bias", "attitude"} <= set(keys["align"])
     assert "gyro_scale_error" in keys["rimu"] and "accel_dEl" in keys["rimu"]
+    assert {"lever_arm", "gyro_D", "accel_K"} <= set(keys["turntable"])

@@ -149,6 +149,12 @@ def test_cli_simulate_fit_show(tmp_path, run_cli):
     assert png.stat().st_size > 1000
     code, out, _ = run_cli("show", str(cal), "--json")
     assert code == 0 and json.loads(out)["params"]["accel_K"][0][1] == 0.0
+    code, _, err = run_cli("report", str(cal), "--out", str(tmp_path / "rep"))
+    assert code == 0, err
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "## Rotating-table calibration" in md and "Lever arm of each cycle" in md
+    figs = json.loads((tmp_path / "rep" / "figures.json").read_text())["figures"]
+    assert [f["axes"] for f in figs] == [1]
 
 
 def test_cli_errors(tmp_path, run_cli):

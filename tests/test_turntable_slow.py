@@ -123,7 +123,7 @@ def _pooled(z):
 
 @pytest.mark.slow
 def test_turntable_validation():
-    from calib_cli.report.turntable_plot import sigma_history_plot
+    from calib_cli.report.sections_turntable import sigma_history_plot
 
     DOCS.mkdir(parents=True, exist_ok=True)
     std = _map(run_standard, range(N_SEEDS))

@@ -65,7 +65,7 @@ def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis
     else:
         save(res, raw, out)
     if plot:
-        from calib_cli.report.turntable_plot import sigma_history_plot
+        from calib_cli.report.sections_turntable import sigma_history_plot
 
         sigma_history_plot(res, plot)
         info(f"sigma history -> {plot}")
