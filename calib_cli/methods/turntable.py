@@ -44,6 +44,7 @@ from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError, InputError
 from calib_cli.model.effects import Layout
 from calib_cli.model.frames import attitude_to_rotation, skew
+from calib_cli.model.kinematics import rigid_body_accel
 
 K_LOWER = [(0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2)]
 P_OFF = [(i, j) for i in range(3) for j in range(3) if i != j]
@@ -184,7 +185,7 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
         dw0 = np.gradient(w0, t, axis=0)
         for i in range(3):
             pi = par["P"][i]
-            f[:, i] -= (np.cross(w0, np.cross(w0, pi)) + np.cross(dw0, pi))[:, i]
+            f[:, i] -= rigid_body_accel(w0, dw0, pi)[:, i]
     w = (W - par["gb"] - f @ par["D"].T) @ Ginv.T
     dt = np.diff(t, append=t[-1] + (t[-1] - t[-2]))
     # per-block scans over the samples of all blocks at once; the attitude is

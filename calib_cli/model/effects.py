@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib_cli.model.kinematics import Kinematics, force_at
+from calib_cli.model.kinematics import Kinematics, force_at, rigid_body_accel
 
 SHIFT, INPUT, TRANSFER, CORRECTION, ADDITIVE, STOCHASTIC = range(6)
 
@@ -361,7 +361,7 @@ class ProofMassOffsets(Effect):
         P = p["proof_mass_offsets"]
         kin = ctx.kin if self.tangential else ctx.kin.with_(dw=np.zeros_like(ctx.kin.dw))
         for i in range(3):
-            ctx.F[:, i, :] += np.cross(kin.w, np.cross(kin.w, P[i])) + np.cross(kin.dw, P[i])
+            ctx.F[:, i, :] += rigid_body_accel(kin.w, kin.dw, P[i])
 
 
 def shift_kinematics(kin: Kinematics, tau: float) -> Kinematics:

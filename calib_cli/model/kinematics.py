@@ -125,8 +125,15 @@ def slew_kinematics(t, rot_a: Rotation, rot_b: Rotation, site: Site, phi=None) -
     return from_attitude(t, rot, site, np.outer(ds, phi), np.outer(dds, phi))
 
 
+def rigid_body_accel(w, dw, r) -> np.ndarray:
+    """Centripetal plus tangential acceleration w x (w x r) + dw x r (N, 3) of a point at
+    body offset r ((3,) or (N, 3), m), body rate w (N, 3, rad/s), angular acceleration dw."""
+    w = np.asarray(w, dtype=float)
+    r = np.broadcast_to(np.asarray(r, dtype=float), w.shape)
+    return np.cross(w, np.cross(w, r)) + np.cross(dw, r)
+
+
 def force_at(kin: Kinematics, r) -> np.ndarray:
     """Specific force (N, 3) at body offset r ((3,) or (N, 3), m) from the kinematics point:
     f + w x (w x r) + dw x r (centripetal and tangential terms)."""
-    r = np.broadcast_to(np.asarray(r, dtype=float), kin.f.shape)
-    return kin.f + np.cross(kin.w, np.cross(kin.w, r)) + np.cross(kin.dw, r)
+    return kin.f + rigid_body_accel(kin.w, kin.dw, r)

@@ -13,6 +13,7 @@ import numpy as np
 
 from calib_cli.methods.diagnose import diagnose
 from calib_cli.methods.rimu import segment_kinematics
+from calib_cli.model.kinematics import rigid_body_accel
 from calib_cli.sim import diagnose_cases as C
 from calib_cli.sim.simulate import simulate
 
@@ -69,7 +70,7 @@ def out_of_catalogue(kind: str, seed: int):
         kin = segment_kinematics(rec, seg)
         half = len(kin) // 2
         s = np.where((np.arange(len(kin)) < half)[:, None], s1, s2)
-        acc[seg.slice] += np.cross(kin.w, np.cross(kin.w, s)) + np.cross(kin.dw, s)
+        acc[seg.slice] += rigid_body_accel(kin.w, kin.dw, s)
     return diagnose(rec.with_(accel=acc), "turntable")
 
 
