@@ -26,7 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from calib_cli.errors import EstimationError
 from calib_cli.methods.diagnose_problem import Problem
-from calib_cli.methods.lsq import RANK_TOL
+from calib_cli.methods.lsq import RANK_TOL, mark_null_parameters
 from calib_cli.model.imu_model import ImuModel, Packing
 
 MOUNT_KEY = "mount"
@@ -141,12 +141,7 @@ def gram_covariance(jac: np.ndarray, scales: np.ndarray) -> tuple[np.ndarray, np
         null = sv < RANK_TOL * max(sv[-1], 1e-300)
         if not null.any():
             break
-        weight = np.sqrt((V[:, null] ** 2).sum(axis=1))
-        idx = np.flatnonzero(keep)
-        worst = weight > 0.05
-        if not worst.any():
-            worst = weight == weight.max()
-        unobs[idx[worst]] = True
+        mark_null_parameters(unobs, keep, V[:, null])
     cov = np.full((p, p), np.nan)
     keep = ~unobs
     if keep.any():

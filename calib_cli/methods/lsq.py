@@ -64,13 +64,7 @@ def covariance(jac: np.ndarray, scales: np.ndarray, fixed=None) -> tuple[np.ndar
         null = s < RANK_TOL * (s[0] if len(s) and s[0] > 0 else 1.0)
         if not null.any():
             break
-        # the parameters that take part in the null directions cannot be told apart
-        weight = np.sqrt((vt[null] ** 2).sum(axis=0))
-        idx = np.flatnonzero(keep)
-        worst = weight > 0.05
-        if not worst.any():
-            worst = weight == weight.max()
-        unobs[idx[worst]] = True
+        mark_null_parameters(unobs, keep, vt[null].T)
     cov = np.full((p, p), np.nan)
     keep = ~unobs
     if keep.any():
@@ -80,6 +74,18 @@ def covariance(jac: np.ndarray, scales: np.ndarray, fixed=None) -> tuple[np.ndar
     if fixed is not None:
         unobs &= ~np.asarray(fixed, bool)
     return cov, unobs
+
+
+def mark_null_parameters(unobs: np.ndarray, keep: np.ndarray, null_vectors: np.ndarray) -> None:
+    """Set ``unobs`` (in place) for the kept parameters that take part in the null
+    directions (columns of ``null_vectors``, one row per kept parameter): they
+    cannot be told apart. Weight > 0.05, or else the largest one."""
+    weight = np.sqrt((null_vectors ** 2).sum(axis=1))
+    idx = np.flatnonzero(keep)
+    worst = weight > 0.05
+    if not worst.any():
+        worst = weight == weight.max()
+    unobs[idx[worst]] = True
 
 
 def fit(residual_fn, theta0, scales, *, max_nfev: int = 200, what: str = "fit",

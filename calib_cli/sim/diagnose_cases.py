@@ -45,30 +45,23 @@ ACCEL_PLAN = ('name = "diag-static"\nkind = "static"\nsample_rate_hz = 50.0\n'
                   'duration_s = 10.0\n' for i, (a, b, c) in enumerate(_STATIC_ATT)))
 
 _PROFILE = "[[0, 30], [8, 30], [10, 150], [18, 150], [20, -90], [28, -90]]"
+# six static positions, then four rotating cycles about the vertical (turntable and rimu plans)
+_STATIC_AND_ROTATING = (
+    "".join(f'[[segment]]\nlabel = "s{i}"\nattitude_deg = [{a}, {b}, {c}]\nduration_s = 6.0\n'
+            for i, (a, b, c) in enumerate(_STATIC_ATT[:6]))
+    + "".join(f'[[segment]]\nlabel = "r{i}"\nattitude_deg = [{a}, {b}, {c}]\n'
+              f'table_axis_enu = [0, 0, 1]\nrate_profile = {_PROFILE}\n'
+              for i, (a, b, c) in enumerate([(0, 0, 0), (0, -90, 0), (90, 0, 0), (30, 40, 0)])))
 TURNTABLE_PLAN = ('name = "diag-turntable"\nkind = "turntable"\nsample_rate_hz = 50.0\n'
                   'transition_s = 2.0\n'
                   'temperature_profile = [[0, 20.0], [70, 35.0], [140, 24.0], [220, 30.0]]\n'
-                  + _SITE
-                  + "".join(f'[[segment]]\nlabel = "s{i}"\nattitude_deg = [{a}, {b}, {c}]\n'
-                            'duration_s = 6.0\n'
-                            for i, (a, b, c) in enumerate(_STATIC_ATT[:6]))
-                  + "".join(f'[[segment]]\nlabel = "r{i}"\nattitude_deg = [{a}, {b}, {c}]\n'
-                            f'table_axis_enu = [0, 0, 1]\nrate_profile = {_PROFILE}\n'
-                            for i, (a, b, c) in enumerate([(0, 0, 0), (0, -90, 0), (90, 0, 0),
-                                                           (30, 40, 0)])))
+                  + _SITE + _STATIC_AND_ROTATING)
 
 # a redundant unit (tetrahedron profile, 9 sensors) on a rate table: six static
 # positions and four rotating cycles, temperature up and down
 RIMU_PLAN = ('name = "diag-rimu"\nkind = "rimu"\nsample_rate_hz = 50.0\ntransition_s = 2.0\n'
              'temperature_profile = [[0, 20.0], [70, 35.0], [140, 24.0], [220, 30.0]]\n'
-             + _SITE + '[rimu]\nprofile = "tetrahedron"\n'
-             + "".join(f'[[segment]]\nlabel = "s{i}"\nattitude_deg = [{a}, {b}, {c}]\n'
-                       'duration_s = 6.0\n'
-                       for i, (a, b, c) in enumerate(_STATIC_ATT[:6]))
-             + "".join(f'[[segment]]\nlabel = "r{i}"\nattitude_deg = [{a}, {b}, {c}]\n'
-                       f'table_axis_enu = [0, 0, 1]\nrate_profile = {_PROFILE}\n'
-                       for i, (a, b, c) in enumerate([(0, 0, 0), (0, -90, 0), (90, 0, 0),
-                                                      (30, 40, 0)])))
+             + _SITE + '[rimu]\nprofile = "tetrahedron"\n' + _STATIC_AND_ROTATING)
 
 PLANS = {"accel": ACCEL_PLAN, "turntable": TURNTABLE_PLAN, "rimu": RIMU_PLAN}
 
