@@ -17,7 +17,9 @@ from calib_cli.sim.truth import truth_from_dict
 
 @pytest.mark.parametrize("case,seed", [("accel_nonlinearity", 3), ("accel temperature_drift", 4),
                                        ("lever_arm", 5), ("gyro g_sensitivity", 6),
-                                       ("time_offset", 7), ("accel misalignment", 8)])
+                                       ("time_offset", 7), ("accel misalignment", 8),
+                                       ("accel bias_instability", 9),
+                                       ("accel bias_random_walk", 10)])
 def test_hidden_effect_named_first_and_gap_closed(case, seed):
     d = C.run_case(case, seed)
     assert C.first_key(d) == C.expected(case), d.rounds[0][:3]
@@ -233,3 +235,28 @@ def test_align_base_model_and_a_gyro_thermal_drift():
     assert C.first_key(d) in ("gyro temperature_drift", "gyro bias_random_walk",
                               "gyro g_sensitivity")
     assert d.residual_rms_final <= 1.2 * d.noise_rms
+
+
+def test_wander_filter_whitens_like_the_dense_covariance():
+    """The Kalman filter of diagnose_stoch (diffuse level + random walk + the
+    flicker's Gauss-Markov components over white noise) whitens exactly as the
+    Cholesky factor of the same covariance written out in full does."""
+    from calib_cli.methods import diagnose_stoch as ds
+
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.uniform(0.4, 0.6, 80))
+    t[40:] += 20.0  # a gap, as between two positions
+    v = rng.uniform(0.5, 1.5, 80)
+    q, B = 0.07, 0.8
+    taus, sig = ds.flicker(np.array([B]))
+    s2 = sig[0] ** 2 * ds._bin_variance_factor(taus, 0.5)
+    dt = np.abs(t[:, None] - t[None, :])
+    C = np.diag(v) + 1e8 + q ** 2 * (np.minimum(t[:, None], t[None, :]) - t[0])
+    C += sum(a * np.exp(-dt / tau) for a, tau in zip(s2, taus))
+    e = rng.standard_normal(80)
+    dense = np.linalg.solve(np.linalg.cholesky(C), e)
+    nu, logs = ds.kalman(e[:, None], v[:, None], t, np.array([q]), (taus, sig))
+    np.testing.assert_allclose(nu[1:, 0], dense[1:], rtol=1e-5, atol=1e-6)
+    w = ds.ProcessWhitener(t, np.ones((80, 1)), np.array([q]), B=np.array([B]),
+                           white=np.sqrt(v)[:, None])
+    np.testing.assert_allclose(w.whiten(e[:, None])[:, 0], nu[:, 0], atol=1e-12)

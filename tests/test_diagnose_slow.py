@@ -36,19 +36,19 @@ _RESULTS: dict = {}
 @pytest.fixture(scope="module")
 def rates():
     if "rows" not in _RESULTS:
-        rows, md = V.run_all(N)
+        rows, md = V.run_all(N, workers=int(os.environ.get("CALIB_DIAG_WORKERS", "2")))
         _RESULTS["rows"], _RESULTS["md"] = rows, md
     return _RESULTS["rows"]
 
 
-@pytest.mark.parametrize("case", list(C.CASES))
+@pytest.mark.parametrize("case", [c for c in C.CASES if c not in C.REPORTED_ONLY])
 def test_named_first_and_gap_closed(rates, case):
     r = next(r for r in rates if r["case"] == case)
     assert r["named_first"] >= 0.95, r
     assert r["gap_ok"] >= 0.95, r
 
 
-@pytest.mark.parametrize("method", ["accel", "turntable", "rimu"])
+@pytest.mark.parametrize("method", ["accel", "turntable", "rimu", "align"])
 def test_no_effect_adds_nothing(rates, method):
     r = next(r for r in rates if r["case"] == f"none ({method})")
     assert r["nothing_added"] >= 0.95, r
@@ -59,7 +59,8 @@ def _ooc_rows(n=10):
     for kind, nearest in (("cubic", {"accel_nonlinearity", "accel scale_asymmetry", None}),
                           # a slow drift either way: the temperature changes inside the
                           # positions too, so a wander is a fair nearest reading
-                          ("thermal", {"accel temperature_drift", "accel bias_random_walk"}),
+                          ("thermal", {"accel temperature_drift", "accel bias_random_walk",
+                                      "accel bias_instability"}),
                           ("slip", {"lever_arm"})):
         named, gap_reported, gaps = 0, 0, []
         firsts = {}
@@ -114,10 +115,11 @@ def test_real_datasets():
     assert len(halves) == 2
     # no deterministic effect on either half of the Xsens positions: the full set's
     # nonlinearity/asymmetry runners-up do not replicate
-    assert all(k == "accel bias_random_walk" for r in halves for k, *_ in r["steps"])
+    wander = ("accel bias_random_walk", "accel bias_instability")
+    assert all(k in wander for r in halves for k, *_ in r["steps"])
     # the Ferraris misfit is between positions, not a wander within them
     fe = next(r for r in rows if r["data"].startswith("ferraris") and r["noise"] == "auto")
-    assert all(k != "accel bias_random_walk" for k, *_ in fe["steps"])
+    assert all(k not in wander for k, *_ in fe["steps"])
     assert fe["rms1"] > 3 * fe["floor"] and any("between positions" in n
                                                  for n in fe["diag"].notes)
 

@@ -29,7 +29,7 @@ from calib_cli.methods import diagnose_candidates as dc
 from calib_cli.methods import diagnose_stoch as ds
 from calib_cli.methods.blas_threads import one_blas_thread
 from calib_cli.methods.diagnose_fit import MOUNT_KEY, Fit, ModelSpec, columns, fit_model
-from calib_cli.methods.diagnose_problem import Problem, build_problem
+from calib_cli.methods.diagnose_problem import BIN_S, Problem, build_problem
 from calib_cli.model.effects import make_effect
 from calib_cli.model.imu_model import ImuModel
 
@@ -178,41 +178,63 @@ def _new_entries(cand_fit: Fit, cur: Fit, keys: set) -> tuple[dict, dict, int]:
     return params, sigma, k
 
 
-def _try_random_walk(pb: Problem, cur: Fit, c: dc.Candidate):
-    """(candidate, fit, params, sigma, k, score, within-segment score) of a bias random
-    walk on one sensor. Score: the likelihood ratio over the whole record with the
-    model refitted under the walk; the within-segment score (the walk restarting at
-    every segment, diagnose_stoch) must pass too, because offsets between positions
-    visited in sequence are what any position-dependent misfit also produces."""
+def neg2ll(fit: Fit, pb: Problem, skip_first: str | None = None) -> float:
+    """-2 log L of a fit (constants and the working sigma's log-determinant dropped).
+
+    Where the working noise sigma was raised to the bins' scatter
+    (``apply_noise``), each channel's white level is taken at its most likely value
+    between the high-frequency estimate and the raised one, for every model alike:
+    an effect that explains the scatter within the positions (a drift) then gets
+    the credit the raise would otherwise take from it. Where no raise was made this
+    is chi^2. Sensors under a wander (whitened) count their chi^2 as they are.
+    skip_first: a sensor whose first bin is left out (the filter's diffuse start)."""
+    tot = 0.0
+    for s, z in fit.residual_blocks(pb).items():
+        if s == skip_first:
+            z = z[1:]
+        ss = (z ** 2).sum(axis=0)
+        if s in fit.spec.stochastic:
+            tot += float(ss.sum())
+            continue
+        lo = (pb.whitener(s, high_frequency=True)[0] / pb.whitener(s)[0]) ** 2
+        a = np.clip(ss / len(z), np.minimum(lo, 1.0), 1.0)
+        tot += float((len(z) * np.log(a) + ss / a).sum())
+    return tot
+
+
+WANDERS = {"bias_random_walk": ("random_walk", "bias_rw"),
+           "bias_instability": ("flicker", "bias_instability")}
+
+
+def _try_wander(pb: Problem, cur: Fit, c: dc.Candidate):
+    """(candidate, fit, params, sigma, k, score, within-segment score) of a wandering
+    bias on one sensor (a random walk or flicker, diagnose_stoch). Score: the
+    likelihood ratio over the whole record with the model refitted under the
+    process; the within-segment score (the level restarting at every segment) must
+    pass too, because offsets between positions visited in sequence are what any
+    position-dependent misfit also produces."""
     s = c.sensor
-    if s in cur.spec.stochastic:
+    if s in cur.spec.stochastic:  # one wander per sensor
         return None
+    kind, suffix = WANDERS[c.name]
+    key = f"{s}_{suffix}"
     z = cur.residual_blocks(pb)[s]
     wh = pb.whitener(s)
     reset = np.concatenate([[True], pb.bin_seg[1:] != pb.bin_seg[:-1]])
-    q_in, lr_in = ds.within_segment_lr(pb.bin_t, z, wh, reset)
-    q = ds.fit_q(pb.bin_t, z, wh)
-    key = f"{s}_bias_rw"
-    if not np.any(q > 0):  # tested: the likelihood is largest without a wander
-        return (c, cur, {key: q}, {key: np.full_like(q, np.nan)}, len(q), 0.0, 0.0)
-    w = ds.RandomWalkWhitener(pb.bin_t, wh, q)
+    white = pb.whitener(s, high_frequency=True)
+    _, _, lr_in = ds.fit_process(pb.bin_t, z, wh, kind, reset, bin_s=BIN_S, white=white)
+    val, sig, _ = ds.fit_process(pb.bin_t, z, wh, kind, bin_s=BIN_S, white=white)
+    if not np.any(val > 0):  # tested: the likelihood is largest without a wander
+        return (c, cur, {key: val}, {key: np.full_like(val, np.nan)}, len(val), 0.0, 0.0)
+    q, B = (val, None) if kind == "random_walk" else (np.zeros_like(val), val)
+    w = ds.ProcessWhitener(pb.bin_t, wh, q, B=B, bin_s=BIN_S, white=white)
     spec = ModelSpec(cur.spec.model, cur.spec.mount, {**cur.spec.stochastic, s: w})
     f = fit_model(pb, spec, start=cur.params, start_mount=cur.mount)
+    # -2 log L of both models over the same bins (the filter's first bin is diffuse)
     white_logdet = ds.log_det_white(wh)[1:].sum()
-    first = float((z[0] ** 2).sum())  # the white model's first bin; the filter's is 0
-    score = (cur.chi2 - first + white_logdet) - (f.chi2 + w.logdet[1:].sum())
-    # rough sigma of q from the curvature of log L in log q
-    sig = np.full_like(q, np.nan)
-    e = z * wh
-    ll = []
-    for fac in (1 / 1.3, 1.0, 1.3):
-        nu, logs = ds.kalman(e, wh ** 2, pb.bin_t, q * fac)
-        ll.append(-0.5 * (nu[1:] ** 2 + logs[1:]).sum(axis=0))
-    h = (ll[0] - 2 * ll[1] + ll[2]) / np.log(1.3) ** 2
-    ok = (h < 0) & (q > 0)
-    sig[ok] = q[ok] / np.sqrt(-h[ok])
-    k = int((q > 0).sum())
-    return (c, f, {key: q}, {key: sig}, k, float(score), float(lr_in.sum()))
+    score = (neg2ll(cur, pb, skip_first=s) + white_logdet) - (neg2ll(f, pb) + w.logdet[1:].sum())
+    k = int((val > 0).sum())
+    return (c, f, {key: val}, {key: sig}, k, float(score), float(lr_in.sum()))
 
 
 def _clean(c: dc.Candidate, params: dict, sigma: dict) -> tuple[dict, dict]:
@@ -260,8 +282,8 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
         within: dict = {}
         known = columns(cur)
         for c in cands:
-            if c.name == "bias_random_walk":
-                got = _try_random_walk(pb, cur, c)
+            if c.name in WANDERS:
+                got = _try_wander(pb, cur, c)
                 if got is not None:
                     within[c.key] = got[6]
                     tried.append(got[:6])
@@ -279,7 +301,7 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
             if k == 0:
                 untested_all.setdefault(c.key, "not observable from this experiment")
                 continue
-            d = cur.chi2 - f.chi2
+            d = neg2ll(cur, pb) - neg2ll(f, pb)
             tried.append((c, f, params, sigma, k, d))
         if not tried:
             break
@@ -303,7 +325,7 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
         if best is None:
             break
         _, c, f, params, sigma, k, d, thr, p = best
-        if c.name != "bias_random_walk":
+        if c.name not in WANDERS:
             # final refit with a fresh Jacobian: honest sigma for the reported values
             f = fit_model(pb, f.spec, start=f.params, start_mount=f.mount, refresh=True)
             keys = set(params)
@@ -316,17 +338,23 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
                        and r["score"] > r["threshold"]), None)
         before, after = rms(cur), rms(f)
         words = dc.describe(c, params, sigma, pb)
-        excess = cur.chi2 - (len(cur.r) - cur.n_free)
-        share = d / excess if excess > 0 else float("nan")
+        # the excess over the noise before = what the step explains + what it leaves
+        # (the same scale for a wander step, whose residuals are whitened innovations)
         left = f.chi2 - (len(f.r) - f.n_free)
+        excess = d + max(left, 0.0)
+        share = d / excess
+        at_floor = c.name not in WANDERS and cur.chi2 <= len(cur.r) - cur.n_free
         ev = (f"{words}. Likelihood ratio {d:.1f} against threshold {thr:.1f} "
               f"({k} parameters, {m} candidates tried); residual RMS {before:.2f} -> "
               f"{after:.2f} noise units; the residuals correlate {corr:.2f} with its "
               "signature; " + (f"it explains {100 * min(share, 9.99):.0f} % of the excess "
                                f"over the noise, leaving "
-                               f"{max(left, 0.0) / excess * 100:.0f} %" if excess > 0 else
+                               f"{max(left, 0.0) / excess * 100:.0f} %" if not at_floor else
                                "the model was already at the noise floor before it (a weak "
                                "step: read it with care)"))
+        if c.name in WANDERS and pb.raised:
+            ev += ("; the RMS after is of the whitened innovations against the "
+                   "high-frequency noise floor, the RMS before against the raised one")
         if runner:
             ev += f"; also above threshold but weaker: {runner}"
         steps.append(Step(c.name, c.sensor, params, sigma, d, thr, k, p, corr, before, after,
@@ -360,9 +388,6 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
                          f"{near['score']:.1f} against threshold {near['threshold']:.1f}); it "
                          f"would explain {100 * max(near['score'], 0) / max(excess, 1e-300):.0f}"
                          " % of the remaining excess")
-    untested_all.setdefault("bias_instability", "flicker (a sum of Gauss-Markov processes "
-                            "spanning decades of correlation time) needs a long free-running "
-                            "record: use calib allan")
     out_base = names
     out = Diagnosis(method, out_base, steps, r0, n_after, floor, untested_all, rounds, pb,
                     fits, notes, {s: pb.sigma[s] for s in pb.sensors})

@@ -113,9 +113,11 @@ def candidates(pb: Problem, model, base_structure: str, tried_names: set
     # a wandering bias: the residuals' time structure (Kalman likelihood, diagnose_stoch)
     for s in pb.sensors:
         if pb.n_bins < 20:
-            why[f"{s} bias_random_walk"] = "fewer than 20 bins (10 s): too short to see a wander"
+            for w in ("bias_random_walk", "bias_instability"):
+                why[f"{s} {w}"] = "fewer than 20 bins (10 s): too short to see a wander"
         else:
             add("bias_random_walk", s)
+            add("bias_instability", s)
     # rotation
     if rotating:
         add("lever_arm", "")
@@ -225,8 +227,12 @@ def describe(c: Candidate, params: dict, sigma: dict, pb: Problem | None = None)
         i, v, sg = _largest(params, sigma, f"{s}_misalignment")
         return (f"{s} axis misalignment / cross-coupling: axis {AX[i // 3]} senses input "
                 f"along {AX[i % 3]} ({_fmt(v, sg, 1e3, 'mrad')})")
-    if n == "bias_random_walk" and pb is not None:  # values are in data units already
-        pass
+    if n == "bias_instability":  # values are in data units already
+        v = np.asarray(params[f"{s}_bias_instability"])
+        f, u = ((1e6 / G0, "ug") if s == "accel" else (180 / np.pi * 3600, "deg/h"))
+        return (f"{s} bias instability (flicker): the bias wanders with a 1/f spectrum, "
+                "correlated over seconds to hours; Allan bias-instability figure B "
+                + ", ".join(f"{x * f:.3g}" for x in v) + f" {u}")
     if n == "bias_random_walk":
         key = f"{s}_bias_rw"
         v = np.asarray(params[key])

@@ -30,6 +30,7 @@ from calib_cli.methods.lsq import RANK_TOL, mark_null_parameters
 from calib_cli.model.imu_model import ImuModel, Packing
 
 MOUNT_KEY = "mount"
+MAX_REFRESH = 4  # Jacobian recomputations when the fixed-Jacobian steps do not converge
 AXIAL_TOL = 1e-7  # m: weight of the lever arm's axial convention s . a = 0
 
 
@@ -208,6 +209,7 @@ def fit_model(pb: Problem, spec: ModelSpec, start: dict | None = None,
         return np.maximum(typ, np.abs(th))
 
     def chord(theta, r, J, n_iter):
+        """Gauss-Newton steps on a fixed Jacobian: (theta, r, converged)."""
         sc = scales_at(theta)
         Js = J * sc
         G = Js.T @ Js
@@ -225,16 +227,22 @@ def fit_model(pb: Problem, spec: ModelSpec, start: dict | None = None,
                     break
                 dx = dx / 2
             if not np.isfinite(c1) or c1 > c0:
-                break
+                return theta, r, False
             theta, r = t2, r2
             if c0 - c1 < 1e-8 * c0 + 1e-6:
-                break
-        return theta, r
+                return theta, r, True
+        return theta, r, False
 
-    theta, r = chord(theta, r, J, max_chord)
-    if refresh:
+    theta, r, done = chord(theta, r, J, max_chord)
+    # bilinear couplings (a scale drift times a rotated input, the attitude nuisance)
+    # defeat a fixed Jacobian: recompute it until the steps converge
+    for _ in range(MAX_REFRESH):
+        if done and not refresh:
+            break
         J = jac(theta, r, None)
-        theta, r = chord(theta, r, J, 3)
+        theta, r, done = chord(theta, r, J, max_chord if not done else 3)
+        if done:
+            break
     if not np.all(np.isfinite(r)):
         raise EstimationError("diagnose: the fit diverged (non-finite residuals)")
     cov, unobs = gram_covariance(J, scales_at(theta))

@@ -76,6 +76,13 @@ class Problem:
         return 1.0
 
     @property
+    def raised(self) -> bool:
+        """Whether some channel's sigma was raised above the high-frequency estimate."""
+        return bool(self.sigma_hf) and any(
+            np.any(np.asarray(self.sigma[s]) > np.asarray(self.sigma_hf[s])) for s in self.sensors
+            if s in self.sigma_hf)
+
+    @property
     def scalar(self) -> bool:
         return self.tilt_basis is not None
 
@@ -88,9 +95,13 @@ class Problem:
         return np.add.reduceat(a, self.starts, axis=0) / self.counts.reshape(
             (-1,) + (1,) * (a.ndim - 1))
 
-    def whitener(self, sensor: str) -> np.ndarray:
-        """(M, n) 1-sigma of each bin mean."""
-        return self.sigma[sensor][None, :] / np.sqrt(self.counts)[:, None]
+    def whitener(self, sensor: str, high_frequency: bool = False) -> np.ndarray:
+        """(M, n) 1-sigma of each bin mean (high_frequency: from the data's
+        high-frequency content alone, before any raise to the bins' scatter)."""
+        sig = self.sigma[sensor]
+        if high_frequency and self.sigma_hf and sensor in self.sigma_hf:
+            sig = np.asarray(self.sigma_hf[sensor], float)
+        return sig[None, :] / np.sqrt(self.counts)[:, None]
 
     # bin-level descriptors for the plots and signatures
     def rate_norm(self) -> np.ndarray:
@@ -152,7 +163,10 @@ def _aligned(rec: Recording) -> Recording:
 
     from calib_cli.methods.align import fit_align
 
-    res = fit_align(rec)
+    # the plan's stated turns where it has them: an attitude integrated through the turn
+    # would carry the gyro errors under diagnosis (a scale drift over a 130 deg turn)
+    stated = any(s.kind == "turn" and s.rotation_angle is not None for s in rec.segments)
+    res = fit_align(rec, rotation="plan" if stated else "auto")
     atts = res.stats.get("attitudes_all") or []
     statics = [i for i, s in enumerate(rec.segments) if s.kind == "static"]
     if len(atts) != len(statics):
