@@ -86,7 +86,7 @@ def kalman(e: np.ndarray, v: np.ndarray, t: np.ndarray, q: np.ndarray, gm=None,
             P[..., 0, 0] += q2 * dt
             P[..., gi, gi] += s2 * (1 - phi ** 2)
             x = x * F[:, None]
-        eb = e[b][..., :]  # (n, C)
+        eb = e[b]  # (n, C)
         if b == 0 or reset[b]:
             # diffuse level: it absorbs this bin whole; the components keep their
             # distribution and the level is correlated with them
@@ -180,7 +180,7 @@ def _grid(t, wh, kind: str, n_grid: int) -> np.ndarray:
     return g * (sig / np.sqrt(span) if kind == "random_walk" else sig)
 
 
-def _args(kind, vals, n):
+def _args(kind, vals):
     """(q, gm) of the filter for trial values of one kind."""
     if kind == "random_walk":
         return vals, None
@@ -197,7 +197,7 @@ def fit_process(t, z, wh, kind: str, reset=None, n_grid: int = 24, bin_s=0.5, wh
     e = z * wh
     v = (wh if white is None else np.asarray(white, float)) ** 2
     vals = _grid(t, wh, kind, n_grid)
-    q, gm = _args(kind, vals, z.shape[1])
+    q, gm = _args(kind, vals)
     ll = loglik(e, v, t, q, gm, reset, bin_s)  # (G, n)
     ll0 = loglik(e, wh ** 2, t, np.zeros(z.shape[1]), None, reset, bin_s)
     i = np.argmax(ll, axis=0)
