@@ -20,6 +20,7 @@ import numpy as np
 
 from calib_cli.acquire.checksum import Crc, crc_from_spec
 from calib_cli.errors import InputError
+from calib_cli.io.profiles import shipped_profiles
 
 G0 = 9.80665
 D2R = np.pi / 180.0
@@ -355,7 +356,7 @@ def _read(path) -> str:
         raise InputError(f"cannot read profile: {exc}", p) from None
 
 
-PROFILE_DIR = Path(__file__).resolve().parents[2] / "profiles"
+PROFILE_DIR = shipped_profiles()
 
 
 def resolve_profile(name: str, kind: str) -> str:

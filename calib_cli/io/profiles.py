@@ -5,8 +5,8 @@ its own ``el0_deg``/``az0_deg`` lists. The name is looked up as
 
 1. a path (absolute, or relative to the plan file's directory), when it
    names an existing file or ends in ``.toml``;
-2. ``profiles/rimu/NAME.toml`` in the project's top-level ``profiles``
-   directory (beside the ``calib_cli`` package).
+2. ``rimu/NAME.toml`` in the shipped profiles (``shipped_profiles()``: the
+   repository's top-level ``profiles`` directory, or where a wheel installed it).
 
 A profile file holds ``el0_deg`` and ``az0_deg`` (degrees, one entry per
 sensor, taken modulo 360) and optional ``name``/``description``/``sensors``.
@@ -14,12 +14,24 @@ sensor, taken modulo 360) and optional ``name``/``description``/``sensors``.
 
 from __future__ import annotations
 
+import sys
 import tomllib
 from pathlib import Path
 
 from calib_cli.errors import InputError
 
-PROFILE_DIR = Path(__file__).resolve().parents[2] / "profiles" / "rimu"
+
+def shipped_profiles() -> Path:
+    """The directory of the shipped profiles: ``profiles/`` beside the package in a
+    source tree (editable install), else ``<prefix>/share/calib/profiles`` where a
+    wheel puts them (pyproject.toml, data-files)."""
+    src = Path(__file__).resolve().parents[2] / "profiles"
+    if src.is_dir():
+        return src
+    return Path(sys.prefix) / "share" / "calib" / "profiles"
+
+
+PROFILE_DIR = shipped_profiles() / "rimu"
 
 
 def _candidates(name: str, plan_path: str) -> list[Path]:
