@@ -250,7 +250,8 @@ def _wait_rows(journal, n, timeout=20):
 
 def test_sigkill_mid_segment_then_recover(tmp_path):
     plan_path = tmp_path / "plan.toml"
-    plan_path.write_text(plan12(duration=1.0, n=3))
+    # positions long enough that the signal lands mid-plan even on a loaded machine
+    plan_path.write_text(plan12(duration=5.0, n=3))
     plan = parse_plan(plan_path.read_text())
     em = Emulator(load_imu_profile("generic-bin6"), table_profile(), site=plan.site, rate=1000,
                   link_dir=str(tmp_path)).start()
@@ -280,7 +281,8 @@ def test_sigkill_mid_segment_then_recover(tmp_path):
 
 def test_ctrl_c_keeps_valid_file_and_exits_130(tmp_path):
     plan_path = tmp_path / "plan.toml"
-    plan_path.write_text(plan12(duration=1.0, n=3))
+    # positions long enough that the signal lands mid-plan even on a loaded machine
+    plan_path.write_text(plan12(duration=5.0, n=3))
     plan = parse_plan(plan_path.read_text())
     em = Emulator(load_imu_profile("generic-bin6"), table_profile(), site=plan.site, rate=1000,
                   link_dir=str(tmp_path)).start()
