@@ -13,6 +13,7 @@ from gyro_sim import (
     normalized_errors_hand,
     plan_text,
     simulated,
+    truth,
 )
 
 from calib_cli.errors import EstimationError
@@ -159,7 +160,19 @@ def test_cli_fit_gyro(tmp_path, capsys):
                             str(acal), "--g-sensitivity", "off"], capsys)
     assert code == 0, err
     code, out, _ = run_cli(["show", str(cal), "--json"], capsys)
-    assert "gyro_D" not in json.loads(out)["params"]
+    d = json.loads(out)
+    assert "gyro_D" not in d["params"]
+    assert d["stats"]["accel_uncertainty"].startswith("not added")  # fitted on this raw file
+    # an accelerometer calibration from another recording: its uncertainty is propagated
+    rec2, _ = simulated(6, False)
+    raw2 = tmp_path / "raw2.h5"
+    write_raw(raw2, rec2)
+    assert run_cli(["-q", "fit", "accel", str(raw2), "--out", str(acal)], capsys)[0] == 0
+    code, _, err = run_cli(["-q", "fit", "gyro", str(raw), "--out", str(cal), "--accel",
+                            str(acal)], capsys)
+    assert code == 0, err
+    code, out, _ = run_cli(["show", str(cal), "--json"], capsys)
+    assert json.loads(out)["stats"]["accel_uncertainty"].startswith("propagated")
     # a raw file given as the accelerometer calibration: exit 3, no output left behind
     code, _, err = run_cli(["fit", "gyro", str(raw), "--out", str(tmp_path / "x.h5"), "--accel",
                             str(raw)], capsys)
@@ -182,6 +195,48 @@ def test_cli_no_rotations_exit_4(tmp_path, capsys):
     assert code == 4, err
     assert "no rotations" in err and "Traceback" not in err
     assert not (tmp_path / "c.h5").exists()
+
+
+def _independent_case(seed):
+    """A gyro run with an accelerometer calibration from a separate, noisy record
+    (0.1 m/s^2 per sample, 2 s positions) of the same unit."""
+    from calib_cli.methods.accel_lsq import fit_accel
+    from calib_cli.sim.simulate import simulate
+    from calib_cli.sim.truth import Truth
+
+    rng = np.random.default_rng(1000 + seed)
+    t = truth(rng)
+    acc_rec = simulate(parse_plan(plan_text(False, static_s=2.0)),
+                       Truth(t.model, t.params, {"accel_white": 0.1, "gyro_white": 1e-3}),
+                       seed + 500)
+    t2 = Truth(t.model, t.params, {"accel_white": 3e-3, "gyro_white": 1e-4})
+    rec = simulate(parse_plan(plan_text(bool(seed % 2), static_s=8.0)), t2, seed)
+    return rec, fit_accel(acc_rec), t2
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_independent_accel_calibration_propagated(seed):
+    rec, acc, tr = _independent_case(seed)
+    res = fit_gyro(rec, acc, accel_independent=True)
+    z = normalized_errors(res, tr)
+    assert np.max(np.abs(z)) < 4.5, z
+    assert res.stats["sigma_inflation"] == 1.0  # the misfit is the calibration's, now modelled
+    assert res.stats["chi2_dof"] < 2.0
+    known = fit_gyro(rec, acc)  # taken as exact: its errors show as misfit
+    assert known.stats["chi2_dof"] > 5.0
+    C = np.asarray(res.covariance)
+    assert np.allclose(C, C.T, equal_nan=True)
+
+
+@pytest.mark.slow
+def test_independent_accel_pooled():
+    """20 seeds: RMS z of the gyro parameters in [0.8, 1.25], >= 99 % below 3.3 with
+    the independent calibration's uncertainty propagated (1.47, max 7.5 without)."""
+    z = np.concatenate([normalized_errors(fit_gyro(rec, acc, accel_independent=True), tr)
+                        for rec, acc, tr in map(_independent_case, range(20))])
+    rms = np.sqrt(np.mean(z**2))
+    assert 0.8 <= rms <= 1.25, rms
+    assert np.mean(np.abs(z) < 3.3) >= 0.99
 
 
 @pytest.mark.slow

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import click
 
 from calib_cli.cli.cmd_fit import fit_group, save
@@ -29,7 +31,20 @@ def fit_gyro_cmd(raw, out, accel_path, g_sensitivity):
         from calib_cli.errors import InputError
 
         raise InputError("not an accelerometer calibration (no accel_K)", accel_path)
-    res = fit_gyro(rec, acc, g_sensitivity)
+    independent = False
+    if acc is not None:
+        from calib_cli.io.h5 import provenance, sha256_file
+
+        try:
+            used = json.loads(provenance(accel_path).get("input_sha256", "{}")).values()
+        except ValueError:
+            used = ()
+        # fitted on other data: its errors are independent of RAW's and are propagated
+        independent = sha256_file(raw) not in set(used)
+        info("accelerometer calibration " + ("from other data: its uncertainty is propagated "
+                                             "into the gyro parameters" if independent else
+                                             "from this recording"))
+    res = fit_gyro(rec, acc, g_sensitivity, accel_independent=independent)
     save(res, raw, out, [accel_path] if accel_path else [])
     st = res.stats
     for w in st.get("warnings", []):

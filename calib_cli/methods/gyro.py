@@ -325,10 +325,12 @@ def _observable_D(prob: _Problem) -> bool:
 
 
 def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
-             g_sensitivity: str = "auto") -> CalibrationResult:
+             g_sensitivity: str = "auto", accel_independent: bool = False) -> CalibrationResult:
     """The contract's ``fit gyro``. accel: the accelerometer calibration (fitted
     here from the same recording when None). g_sensitivity: auto (fit gyro_D
-    when the static positions make it observable), on, off."""
+    when the static positions make it observable), on, off. accel_independent:
+    the calibration was fitted on other data, so its errors are independent of
+    this recording's noise and are propagated (``_independent_accel``)."""
     if rec.gyro is None:
         raise EstimationError("the recording has no gyro data")
     if rec.layout.redundant:
@@ -384,13 +386,71 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
             f"the experiment needs rotations about all three axes ({len(prob.transitions)} "
             f"transitions, {len(prob.turns)} turns used)")
     if use_D and g_sensitivity == "auto" and fit.unobservable.any():
-        return fit_gyro(rec, accel, "off")
+        return fit_gyro(rec, accel, "off", accel_independent)
+    cross = None
+    if accel_independent:
+        fit, cross = _independent_accel(prob, model, packing, fit, base, sig, scales, accel)
     fit, inflation = fit.inflated()
+    if cross is not None:
+        cross = cross * np.sqrt(inflation)  # the gyro side of the cross term scales with it
     p = packing.unpack(fit.theta, base)
-    return _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D)
+    return _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D, cross)
 
 
-def _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D):
+def _independent_accel(prob, model, packing, fit, base, sig, scales, accel):
+    """Refit with an accelerometer calibration from other data as an uncertain
+    input. The gravity directions and the specific force come from it, so its
+    error da (covariance C_a) moves the whitened residuals by J_a da: generalised
+    least squares with the residual covariance I + J_a C_a J_a^T (da
+    marginalised) gives the gyro parameters, their covariance including the
+    calibration's uncertainty, and Cov(theta, a) = -Cov(theta) Jw^T W J_a C_a
+    (Jw, W: Jacobian and whitening of the generalised problem). Fitted on the
+    same recording instead, the calibration's errors come from the same position
+    means whose noise the weights already carry (docs/gyro.md).
+    Returns (fit, cross block (n_gyro, n_accel) in accel.cov_order's accel_ entries)."""
+    from dataclasses import replace
+
+    from scipy.linalg import solve_triangular
+
+    aidx = [j for j, (k, _) in enumerate(accel.cov_order) if k.startswith("accel_")]
+    C_a = np.asarray(accel.covariance, float)[np.ix_(aidx, aidx)]
+    ok = np.isfinite(np.diag(C_a)) & (np.diag(C_a) > 0)
+    C_a = np.where(ok[:, None] & ok[None, :], C_a, 0.0)
+    p = packing.unpack(fit.theta, base)
+    r0 = prob.residuals(model, p, sig)
+    J_a = np.zeros((len(r0), len(aidx)))
+    for m, j in enumerate(aidx):
+        if not ok[m]:
+            continue
+        key, flat = accel.cov_order[j]
+        h = 0.1 * float(np.sqrt(C_a[m, m]))
+        params = {k: np.array(v, float, copy=True) for k, v in accel.params.items()}
+        params[key].reshape(-1)[flat] += h
+        J_a[:, m] = (_Problem(prob.rec, replace(accel, params=params)).residuals(model, p, sig)
+                     - r0) / h
+    L = np.linalg.cholesky(np.eye(len(r0)) + J_a @ C_a @ J_a.T)
+
+    def white(th):
+        return solve_triangular(L, prob.residuals(model, packing.unpack(th, base), sig),
+                                lower=True)
+
+    gls = lsq.fit(white, fit.theta, scales, what="gyro fit")
+    rw = white(gls.theta)
+    Jw = np.empty((len(rw), packing.size))
+    for j in range(packing.size):
+        th = gls.theta.copy()
+        h = 1e-4 * scales[j]
+        th[j] += h
+        Jw[:, j] = (white(th) - rw) / h
+    obs = ~gls.unobservable
+    cross = np.full((packing.size, len(aidx)), np.nan)
+    WJa = solve_triangular(L, J_a, lower=True)
+    cov = gls.cov[np.ix_(obs, obs)]
+    cross[obs] = -cov @ Jw[:, obs].T @ WJa @ C_a
+    return gls, cross
+
+
+def _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D, cross=None):
     rec = prob.rec
     pieces = prob.rates(model, p)
     ntr = len(prob.transitions)
@@ -419,13 +479,15 @@ def _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D):
         "gyro_noise_sigma": prob.sig_gyro.tolist(),
         "g_sensitivity": bool(use_D),
         "accel_method": accel.method,
+        "accel_uncertainty": "propagated (independent calibration)" if cross is not None
+        else "not added (the position noise is in the weights)",
         "chi2_dof": fit.chi2_dof, "sigma_inflation": inflation,
         "warnings": _warnings(p, prob),
     }
     res = build_result("gyro", model, packing, fit, base, rec.units, stats, serial=rec.serial,
                        residuals={"transition_angle": tr_err, "turn_angle": turn_err,
                                   "static_gyro": r_static})
-    return with_accel(res, accel)
+    return with_accel(res, accel, cross)
 
 
 def _warnings(p: dict, prob: _Problem) -> list[str]:
@@ -440,11 +502,12 @@ def _warnings(p: dict, prob: _Problem) -> list[str]:
     return out
 
 
-def with_accel(res: CalibrationResult, accel: CalibrationResult) -> CalibrationResult:
+def with_accel(res: CalibrationResult, accel: CalibrationResult,
+               cross: np.ndarray | None = None) -> CalibrationResult:
     """The gyro result with the accelerometer calibration it used, so the file
     corrects both sensors (the gyro's D needs the corrected specific force).
-    The covariance is block-diagonal: the gyro fit takes the accelerometer's
-    parameters as known."""
+    cross: Cov(gyro parameters, accelerometer parameters) of an independent
+    calibration (``_independent_accel``); None: block-diagonal."""
     from dataclasses import replace
 
     from scipy.linalg import block_diag
@@ -462,8 +525,13 @@ def with_accel(res: CalibrationResult, accel: CalibrationResult) -> CalibrationR
             stats[k] = accel.stats[k]
     stats["unobservable"] = [u for u in accel.stats.get("unobservable", [])
                              if u.startswith("accel_")] + list(res.stats["unobservable"])
+    cov = block_diag(acov, res.covariance)
+    if cross is not None:
+        na = len(aidx)
+        cov[na:, :na] = cross
+        cov[:na, na:] = cross.T
     return replace(res, params=params, sigma=sigma, units=units,
-                   covariance=block_diag(acov, res.covariance), cov_order=aorder + res.cov_order,
+                   covariance=cov, cov_order=aorder + res.cov_order,
                    stats=stats, model=[d for d in accel.model if d.get("sensor") == "accel"]
                    + res.model, raw_units=dict(res.raw_units), tables={**accel.tables,
                                                                          **res.tables})
