@@ -26,12 +26,15 @@ from calib_cli.io.h5 import read_raw
               help="Measurement block length (s): the data are averaged over blocks.")
 @click.option("--axis-sigma-mrad", type=float, default=1.0, show_default=True,
               help="How well the table axis stays fixed (per block, 1-sigma).")
+@click.option("--table-tilt-deg", type=float, default=0.05, show_default=True,
+              help="Prior 1-sigma of the table axis's tilt from the plan's direction "
+                   "(estimated, one per table axis); 0: take the plan's axis as exact.")
 @click.option("--json", "as_json", is_flag=True,
               help="Print the result as JSON (contract section 5) on stdout.")
 @click.option("--plot", type=click.Path(dir_okay=False),
               help="Write the sigma history of the lever arms and proof-mass offsets (PNG).")
 def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis_sigma_mrad,
-                      as_json, plot):
+                      table_tilt_deg, as_json, plot):
     """Accelerometer b, K (lower triangular), gyro d, G, D, lever arms and proof-mass
     offsets from rotation cycles on a single-axis table of imprecise angle and rate."""
     import numpy as np
@@ -43,10 +46,13 @@ def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis
         raise InputError(f"--block must be in (0, 5] s, got {block_s}")
     if not (np.isfinite(axis_sigma_mrad) and axis_sigma_mrad > 0):
         raise InputError(f"--axis-sigma-mrad must be > 0, got {axis_sigma_mrad}")
+    if not (np.isfinite(table_tilt_deg) and 0 <= table_tilt_deg <= 10):
+        raise InputError(f"--table-tilt-deg must be in [0, 10], got {table_tilt_deg}")
     rec = read_raw(raw)
     opt = TurntableOptions(lever_arm=lever_arm, proof_mass=proof_mass,
                            tangential=tangential == "on", block_s=block_s,
-                           axis_sigma=axis_sigma_mrad * 1e-3)
+                           axis_sigma=axis_sigma_mrad * 1e-3,
+                           table_tilt_sigma=float(np.radians(table_tilt_deg)))
     try:
         res = fit_turntable(rec, opt)
     except InputError as exc:

@@ -65,6 +65,11 @@ class TurntableOptions:
     block_s: float = 0.2
     passes: int = 2
     axis_sigma: float = 1e-3
+    # prior 1-sigma (rad) of each table axis's tilt from the plan's direction (estimated);
+    # 0: the plan's axis is exact. The tilt out of the horizontal is pinned by the data
+    # whatever this prior; a loose prior mainly frees the axis azimuth, which only the
+    # earth rate sees, and then lets linearisation errors into the biases (docs)
+    table_tilt_sigma: float = float(np.radians(0.05))
     accel_skip: float = 0.02  # rad/s^2: with tangential off, blocks accelerating faster are skipped
     history_every: float = 2.0
     noise: dict | None = None  # {"accel": (3,), "gyro": (3,)} per-sample sigma; else from data
@@ -77,6 +82,7 @@ class _Layout:
     n_cycles: int
     est_s: bool
     est_p: bool
+    n_axes: int = 0  # table axes whose tilt from the plan's direction is estimated
     idx: dict = field(default_factory=dict)
     size: int = 0
 
@@ -94,6 +100,7 @@ class _Layout:
         if self.est_p:
             add("p", 6)
         add("u", 2 * self.n_cycles)
+        add("t", 2 * self.n_axes)
 
     @property
     def gyro(self) -> np.ndarray:
@@ -109,6 +116,7 @@ class _Cycle:
     basis: np.ndarray  # (3, 2) orthonormal, perpendicular to a_nom
     rot_nom: Rotation
     s_plan: np.ndarray | None
+    axis_group: int = 0  # index of the plan's table axis (cycles on one table share it)
 
 
 def _perp_basis(a: np.ndarray) -> np.ndarray:
@@ -144,7 +152,8 @@ def _unpack(theta: np.ndarray, L: _Layout, cycles) -> dict:
             s[c] = cy.basis @ v[c]
     return {"ab": theta[L.idx["ab"]], "K": K, "gb": theta[L.idx["gb"]],
             "G": theta[L.idx["G"]].reshape(3, 3), "D": theta[L.idx["D"]].reshape(3, 3),
-            "s": s, "P": P, "u": theta[L.idx["u"]].reshape(-1, 2)}
+            "s": s, "P": P, "u": theta[L.idx["u"]].reshape(-1, 2),
+            "t": theta[L.idx["t"]].reshape(-1, 2)}
 
 
 @dataclass
@@ -245,6 +254,7 @@ def _select(rec: Recording) -> list[_Cycle]:
     if rec.in_counts("accel") or rec.in_counts("gyro"):
         raise InputError("the turntable fit needs data in SI units (import with a scale)")
     out = []
+    axes: list = []  # distinct table axes in ENU
     for i, seg in enumerate(rec.segments):
         if seg.kind != "rotating":
             continue
@@ -257,8 +267,13 @@ def _select(rec: Recording) -> list[_Cycle]:
         k = int(np.argmax(np.abs(a_nom)))
         if abs(abs(a_nom[k]) - 1) < 1e-9:
             a_nom = np.sign(a_nom[k]) * np.eye(3)[k]
+        group = next((g for g, a in enumerate(axes) if np.allclose(a, a_enu, atol=1e-9)), None)
+        if group is None:
+            axes.append(a_enu)
+            group = len(axes) - 1
         out.append(_Cycle(i, seg.slice, a_enu, a_nom, _perp_basis(a_nom), rot,
-                          None if seg.lever_arm is None else np.asarray(seg.lever_arm, float)))
+                          None if seg.lever_arm is None else np.asarray(seg.lever_arm, float),
+                          group))
     if not out:
         raise EstimationError("no rotating segments: the turntable fit needs rotation cycles")
     return out
@@ -361,6 +376,10 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             ra = Rbar @ a_b
             Hg = -Nperp @ skew(ra) @ Rh @ b.qbar[j]
             h[3:] = Nperp @ ra + Hg @ x[iG]
+            if L.n_axes:  # the true axis: the plan's tilted by t (the table is not level)
+                ti = 3 + L.idx["t"][2 * cy.axis_group:2 * cy.axis_group + 2]
+                h[3:] -= cur["t"][cy.axis_group]
+                H[3:, ti] = -np.eye(2)
             H[3:, iG] = Hg
             H[3:, sA] = -Nperp @ skew(ra)
             H[3:, 3 + L.idx["u"][2 * c:2 * c + 2]] = Nperp @ Rbar @ cy.basis
@@ -427,7 +446,8 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
         s_known = np.array([cy.s_plan for cy in cycles])
     elif opt.lever_arm == "off":
         s_known = np.zeros((nc, 3))
-    L = _Layout(nc, opt.lever_arm == "estimate", opt.proof_mass == "estimate")
+    n_axes = 1 + max(cy.axis_group for cy in cycles) if opt.table_tilt_sigma > 0 else 0
+    L = _Layout(nc, opt.lever_arm == "estimate", opt.proof_mass == "estimate", n_axes)
     fs = rec.sample_rate
     block_n = max(1, int(round(opt.block_s * fs)))
     on = np.concatenate([np.arange(rec.segments[cy.seg_index].start,
@@ -456,6 +476,7 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     if L.est_p:
         sd[L.idx["p"]] = 0.05
     sd[L.idx["u"]] = np.radians(3.0)
+    sd[L.idx["t"]] = opt.table_tilt_sigma
     # a model that does not explain the data (e.g. lever arms ignored) leaves accelerometer
     # residuals far above the noise and can drag the attitude off; the fit then restarts with
     # the measurement noise widened to the residual level (stats.accel_noise_inflation), so
@@ -478,6 +499,22 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
         raise EstimationError("the turntable filter diverged")
     return _result(rec, cycles, L, out, opt, s_known, sig_a * inflation, sig_g, block_n,
                    inflation, sd)
+
+
+def _tilts(cycles, L, par, P, prior: float) -> list:
+    """Each table axis's estimated tilt from the plan's direction: the two small
+    angles along the ENU unit vectors perpendicular to it (mrad, with sigma; None
+    where the data did not determine it: sigma above half the prior, e.g. the
+    azimuth of a horizontal axis, which only the earth rate sees)."""
+    out = []
+    for g in range(L.n_axes):
+        cy = next(c for c in cycles if c.axis_group == g)
+        sd = [float(np.sqrt(P[i, i])) for i in L.idx["t"][2 * g:2 * g + 2]]
+        out.append({"plan_axis_enu": [float(v) for v in cy.a_enu],
+                    "perpendicular_enu": [[float(v) for v in r] for r in _perp_basis(cy.a_enu).T],
+                    "tilt_mrad": [float(v) * 1e3 for v in par["t"][g]],
+                    "sigma_mrad": [None if v > 0.5 * prior else v * 1e3 for v in sd]})
+    return out
 
 
 def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, inflation,
@@ -558,6 +595,7 @@ def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, 
         "noise_accel": [float(v) for v in sig_a], "noise_gyro": [float(v) for v in sig_g],
         "table_axis_body": [[float(v) for v in a] for a in a_b],
         "table_axis_body_sigma_rad": [[float(v) for v in r] for r in u_sd],
+        "table_axis_tilt_mrad": _tilts(cycles, L, par, P, opt.table_tilt_sigma),
         "g_error_floor": float(np.sqrt(np.mean(sig_a**2) / block_n)),
         "g_error_note": f"|mean f| - g over blocks of {block_n / rec.sample_rate:g} s where the "
                         "table is at rest",
