@@ -390,9 +390,8 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
     cross = None
     if accel_independent:
         fit, cross = _independent_accel(prob, model, packing, fit, base, sig, scales, accel)
+    # (an inflation scales the gyro noise part only: Cov(theta, a) = -A J_a C_a keeps)
     fit, inflation = fit.inflated()
-    if cross is not None:
-        cross = cross * np.sqrt(inflation)  # the gyro side of the cross term scales with it
     p = packing.unpack(fit.theta, base)
     return _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D, cross)
 
