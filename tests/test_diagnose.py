@@ -260,3 +260,18 @@ def test_wander_filter_whitens_like_the_dense_covariance():
     w = ds.ProcessWhitener(t, np.ones((80, 1)), np.array([q]), B=np.array([B]),
                            white=np.sqrt(v)[:, None])
     np.testing.assert_allclose(w.whiten(e[:, None])[:, 0], nu[:, 0], atol=1e-12)
+
+
+def test_report_of_a_wander_step(tmp_path):
+    """A wandering-bias step is in the noise model, not the prediction: its report
+    plot shows the residuals' autocorrelation before and after (no crash, a PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from calib_cli.report.diagnose_report import write_report
+
+    d = C.run_case("accel bias_instability", 9)
+    assert C.first_key(d) == "accel bias_instability"
+    files = write_report(d, tmp_path)
+    png = [f for f in files if str(f).endswith("step1_accel_bias_instability.png")]
+    assert png and (tmp_path / "step1_accel_bias_instability.png").stat().st_size > 1000

@@ -19,6 +19,7 @@ import numpy as np
 from calib_cli.methods.diagnose import Diagnosis
 from calib_cli.methods.diagnose_candidates import effect_key
 from calib_cli.methods.diagnose_fit import predict_bins
+from calib_cli.methods.diagnose_problem import BIN_S
 
 AX = "xyz"
 
@@ -38,6 +39,9 @@ def effect_contribution(d: Diagnosis, k: int) -> dict:
     st = d.steps[k]
     p0 = dict(f.params)
     neutral = f.spec.model.neutral_params()
+    if not any(key in neutral for key in st.params):
+        # a wandering bias (random walk, flicker) is in the noise model, not the prediction
+        return {s: np.zeros_like(pb.ymean[s]) for s in pb.sensors}
     for key in st.params:
         p0[key] = neutral[key]
     a = predict_bins(pb, f.spec, f.params, f.mount)
@@ -110,13 +114,18 @@ def _step_plot(d: Diagnosis, k: int, path: Path):
 
     pb = d.problem
     contrib = effect_contribution(d, k)
-    best, bs, bi = -1.0, None, 0
+    res0, res1 = d.fits[k].residual_blocks(pb), d.fits[k + 1].residual_blocks(pb)
+    stochastic = all(not np.any(contrib[s]) for s in pb.sensors)
+    best, bs, bi = -np.inf, None, 0
     for s, i, _ in _channels(pb):
-        v = float(np.sqrt(np.mean(contrib[s][:, i] ** 2)))
+        if stochastic:  # the channel whose residuals the wander whitens most
+            v = float(np.mean(res0[s][:, i] ** 2) - np.mean(res1[s][:, i] ** 2))
+        else:
+            v = float(np.sqrt(np.mean(contrib[s][:, i] ** 2)))
         if v > best:
             best, bs, bi = v, s, i
-    before = d.fits[k].residual_blocks(pb)[bs][:, bi]
-    after = d.fits[k + 1].residual_blocks(pb)[bs][:, bi]
+    before = res0[bs][:, bi]
+    after = res1[bs][:, bi]
     x, xl = physical_signature(d, k, bs, bi)
     st = d.steps[k]
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4))
@@ -125,12 +134,22 @@ def _step_plot(d: Diagnosis, k: int, path: Path):
     a1.set_xlabel(xl)
     a1.set_ylabel(f"{bs} {AX[bi] if pb.y[bs].shape[1] == 3 else bi} residual / noise")
     a1.legend()
-    sig = contrib[bs][:, bi]
-    a2.plot(sig, before, ".", ms=3, label="before")
-    a2.plot(sig, after, ".", ms=3, label="after")
-    lim = [float(np.min(sig)), float(np.max(sig))]
-    a2.plot(lim, lim, "k-", lw=0.8, label="1:1")
-    a2.set_xlabel("fitted signature of the effect, noise units")
+    if stochastic:  # a wander's signature: residuals correlated over time, white after
+        lags = np.arange(1, min(40, len(before) // 4))
+        for lab, r in (("before", before), ("after", after)):
+            r = r - r.mean()
+            ac = [float(r[:-m] @ r[m:] / (r @ r)) for m in lags]
+            a2.plot(lags * BIN_S, ac, ".-", ms=3, label=lab)
+        a2.axhline(0.0, color="k", lw=0.8)
+        a2.set_xlabel("lag, s")
+        a2.set_ylabel("autocorrelation of the residual")
+    else:
+        sig = contrib[bs][:, bi]
+        a2.plot(sig, before, ".", ms=3, label="before")
+        a2.plot(sig, after, ".", ms=3, label="after")
+        lim = [float(np.min(sig)), float(np.max(sig))]
+        a2.plot(lim, lim, "k-", lw=0.8, label="1:1")
+        a2.set_xlabel("fitted signature of the effect, noise units")
     a2.legend()
     fig.suptitle(f"step {k + 1}: {effect_key(st.effect, st.sensor)}"
                  + f" (score {st.score:.1f}, threshold {st.threshold:.1f}; RMS "
