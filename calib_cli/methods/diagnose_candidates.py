@@ -227,17 +227,15 @@ def describe(c: Candidate, params: dict, sigma: dict, pb: Problem | None = None)
         i, v, sg = _largest(params, sigma, f"{s}_misalignment")
         return (f"{s} axis misalignment / cross-coupling: axis {AX[i // 3]} senses input "
                 f"along {AX[i % 3]} ({_fmt(v, sg, 1e3, 'mrad')})")
-    if n == "bias_instability":  # values are in data units already
-        v = np.asarray(params[f"{s}_bias_instability"])
+    if n in ("bias_instability", "bias_random_walk"):  # one figure per channel
+        flicker = n == "bias_instability"
+        v = np.asarray(params[f"{s}_{'bias_instability' if flicker else 'bias_rw'}"])
         f, u = ((1e6 / G0, "ug") if s == "accel" else (180 / np.pi * 3600, "deg/h"))
-        return (f"{s} bias instability (flicker): the bias wanders with a 1/f spectrum, "
-                "correlated over seconds to hours; Allan bias-instability figure B "
-                + ", ".join(f"{x * f:.3g}" for x in v) + f" {u}")
-    if n == "bias_random_walk":
-        key = f"{s}_bias_rw"
-        v = np.asarray(params[key])
-        f, u = ((1e6 / G0, "ug/sqrt(s)") if s == "accel" else (180 / np.pi * 3600,
-                                                                  "deg/h/sqrt(s)"))
+        figures = ", ".join(f"{x * f:.3g}" for x in v)
+        if flicker:
+            return (f"{s} bias instability (flicker): the bias wanders with a 1/f spectrum, "
+                    f"correlated over seconds to hours; Allan bias-instability figure B "
+                    f"{figures} {u}")
         return (f"{s} bias random walk: the bias wanders slowly over the record (density "
-                + ", ".join(f"{x * f:.3g}" for x in v) + f" {u})")
+                f"{figures} {u}/sqrt(s))")
     return n
