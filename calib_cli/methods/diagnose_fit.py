@@ -14,7 +14,10 @@ costs only its own columns. Covariance and unobservable entries come from
 Nuisance ``mount``: for methods that fix the instrument frame by the
 accelerometers (lower-triangular K, the turntable method), the unit's small
 mounting rotation on the fixture (3 angles) is fitted with the model: the
-body inputs are R(mount)^T times the plan's.
+body inputs are R(mount)^T times the plan's. For ``align`` the same 3 angles
+are a rotation of the navigation frame (the alignment's tilt and heading
+errors, common to all positions), which in each position's body axes is a
+different rotation.
 """
 
 from __future__ import annotations
@@ -91,7 +94,21 @@ def _nuisance_kin(pb: Problem, spec: ModelSpec, nuis):
     if nuis is None or len(nuis) == 0:
         return kin
     i = 0
-    if spec.mount:
+    if spec.mount and pb.seg_rot is not None:
+        # align: the attitudes are off by one rotation Rn of the navigation frame (the
+        # alignment's tilt and heading errors), the same for every position: in body
+        # axes of position i that is R_i^T Rn^T R_i, different per position
+        if np.any(nuis[:3]):
+            Rn = Rotation.from_rotvec(nuis[:3]).as_matrix()
+            f, w, dw = kin.f.copy(), kin.w.copy(), kin.dw.copy()
+            for idx, Ri in pb.seg_rot.items():
+                on = kin.segment == idx
+                if on.any():
+                    D = Ri.T @ Rn @ Ri  # rows: v_body' = v_body @ D
+                    f[on], w[on], dw[on] = kin.f[on] @ D, kin.w[on] @ D, kin.dw[on] @ D
+            kin = kin.with_(f=f, w=w, dw=dw)
+        i = 3
+    elif spec.mount:
         if np.any(nuis[:3]):
             R = Rotation.from_rotvec(nuis[:3]).as_matrix()
             kin = kin.with_(f=kin.f @ R, w=kin.w @ R, dw=kin.dw @ R)

@@ -66,6 +66,9 @@ class Problem:
     unit_scale: dict | None = None  # sensor -> data units per SI unit (1 for SI; counts: ~K)
     scatter_dof: int = 0
     noise_mode: str = "hf"
+    # align: each used segment's attitude (raw segment index -> body-to-ENU matrix), so
+    # the attitude nuisance is a rotation of the navigation frame common to all positions
+    seg_rot: dict | None = None
     sigma_hf: dict | None = None  # the high-frequency estimate, before apply_noise
 
     def scale_of(self, key: str) -> float:
@@ -138,6 +141,10 @@ def build_problem(rec: Recording, method: str, bin_s: float = BIN_S,
     pb = _build(rec, method, bin_s)
     if start is not None:
         pb.start = start
+    if method == "align":
+        pb.seg_rot = {i: attitude_to_rotation(s.attitude).as_matrix()
+                      for i, s in enumerate(rec.segments)
+                      if s.kind == "static" and s.attitude is not None}
     pb.noise_mode = noise
     if noise == "auto":
         apply_noise(pb)

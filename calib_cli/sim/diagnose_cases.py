@@ -104,13 +104,8 @@ CASES = {
 }
 
 
-# measured and reported in docs/diagnose-validation.md, not asserted (why)
-REPORTED_ONLY = {
-    "align: gyro temperature_drift": (
-        "two static positions see only the earth rate: a gyro scale drift of 5-10 sigma "
-        "(about 1 %/degC) times the earth rate trades with the heading nuisance, and a "
-        "wander fits the drift better than the linear thermal model refitted from there"),
-}
+# measured and reported in docs/diagnose-validation.md, not asserted: {case: why}
+REPORTED_ONLY: dict = {}
 
 
 def expected(case: str) -> str:
