@@ -11,18 +11,15 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def test_data_files_ship_every_profile():
     cfg = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
-    data = cfg["tool"]["setuptools"]["data-files"]
-    shipped = set()
-    for dest, patterns in data.items():
-        assert dest.startswith("share/calib/profiles/")
+    dest_of = {}  # profile file -> where the wheel installs it
+    for dest, patterns in cfg["tool"]["setuptools"]["data-files"].items():
         for pat in patterns:
             for f in ROOT.glob(pat):
-                shipped.add((dest.removeprefix("share/calib/"), f.relative_to(ROOT).parent.as_posix()))
-                shipped.add(f.relative_to(ROOT).as_posix())
-    on_disk = {f.relative_to(ROOT).as_posix() for f in (ROOT / "profiles").rglob("*.toml")}
-    assert on_disk and on_disk <= shipped
-    # each destination mirrors its source directory
-    assert all(d == s for d, s in (x for x in shipped if isinstance(x, tuple)))
+                dest_of[f.relative_to(ROOT).as_posix()] = dest
+    on_disk = [f.relative_to(ROOT) for f in (ROOT / "profiles").rglob("*.toml")]
+    assert on_disk
+    for f in on_disk:  # every profile, under share/calib/ mirroring its directory
+        assert dest_of.get(f.as_posix()) == "share/calib/" + f.parent.as_posix(), f
 
 
 def test_shipped_profiles_found_from_the_source_tree():

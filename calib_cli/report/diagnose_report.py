@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib_cli.methods.diagnose import Diagnosis
+from calib_cli.methods.diagnose import WANDERS, Diagnosis
 from calib_cli.methods.diagnose_candidates import effect_key
 from calib_cli.methods.diagnose_fit import predict_bins
 from calib_cli.methods.diagnose_problem import BIN_S
@@ -38,10 +38,9 @@ def effect_contribution(d: Diagnosis, k: int) -> dict:
     f = d.fits[k + 1]
     st = d.steps[k]
     p0 = dict(f.params)
-    neutral = f.spec.model.neutral_params()
-    if not any(key in neutral for key in st.params):
-        # a wandering bias (random walk, flicker) is in the noise model, not the prediction
+    if st.effect in WANDERS:  # a wandering bias is in the noise model, not the prediction
         return {s: np.zeros_like(pb.ymean[s]) for s in pb.sensors}
+    neutral = f.spec.model.neutral_params()
     for key in st.params:
         p0[key] = neutral[key]
     a = predict_bins(pb, f.spec, f.params, f.mount)
@@ -115,7 +114,7 @@ def _step_plot(d: Diagnosis, k: int, path: Path):
     pb = d.problem
     contrib = effect_contribution(d, k)
     res0, res1 = d.fits[k].residual_blocks(pb), d.fits[k + 1].residual_blocks(pb)
-    stochastic = all(not np.any(contrib[s]) for s in pb.sensors)
+    stochastic = d.steps[k].effect in WANDERS
     best, bs, bi = -np.inf, None, 0
     for s, i, _ in _channels(pb):
         if stochastic:  # the channel whose residuals the wander whitens most
