@@ -293,6 +293,7 @@ class _PassOut:
 def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: TurntableOptions,
                  sig_a, sig_g, block_n, s_known, record_history: bool, first: bool) -> _PassOut:
     par = _unpack(theta_lin, L, cycles)
+    par_lin = _unpack(theta_lin, L, cycles)
     if s_known is not None:
         par["s"] = s_known
     n = L.size
@@ -302,8 +303,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
     w_e = rec.site.earth_rate_enu
     iG = 3 + L.gyro
     x = np.zeros(ns)
-    if first:
-        x[3:] = prior_mean - theta_lin
+    x[3:] = prior_mean - theta_lin  # the prior keeps its original mean in every pass
     P = np.zeros((ns, ns))
     P[3:, 3:] = np.diag(prior_sd**2)
     innov, nis, hist_t, hist_s, lowrate = [], [], [], [], []
@@ -340,7 +340,13 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             skip = fast | np.roll(fast, 1) | np.roll(fast, -1)
         sA = slice(0, 3)
         for j in range(nb):
-            cur = _unpack(theta_lin + x[3:], L, cycles)
+            # the first pass is an extended filter (Jacobians at the running estimate: the
+            # neutral start can be far off); later passes linearise every block about the
+            # previous pass's estimate, h(theta_lin) + H (theta - theta_lin), so that a pass
+            # is one Gauss-Newton step of the whole record (an extended filter re-evaluated
+            # from the prior at every pass keeps the bias of its early, poor linearisation,
+            # which bilinear terms such as K (w x w x p) turn into tens of sigma)
+            cur = _unpack(theta_lin + x[3:], L, cycles) if first else par_lin
             s_c = s_known[c] if s_known is not None else cur["s"][c]
             a_b = cy.a_nom + cy.basis @ cur["u"][c]
             a_b /= np.linalg.norm(a_b)
@@ -383,6 +389,8 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             H[3:, iG] = Hg
             H[3:, sA] = -Nperp @ skew(ra)
             H[3:, 3 + L.idx["u"][2 * c:2 * c + 2]] = Nperp @ Rbar @ cy.basis
+            if not first:  # the prediction linear in the parameter error about theta_lin
+                h = h - H[:, iG] @ x[iG] + H[:, 3:] @ x[3:]
             z = np.concatenate([b.a_mean[j], Nperp @ cy.a_enu])
             r_extra = (2 * b.wabs[j] * np.linalg.norm(s_c)) ** 2 * (sig_g**2).mean() / b.m
             if opt.tangential:
