@@ -178,7 +178,7 @@ def csv_text(rows) -> str:
 # -------------------------------------------------------------------- Markdown
 
 _CTRL = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029]")
-_MD_SPECIAL = re.compile(r"([\\`*_{}\[\]()#+!|~])")
+_MD_SPECIAL = re.compile(r"([\\`*|~])|(?<![A-Za-z0-9])_|_(?![A-Za-z0-9])|\](?=[(\[])")
 
 
 def _show_ctrl(s: str) -> str:
@@ -191,13 +191,15 @@ def _show_ctrl(s: str) -> str:
 
 def md_text(text) -> str:
     """Inline Markdown that renders as ``text``: no raw HTML (``& < >`` become
-    entities), no emphasis, code, link, image, table cell break or line
-    break; newlines and other control characters are shown as ``\\xNN``; a
-    leading list or heading marker is escaped."""
+    entities); no code span, emphasis, table cell break, link or image (``\\ ` *
+    | ~``, a ``_`` that is not inside a word, and a ``]`` before ``(`` or ``[``
+    are backslash-escaped); newlines and other control characters are shown as
+    ``\\xNN``; a leading list, heading, quote or link-definition marker is
+    escaped. Plain text (``accel_bias[0]``, ``m/s^2``) stays as it is."""
     s = html.escape(_show_ctrl(str(text)), quote=False)
-    s = _MD_SPECIAL.sub(r"\\\1", s)
+    s = _MD_SPECIAL.sub(lambda m: "\\" + m.group(), s)
     s = s.strip(" ")
-    s = re.sub(r"^([-=])", r"\\\1", s)
+    s = re.sub(r"^([-+=#\[])", r"\\\1", s)
     return re.sub(r"^(\d+)([.)])", r"\1\\\2", s)
 
 
