@@ -64,9 +64,17 @@ def _c_byte(b: int) -> str:
 
 def c_string(text) -> str:
     """A C string literal (with its quotes) holding exactly the UTF-8 bytes of
-    ``text``; nothing in ``text`` can end the literal or the line."""
+    ``text``; nothing in ``text`` can end the literal or the line, form a
+    trigraph, or look like a comment marker."""
     data = str(text).encode("utf-8", "surrogatepass")
-    return '"' + "".join(_c_byte(b) for b in data) + '"'
+    out = []
+    for i, b in enumerate(data):
+        nxt = data[i + 1] if i + 1 < len(data) else None
+        if (b, nxt) in ((0x2A, 0x2F), (0x2F, 0x2A)):  # "*/" and "/*": inert here, but
+            out.append("\\%03o" % b)                 # no comment marker even so
+        else:
+            out.append(_c_byte(b))
+    return '"' + "".join(out) + '"'
 
 
 _C_COMMENT_WORD = re.compile(r"[A-Za-z0-9 ^()._+-]{1,40}(/[A-Za-z0-9 ^()._+-]{1,40})*")

@@ -160,8 +160,8 @@ def check_untrusted_h5(h5: h5py.File, path: str) -> None:
         (groups if isinstance(obj, h5py.Group) else datasets).append(obj)
 
     h5.visititems(visit)  # objects reached by hard links, each once
-    _ref_attrs(h5, "/", path)
     for g in groups:
+        _ref_attrs(g, g.name, path)
         for name in g:
             link = g.get(name, getlink=True)
             full = f"{g.name.rstrip('/')}/{name}"
