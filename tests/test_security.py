@@ -332,6 +332,23 @@ def test_cli_json_yaml_from_hostile_plan(hostile_files):
     assert json.loads(so)["unit"]["serial"] == f["serial"]
 
 
+def test_terminal_shows_file_text_inert(hostile_files, tmp_path):
+    """calib show: rich markup in a file ([/], [link=...]) is shown, not
+    interpreted (it used to crash with exit 70); no escape sequence reaches
+    the terminal."""
+    crafted = tmp_path / "term.h5"
+    shutil.copy(hostile_files["crafted"], crafted)
+    with h5py.File(crafted, "a") as h5:
+        h5.attrs["unit_serial"] = "[link=file:///etc/passwd]click[/link] [/] \x1b]0;owned\x07"
+        h5.attrs["method"] = "[bold red]x[/] \x1b[2J"
+    for f in (crafted, hostile_files["raw"]):
+        code, out, err = run_cli("show", f)
+        assert code == 0, err
+        assert "\x1b" not in out and "\x07" not in out
+    code, out, _ = run_cli("show", crafted)
+    assert "[link=file:///etc/passwd]click[/link]" in out and "[/]" in out
+
+
 def _md_tokens(md: str):
     from markdown_it import MarkdownIt
 

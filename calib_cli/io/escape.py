@@ -28,6 +28,9 @@ A generated artefact embeds it only through the function for its language:
 - HTML: ``html_text`` (html.escape, quotes included, control characters
   shown as ``\\xNN``).
 - Matplotlib labels: ``mpl_text`` (``$`` would start mathtext).
+- The terminal (rich): ``term_text`` (rich markup escaped, so ``[/]`` neither
+  styles nor crashes; escape sequences and other control characters shown as
+  ``\\xNN``, so a file cannot move the cursor or retitle the terminal).
 """
 
 from __future__ import annotations
@@ -225,3 +228,13 @@ def html_text(text) -> str:
 def mpl_text(text) -> str:
     """A label matplotlib draws as it is (``$`` would start mathtext)."""
     return _show_ctrl(str(text)).replace("$", r"\$")
+
+
+# -------------------------------------------------------------- terminal (rich)
+
+
+def term_text(text) -> str:
+    """Text for a rich console or table: markup and control characters inert."""
+    from rich.markup import escape as rich_escape
+
+    return rich_escape(_show_ctrl(str(text)))
