@@ -603,3 +603,17 @@ def test_documented_dask_recipe_listens_on_loopback_only(tmp_path):
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(p.pid, signal.SIGKILL)
                 p.wait(timeout=10)
+
+
+def test_history_plot_and_table_with_hostile_serial_and_names(tmp_path):
+    """calib history: the serial and the archive's file names reach a plot
+    (mathtext) and the terminal (rich markup) as plain text."""
+    serial = r"[/] $x^{$ " + HOSTILE[0]
+    arch = tmp_path / "arch"
+    arch.mkdir()
+    for i, name in enumerate((r"$\undefinedcommand{x}$ [red].h5", "b [bold]\x1b[2J.h5")):
+        write_calibration(arch / name, replace(triad_calibration(seed=i), serial=serial))
+    code, out, err = run_cli("history", arch, "--unit", serial, "--plot", tmp_path / "h.png")
+    assert code == 0, err
+    assert (tmp_path / "h.png").stat().st_size > 1000
+    assert "\x1b" not in out and "[/]" in out
