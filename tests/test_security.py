@@ -617,3 +617,15 @@ def test_history_plot_and_table_with_hostile_serial_and_names(tmp_path):
     assert code == 0, err
     assert (tmp_path / "h.png").stat().st_size > 1000
     assert "\x1b" not in out and "[/]" in out
+
+
+def test_hdf5_refusal_is_one_line_whatever_the_names(h5_files, tmp_path):
+    """The refused object's name and link target come from the file: the
+    error stays one line and sends no escape sequence."""
+    bad = tmp_path / "raw.h5"
+    shutil.copy(h5_files["raw"], bad)
+    with h5py.File(bad, "a") as h5:
+        h5["samples"]["x\n\x1b]0;owned\x07y"] = h5py.ExternalLink("o\nther\x1b[2J.h5", "/a\nb")
+    code, _, err = run_cli("fit", "accel", bad, "--out", tmp_path / "o.h5")
+    assert code == 3 and len(err.strip().splitlines()) == 1, err
+    assert "\x1b" not in err and "external link" in err and "\\x0a" in err

@@ -28,6 +28,8 @@ A generated artefact embeds it only through the function for its language:
 - HTML: ``html_text`` (html.escape, quotes included, control characters
   shown as ``\\xNN``).
 - Matplotlib labels: ``mpl_text`` (``$`` would start mathtext).
+- A plain error line: ``line_text`` (control characters shown as ``\\xNN``:
+  the line stays one line and sends no escape sequence).
 - The terminal (rich): ``term_text`` (rich markup escaped, so ``[/]`` neither
   styles nor crashes; escape sequences and other control characters shown as
   ``\\xNN``, so a file cannot move the cursor or retitle the terminal).
@@ -238,3 +240,8 @@ def term_text(text) -> str:
     from rich.markup import escape as rich_escape
 
     return rich_escape(_show_ctrl(str(text)))
+
+
+def line_text(text) -> str:
+    """File text for a plain one-line message (an error line on stderr)."""
+    return _show_ctrl(str(text))

@@ -22,6 +22,7 @@ import numpy as np
 from calib_cli import __version__
 from calib_cli.data import CalibrationResult, Recording, Segment
 from calib_cli.errors import InputError
+from calib_cli.io.escape import line_text
 from calib_cli.model.earth import Site
 from calib_cli.model.effects import Layout
 
@@ -138,7 +139,7 @@ def _has_reference(dt) -> bool:
 def _ref_attrs(obj, where: str, p: str) -> None:
     for name in obj.attrs:
         if _has_reference(obj.attrs.get_id(name).dtype):
-            raise InputError(f"attribute {name!r} of {where} holds HDF5 object or region "
+            raise InputError(f"attribute {name!r} of {line_text(where)} holds HDF5 object or region "
                              "references; calib does not follow references (docs/security.md)", p)
 
 
@@ -164,9 +165,10 @@ def check_untrusted_h5(h5: h5py.File, path: str) -> None:
         _ref_attrs(g, g.name, path)
         for name in g:
             link = g.get(name, getlink=True)
-            full = f"{g.name.rstrip('/')}/{name}"
+            full = line_text(f"{g.name.rstrip('/')}/{name}")
             if isinstance(link, h5py.ExternalLink):
-                raise InputError(f"{full} is an external link to {link.filename}:{link.path}; "
+                raise InputError(f"{full} is an external link to "
+                                 f"{line_text(link.filename)}:{line_text(link.path)}; "
                                  "calib does not follow links out of a file (docs/security.md)",
                                  path)
             if not isinstance(link, (h5py.HardLink, h5py.SoftLink)):
@@ -178,21 +180,21 @@ def check_untrusted_h5(h5: h5py.File, path: str) -> None:
             continue  # a committed datatype
         _ref_attrs(ds, ds.name, path)
         if ds.is_virtual:
-            files = sorted({m.file_name for m in ds.virtual_sources()})
-            raise InputError(f"{ds.name} is a virtual dataset (mapped from {', '.join(files)}); "
+            files = sorted({line_text(m.file_name) for m in ds.virtual_sources()})
+            raise InputError(f"{line_text(ds.name)} is a virtual dataset (mapped from {', '.join(files)}); "
                              "calib does not read data from other files (docs/security.md)", path)
         if ds.id.get_create_plist().get_external_count() > 0:
-            raise InputError(f"{ds.name} keeps its data in an external file; calib does not read "
+            raise InputError(f"{line_text(ds.name)} keeps its data in an external file; calib does not read "
                              "data from other files (docs/security.md)", path)
         if _has_reference(ds.dtype):
-            raise InputError(f"{ds.name} holds HDF5 object or region references; calib does not "
+            raise InputError(f"{line_text(ds.name)} holds HDF5 object or region references; calib does not "
                              "follow references (docs/security.md)", path)
         item = ds.dtype.itemsize
         size = int(np.prod(ds.shape, dtype=object)) * item if ds.shape else item
         chunk = int(np.prod(ds.chunks, dtype=object)) * item if ds.chunks else 0
         declared += size
         if declared > budget or chunk > budget:
-            raise InputError(f"{ds.name} declares {_human(size)} of data (chunks of "
+            raise InputError(f"{line_text(ds.name)} declares {_human(size)} of data (chunks of "
                              f"{_human(chunk)}) in a file of {_human(os.path.getsize(path))}; "
                              f"one input may declare at most {_human(budget)} "
                              f"(max({MIN_BUDGET >> 20} MiB, {MAX_EXPANSION}x its size on disk), "
