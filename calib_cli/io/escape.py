@@ -202,18 +202,26 @@ def _show_ctrl(s: str) -> str:
                      else "\\u%04x" % ord(m.group()), s)
 
 
-def md_text(text) -> str:
-    """Inline Markdown that renders as ``text``: no raw HTML (``& < >`` become
+_MD_BLOCK_START = re.compile(r"^(?:[-+](?=\s|$|-)|#{1,6}(?=\s|$)|=+\s*$|\[)")
+_MD_ORDERED = re.compile(r"^(\d{1,9})([.)])(?=\s|$)")
+
+
+def md_text(text, block: bool = True) -> str:
+    """Markdown that renders as ``text``: no raw HTML (``& < >`` become
     entities); no code span, emphasis, table cell break, link or image (``\\ ` *
     | ~``, a ``_`` that is not inside a word, and a ``]`` before ``(`` or ``[``
     are backslash-escaped); newlines and other control characters are shown as
-    ``\\xNN``; a leading list, heading, quote or link-definition marker is
-    escaped. Plain text (``accel_bias[0]``, ``m/s^2``) stays as it is."""
+    ``\\xNN``. ``block``: the text starts a line (a paragraph, a heading, a
+    list item), so a leading list, heading or rule marker or a ``[`` (a link
+    definition) is escaped too; table cells need not. Plain text
+    (``accel_bias[0]``, ``m/s^2``, ``-0.5``) stays as it is."""
     s = html.escape(_show_ctrl(str(text)), quote=False)
     s = _MD_SPECIAL.sub(lambda m: "\\" + m.group(), s)
     s = s.strip(" ")
-    s = re.sub(r"^([-+=#\[])", r"\\\1", s)
-    return re.sub(r"^(\d+)([.)])", r"\1\\\2", s)
+    if block:
+        s = _MD_BLOCK_START.sub(lambda m: "\\" + m.group(), s)
+        s = _MD_ORDERED.sub(r"\1\\\2", s)
+    return s
 
 
 # ------------------------------------------------------------------------ HTML

@@ -231,8 +231,8 @@ def build_report(ctx: ReportContext) -> list[Section]:
 
 
 def _md_table(t: Table) -> list[str]:
-    esc = [[md_text(c) for c in r] for r in t.rows]
-    head = [md_text(h) for h in t.header]
+    esc = [[md_text(c, block=False) for c in r] for r in t.rows]
+    head = [md_text(h, block=False) for h in t.header]
     out = [f"*{md_text(t.caption)}*", "", "| " + " | ".join(head) + " |",
            "|" + "|".join("---" for _ in t.header) + "|"]
     out += ["| " + " | ".join(r) + " |" for r in esc]
