@@ -311,6 +311,13 @@ def test_cli_c_header_from_hostile_plan(hostile_files, tmp_path):
         d = tmp_path / which
         d.mkdir()
         _check_c_header(d, text, "calib", expect, gyro=False)
+        # the reproducer: a program calling the injected function no longer builds
+        (d / "attack.c").write_text('#include <stdio.h>\n#include "evil.h"\n'
+                                    'int main(void) { printf("%d\\n", calib_injected()); '
+                                    "return 0; }\n")
+        r = subprocess.run([GCC, "-std=c99", "-Wall", "-o", "attack", "attack.c"], cwd=d,
+                           capture_output=True, text=True)
+        assert r.returncode != 0 and "calib_injected" in r.stderr
 
 
 def test_cli_json_yaml_from_hostile_plan(hostile_files):
