@@ -153,6 +153,10 @@ def generic_sections(ctx: ReportContext) -> list[Section]:
                        f"after {st['g_error_rms_after'] * 1e3 / 9.80665:.4f} mg "
                        f"(noise floor {st.get('g_error_floor', float('nan')) * 1e3 / 9.80665:.4f}"
                        " mg).")
+    if st.get("g_norm_std_after") is not None:
+        from calib_cli.units import g_figures_line
+
+        summary.append(g_figures_line(st) + " (Avrutov et al.'s figures of merit).")
     if st.get("unobservable"):
         summary.append("Unobservable from this data: " + ", ".join(st["unobservable"]) + ".")
     if st.get("sigma_inflation", 1.0) not in (1.0, None):
