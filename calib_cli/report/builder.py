@@ -194,11 +194,15 @@ def allan_section(ctx: ReportContext) -> Section | None:
         at = res.averaging_time[i]
         row.append(f"{at:.3g} s" if np.isfinite(at) else
                    ("not reached" if np.isfinite(res.target[i]) else "no target"))
+        tq = res.min_avg()[i]
+        row.append(f"{tq:.3g} s" if np.isfinite(tq) else "-")
         rows.append(row)
-    tab = Table(f"IEEE Std 952 noise terms with {CONFIDENCE:.0%} intervals, and the shortest "
-                "averaging time that brings the noise below the target.",
-                ["channel", "random walk N", "bias instability B", "rate random walk K",
-                 "averaging time"], rows)
+    tab = Table(f"IEEE Std 952 noise terms with {CONFIDENCE:.0%} intervals, the shortest "
+                "averaging time that brings the noise below the target, and the minimum "
+                "averaging time per position from the quantisation term (where the "
+                "quantisation stops dominating the noise of a mean).",
+                ["channel", "quantization Q", "random walk N", "bias instability B",
+                 "rate random walk K", "averaging time", "min. averaging (Q)"], rows)
     fig = FigureItem("allan", allan_figure(res),
                      "Overlapping Allan deviation of each channel (shaded: "
                      f"{CONFIDENCE:.0%} interval from the number of independent clusters) "
