@@ -77,3 +77,6 @@ def test_cli_static(tmp_path, capsys):
     assert set(js["params"]) == {"accel_bias", "gyro_bias", "attitude"}
     assert abs(np.degrees(js["params"]["attitude"][2]) - 30.0) < 1.0
     assert "attitude_2" in js["stats"] and "attitude_2_sigma" in js["stats"]
+    assert _run(["-q", "report", str(cal), "--out", str(tmp_path / "rep")]) == 0
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "Static-only alignment" in md and "well conditioned" in md
