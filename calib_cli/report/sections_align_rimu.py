@@ -36,7 +36,6 @@ def _residual_items(ctx: ReportContext, units: dict, hint: str) -> list:
     return items
 
 
-@register("align", "align-classic")
 def _static_align_section(ctx: ReportContext):
     """--method static: no turn; conditioning and every position's attitude."""
     st = ctx.cal.stats
@@ -60,6 +59,7 @@ def _static_align_section(ctx: ReportContext):
     return Section("Static-only alignment", text=text, tables=tables, figures=[])
 
 
+@register("align", "align-classic")
 def align_sections(ctx: ReportContext):
     st = ctx.cal.stats
     if st.get("method") == "static":
