@@ -80,3 +80,14 @@ def test_cli_static(tmp_path, capsys):
     assert _run(["-q", "report", str(cal), "--out", str(tmp_path / "rep")]) == 0
     md = (tmp_path / "rep" / "report.md").read_text()
     assert "Static-only alignment" in md and "well conditioned" in md
+
+
+def test_a_third_position_removes_the_weakness():
+    p = ac.plan([((1, 1, 1), 130.0), ((0, 1, -0.6), 100.0)], duration=120.0)
+    truth = ac.nav_truth(np.random.default_rng(5))
+    rec = simulate(p, truth, seed=5)
+    res = fit_align_static(rec)
+    assert res.stats["n_positions"] == 3 and res.stats["unobservable"] == []
+    assert np.all(res.sigma["accel_bias"] < 10 * ac.UG)  # vs ~1 mg from two positions
+    z = (res.params["accel_bias"] - truth.params["accel_bias"]) / res.sigma["accel_bias"]
+    assert np.all(np.abs(z) < 4.0)
