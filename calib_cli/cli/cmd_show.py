@@ -11,6 +11,7 @@ from calib_cli.cli.main import cli
 from calib_cli.cli.render import params_table
 from calib_cli.io.escape import term_text
 from calib_cli.io.h5 import file_kind, provenance, read_calibration, read_raw
+from calib_cli.units import g_figures_line
 
 
 def calibration_json(path, covariance: bool = False) -> dict:
@@ -65,6 +66,9 @@ def _render_calibration(path, covariance):
             gt.add_row(term_text(lab), f"{row[0]:.0f}", "-" if np.isnan(row[1]) else f"{row[1]:.6f}",
                        f"{row[2]:.6f}", f"{row[3]:+.2e}")
         out_console.print(gt)
+        line = g_figures_line(c.stats)
+        if line:
+            out_console.print(line)
     if covariance:
         out_console.print(f"covariance: {c.covariance.shape[0]} free entries (use --json)")
 

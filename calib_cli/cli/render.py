@@ -6,6 +6,7 @@ import numpy as np
 from rich.table import Table
 
 from calib_cli.cli.common import Ctx, err_console
+from calib_cli.units import g_figures_line
 
 # key -> (factor, unit) for the terminal; values stay SI in files and JSON
 DISPLAY = {
@@ -81,6 +82,8 @@ def render_summary(res) -> None:
         floor = "" if floor is None else f" (noise floor {floor * 1e3 / 9.80665:.4f} mg)"
         err_console.print(f"|g| error RMS: before {b}, after "
                           f"{st['g_error_rms_after'] * 1e3 / 9.80665:.4f} mg{floor}")
+        if g_figures_line(st):
+            err_console.print(g_figures_line(st))
     if st.get("unobservable"):
         err_console.print(f"[yellow]unobservable:[/] {', '.join(st['unobservable'])}")
     if st.get("sigma_inflation", 1.0) != 1.0:

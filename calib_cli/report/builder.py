@@ -153,6 +153,10 @@ def generic_sections(ctx: ReportContext) -> list[Section]:
                        f"after {st['g_error_rms_after'] * 1e3 / 9.80665:.4f} mg "
                        f"(noise floor {st.get('g_error_floor', float('nan')) * 1e3 / 9.80665:.4f}"
                        " mg).")
+    if st.get("g_norm_std_after") is not None:
+        from calib_cli.units import g_figures_line
+
+        summary.append(g_figures_line(st) + " (Avrutov et al.'s figures of merit).")
     if st.get("unobservable"):
         summary.append("Unobservable from this data: " + ", ".join(st["unobservable"]) + ".")
     if st.get("sigma_inflation", 1.0) not in (1.0, None):
@@ -190,11 +194,15 @@ def allan_section(ctx: ReportContext) -> Section | None:
         at = res.averaging_time[i]
         row.append(f"{at:.3g} s" if np.isfinite(at) else
                    ("not reached" if np.isfinite(res.target[i]) else "no target"))
+        tq = res.min_avg()[i]
+        row.append(f"{tq:.3g} s" if np.isfinite(tq) else "-")
         rows.append(row)
-    tab = Table(f"IEEE Std 952 noise terms with {CONFIDENCE:.0%} intervals, and the shortest "
-                "averaging time that brings the noise below the target.",
-                ["channel", "random walk N", "bias instability B", "rate random walk K",
-                 "averaging time"], rows)
+    tab = Table(f"IEEE Std 952 noise terms with {CONFIDENCE:.0%} intervals, the shortest "
+                "averaging time that brings the noise below the target, and the minimum "
+                "averaging time per position from the quantisation term (where the "
+                "quantisation stops dominating the noise of a mean).",
+                ["channel", "quantization Q", "random walk N", "bias instability B",
+                 "rate random walk K", "averaging time", "min. averaging (Q)"], rows)
     fig = FigureItem("allan", allan_figure(res),
                      "Overlapping Allan deviation of each channel (shaded: "
                      f"{CONFIDENCE:.0%} interval from the number of independent clusters) "
