@@ -31,8 +31,12 @@ def import_group():
               show_default=True, help="Units of ax ay az (g: 9.80665 m/s^2).")
 @click.option("--gyro-units", type=click.Choice(["count", "rad/s", "deg/s"]), default="rad/s",
               show_default=True, help="Units of gx gy gz.")
+@click.option("--sample-kind", type=click.Choice(["instant", "interval-mean"]), default="instant",
+              show_default=True,
+              help="instant: each sample is the value at its time stamp; interval-mean: the mean "
+                   "over the sample period ending at the stamp (filtered MEMS output).")
 def import_csv_cmd(log, plan_path, out, window_s, multiplier, min_static_s, accel_units,
-                   gyro_units):
+                   gyro_units, sample_kind):
     """Import a CSV log (contract columns) with its plan.
 
     Without a `segment` column, static intervals are detected and matched to
@@ -45,6 +49,7 @@ def import_csv_cmd(log, plan_path, out, window_s, multiplier, min_static_s, acce
 
         a, g, units = convert_units(rec.accel, rec.gyro, accel_units, gyro_units, log)
         rec = rec.with_(accel=a, gyro=g, units=units)
+    rec = rec.with_(sample_kind=sample_kind)
     write_raw(out, rec, [log, plan_path])
     n_static = len(rec.static_segments())
     info(f"imported {len(rec)} samples, {len(rec.segments)} segments ({n_static} static) -> {out}")
@@ -79,9 +84,13 @@ def import_csv_cmd(log, plan_path, out, window_s, multiplier, min_static_s, acce
               help="Static detection: multiple of the noise floor.")
 @click.option("--min-static", "min_static_s", default=1.0, show_default=True, type=float,
               help="Static detection: shortest static interval, s.")
+@click.option("--sample-kind", type=click.Choice(["instant", "interval-mean"]), default="instant",
+              show_default=True,
+              help="instant: each sample is the value at its time stamp; interval-mean: the mean "
+                   "over the sample period ending at the stamp (filtered MEMS output).")
 def import_text_cmd(acc, gyro, plan_path, out, columns, gyro_columns, accel_units, gyro_units,
                     rate, time_unit, delimiter, header, sort, segments_json, window_s,
-                    multiplier, min_static_s):
+                    multiplier, min_static_s, sample_kind):
     """Import a text log in another layout: whitespace or CSV, with or without a
     header, raw counts or other units, accelerometer and gyro in one file or in
     two files sharing timestamps (docs/import.md)."""
@@ -93,6 +102,7 @@ def import_text_cmd(acc, gyro, plan_path, out, columns, gyro_columns, accel_unit
                       min_static_s)
     inputs = [acc] + ([gyro] if gyro else []) + [plan_path] + ([segments_json] if segments_json
                                                              else [])
+    rec = rec.with_(sample_kind=sample_kind)
     write_raw(out, rec, inputs)
     n_static = len(rec.static_segments())
     info(f"imported {len(rec)} samples ({rec.units['accel']}, {rec.units['gyro']}), "

@@ -45,6 +45,7 @@ from calib_cli.errors import EstimationError, InputError
 from calib_cli.model.effects import Layout
 from calib_cli.model.frames import attitude_to_rotation, skew
 from calib_cli.model.kinematics import rigid_body_accel
+from calib_cli.model.strapdown import mean_rotation, step_rotvec
 
 K_LOWER = [(0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2)]
 P_OFF = [(i, j) for i in range(3) for j in range(3) if i != j]
@@ -200,10 +201,14 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
             f[:, i] -= rigid_body_accel(w0, dw0, pi)[:, i]
     w = (W - par["gb"] - f @ par["D"].T) @ Ginv.T
     dt = np.diff(t, append=t[-1] + (t[-1] - t[-2]))
-    # per-block scans over the samples of all blocks at once; the attitude is
-    # integrated with the mid-interval rate (trapezoidal), else it lags half a sample
-    wmid = np.concatenate([0.5 * (w[1:] + w[:-1]), w[-1:]])
-    fmid = np.concatenate([0.5 * (f[1:] + f[:-1]), f[-1:]])
+    # per-block scans over the samples of all blocks at once. Instant samples: the
+    # attitude steps with the mid-interval rate from one stamp to the next, and a block's
+    # accelerometer mean is the mean over its stamps. Interval means: step k is sample
+    # k's own period, and the block mean is the continuous mean over its periods
+    # (model/strapdown.py: step_rotvec, mean_rotation)
+    interval = rec.sample_kind == "interval-mean"
+    wmid = step_rotvec(w, np.ones(len(w)), rec.sample_kind)
+    fmid = step_rotvec(f, np.ones(len(f)), rec.sample_kind)
     wb = w[:n].reshape(nb, block_n, 3)
     wmb = wmid[:n].reshape(nb, block_n, 3)
     fb = fmid[:n].reshape(nb, block_n, 3)
@@ -219,15 +224,23 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
     wg = np.zeros((3, nb, 3, 21))
     ex = [skew(e) for e in np.eye(3)]
     for m in range(block_n):
-        r_sum += R
-        qbar += qc
-        for c in range(3):
-            wg[c] += np.swapaxes(R, 1, 2) @ (ex[c] @ qc)
+        step = wmb[:, m] * dtb[:, m, None]
         RG = (R * dtb[:, m, None, None]) @ Ginv
-        qc[:, :, 0:3] -= RG
-        qc[:, :, 3:12] -= (RG[:, :, :, None] * wmb[:, m, None, None, :]).reshape(nb, 3, 9)
-        qc[:, :, 12:21] -= (RG[:, :, :, None] * fb[:, m, None, None, :]).reshape(nb, 3, 9)
-        R = R @ Rotation.from_rotvec(wmb[:, m] * dtb[:, m, None]).as_matrix()
+        dq = np.zeros((nb, 3, 21))
+        dq[:, :, 0:3] = -RG
+        dq[:, :, 3:12] = -(RG[:, :, :, None] * wmb[:, m, None, None, :]).reshape(nb, 3, 9)
+        dq[:, :, 12:21] = -(RG[:, :, :, None] * fb[:, m, None, None, :]).reshape(nb, 3, 9)
+        if interval:  # the mean over the sample's own period
+            Rm = R @ mean_rotation(step)
+            qm = qc + 0.5 * dq
+        else:  # the value at the stamp
+            Rm, qm = R, qc
+        r_sum += Rm
+        qbar += qm
+        for c in range(3):
+            wg[c] += np.swapaxes(Rm, 1, 2) @ (ex[c] @ qm)
+        qc = qc + dq
+        R = R @ Rotation.from_rotvec(step).as_matrix()
     q = qc
     # mean centripetal operator [w x]^2 = w w^T - |w|^2 I
     ww = np.einsum("bmi,bmj->bij", wb, wb) / block_n

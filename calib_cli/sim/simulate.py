@@ -31,7 +31,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calib_cli.data import Recording, Segment
+from dataclasses import replace
+
+from calib_cli.data import SAMPLE_KINDS, Recording, Segment
 from calib_cli.errors import InputError
 from calib_cli.io.plan import Plan, PlanSegment
 from calib_cli.model import kinematics as kn
@@ -161,7 +163,63 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
     if not same_layout(truth.model.layout, layout):
         truth = Truth(truth.model.__class__(truth.model.effects, layout), truth.params,
                       truth.noise, truth.counts, truth.quantize)
+    kind = plan.extra.get("sample_kind", "instant")
+    if kind not in SAMPLE_KINDS:
+        raise InputError(f"sample_kind must be one of {', '.join(SAMPLE_KINDS)}, got {kind!r}",
+                         plan.path)
     fs = plan.sample_rate
+    if kind == "instant":
+        kin, segments, true_att, angle, rate = _timeline(plan, fs, rng)
+        out = truth.model.predict(truth.params, kin)
+    else:
+        # interval-mean: each sample is the mean over [t_k - 1/fs, t_k], from the forward
+        # model evaluated at n_sub points per period (trapezoid rule), stamped at t_k
+        n_sub = int(plan.extra.get("sim_oversample", 16))
+        kin_hi, seg_hi, true_att, angle_hi, rate_hi = _timeline(plan, fs * n_sub, rng)
+        out_hi = truth.model.predict(truth.params, kin_hi)
+        stamps = np.arange(n_sub, len(kin_hi), n_sub)
+        out = {k: _interval_means(v, n_sub, len(stamps)) for k, v in out_hi.items()
+               if v is not None}
+        kin = kin_hi.take(stamps)
+        angle = None if angle_hi is None else angle_hi[stamps]
+        rate = None if rate_hi is None else rate_hi[stamps]
+        segments = [replace(sg, start=-(-sg.start // n_sub) - 1, stop=-(-sg.stop // n_sub) - 1)
+                    for sg in seg_hi]
+        segments = [sg if sg.start >= 0 else replace(sg, start=0) for sg in segments]
+    kin = kin.with_(temp=_temperature(plan, kin.t))
+    stoch = truth.model.realise_noise(truth.params, kin, rng)
+    noisy = {}
+    for s in ("accel", "gyro"):
+        white = np.asarray(truth.noise.get(f"{s}_white", 0.0), dtype=float)
+        if f"{s}_white_density" in truth.noise:
+            white = np.asarray(truth.noise[f"{s}_white_density"], float) * np.sqrt(fs)
+        y = out[s] + stoch[s] + rng.standard_normal(out[s].shape) * white
+        if truth.quantize:
+            y = np.round(y)
+        noisy[s] = y
+    units = {"accel": "count", "gyro": "count"} if truth.counts else {"accel": "m/s^2",
+                                                                       "gyro": "rad/s"}
+    return Recording(
+        time=kin.t, accel=noisy["accel"], gyro=noisy["gyro"], segments=tuple(segments),
+        site=plan.site, plan_kind=plan.kind, plan_text=plan.text, serial=plan.serial,
+        units=units, layout=layout, temp=kin.temp, table_angle=angle, table_rate=rate,
+        sample_kind=kind,
+        truth={"params": truth.params, "noise": truth.noise,
+               "attitudes": np.array(true_att), "effects": truth.effect_list()},
+    )
+
+
+def _interval_means(y: np.ndarray, n_sub: int, n_out: int) -> np.ndarray:
+    """Trapezoid means of y over n_sub steps ending at samples n_sub, 2 n_sub, ..."""
+    c = np.concatenate([np.zeros((1,) + y.shape[1:]),
+                        np.cumsum(0.5 * (y[1:] + y[:-1]), axis=0)])
+    ends = np.arange(1, n_out + 1) * n_sub
+    return (c[ends] - c[ends - n_sub]) / n_sub
+
+
+def _timeline(plan: Plan, fs: float, rng):
+    """The plan's motion sampled at fs: (Kinematics, segments, true start attitudes,
+    table angle, table rate) -- the last two None without rotating segments."""
     site = plan.site
     trans_default = float(plan.extra.get("transition_s", 4.0))
 
@@ -241,27 +299,6 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
                                 rotation_angle=seg.rotation_angle))
 
     kin = kn.Kinematics.concatenate(parts)
-    kin = kin.with_(temp=_temperature(plan, kin.t))
-    out = truth.model.predict(truth.params, kin)
-    stoch = truth.model.realise_noise(truth.params, kin, rng)
-    noisy = {}
-    for s in ("accel", "gyro"):
-        white = np.asarray(truth.noise.get(f"{s}_white", 0.0), dtype=float)
-        if f"{s}_white_density" in truth.noise:
-            white = np.asarray(truth.noise[f"{s}_white_density"], float) * np.sqrt(fs)
-        y = out[s] + stoch[s] + rng.standard_normal(out[s].shape) * white
-        if truth.quantize:
-            y = np.round(y)
-        noisy[s] = y
     rotating = any(s.kind == "rotating" for s in segments)
-    units = {"accel": "count", "gyro": "count"} if truth.counts else {"accel": "m/s^2",
-                                                                       "gyro": "rad/s"}
-    return Recording(
-        time=kin.t, accel=noisy["accel"], gyro=noisy["gyro"], segments=tuple(segments),
-        site=site, plan_kind=plan.kind, plan_text=plan.text, serial=plan.serial, units=units,
-        layout=layout, temp=kin.temp,
-        table_angle=np.concatenate(angle_parts) if rotating else None,
-        table_rate=np.concatenate(rate_parts) if rotating else None,
-        truth={"params": truth.params, "noise": truth.noise,
-               "attitudes": np.array(true_att), "effects": truth.effect_list()},
-    )
+    return (kin, segments, true_att, np.concatenate(angle_parts) if rotating else None,
+            np.concatenate(rate_parts) if rotating else None)
