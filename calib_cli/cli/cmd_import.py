@@ -6,7 +6,6 @@ import click
 
 from calib_cli.cli.common import info
 from calib_cli.cli.main import cli
-from calib_cli.io.csvlog import import_csv
 from calib_cli.io.h5 import write_raw
 from calib_cli.io.plan import load_plan
 
@@ -38,16 +37,13 @@ def import_csv_cmd(log, plan_path, out, window_s, multiplier, min_static_s, acce
     Without a `segment` column, static intervals are detected and matched to
     the plan's static segments in order (docs/import.md).
     """
-    plan = load_plan(plan_path)
-    rec = import_csv(log, plan, window_s, multiplier, min_static_s)
-    if (accel_units, gyro_units) != ("m/s^2", "rad/s"):
-        from calib_cli.io.textlog import convert_units
+    from calib_cli.io.csvlog import import_csv_stream
 
-        a, g, units = convert_units(rec.accel, rec.gyro, accel_units, gyro_units, log)
-        rec = rec.with_(accel=a, gyro=g, units=units)
-    write_raw(out, rec, [log, plan_path])
-    n_static = len(rec.static_segments())
-    info(f"imported {len(rec)} samples, {len(rec.segments)} segments ({n_static} static) -> {out}")
+    plan = load_plan(plan_path)
+    res = import_csv_stream(log, plan, out, [log, plan_path], window_s, multiplier, min_static_s,
+                            accel_units, gyro_units)
+    n_static = sum(1 for s in res.segments if s.kind == "static")
+    info(f"imported {res.n} samples, {len(res.segments)} segments ({n_static} static) -> {out}")
 
 
 @import_group.command("text")
