@@ -10,6 +10,9 @@ from calib_cli.io.h5 import write_raw
 from calib_cli.io.plan import load_plan
 
 
+COMPLETE_COMMAND = True  # every `calib import` subcommand lives here (cli/main.py)
+
+
 @cli.group("import")
 def import_group():
     """Bring logs from other sources into raw.h5."""
