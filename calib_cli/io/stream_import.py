@@ -171,7 +171,8 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
 
     ``path`` names the log in error messages; ``inputs`` are hashed into the
     provenance (``hashes()`` may supply hashes already computed while
-    streaming); ``check(sink, segments)`` may veto the segments (gap checks).
+    streaming); ``check(sink, segments)`` may veto the segments (gap checks) and returns
+    counters to record.
     """
     from calib_cli.io.textlog import convert_units
     from calib_cli.sim.simulate import plan_layout
@@ -213,8 +214,9 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
             segments = segments_from_detection(report, plan, n, path)
         if not segments:
             raise InputError("no segments found in the data", path)
+        counters = dict(counters or {})
         if check is not None:
-            check(sink, segments)
+            counters.update(check(sink, segments) or {})
         n_cycles = sum(1 for s in segments if s.kind == "rotating")
         layout = Layout(layout.n, layout.el0, layout.az0, n_cycles)
         write_provenance(h5, "raw", [], plan.serial, {"plan_kind": plan.kind})
@@ -230,4 +232,4 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
             c = h5.create_group("counters")
             for k, v in counters.items():
                 c.attrs[k] = v
-    return ImportSummary(n, tuple(segments), units, counters or {})
+    return ImportSummary(n, tuple(segments), units, counters)
