@@ -11,11 +11,13 @@ matching, raw HDF5. Errors name the file and the stream: a missing or empty
 stream, time that does not increase, a gap longer than ``MAX_GAP_PERIODS``
 sample periods inside a segment. Shorter gaps are counted and reported.
 
-Frames: the axes are taken as logged. ROS ``sensor_msgs/Imu`` is in the
-message's ``frame_id`` (REP-145: the sensor's own frame), PX4 ``sensor_*``
-topics are in the board frame after ``SENS_BOARD_ROT``, ArduPilot ``IMU``
-messages are in the vehicle frame after ``AHRS_ORIENTATION``; in each case
-that frame is the contract's body frame of the calibration.
+Frames: the axes are taken as logged, and that frame is the contract's body
+frame of the calibration: ROS ``sensor_msgs/Imu`` in the message's
+``frame_id`` (REP-145: the sensor's own frame); PX4 ``sensor_combined`` in
+the vehicle frame (board rotation and PX4's calibration applied),
+``sensor_accel``/``sensor_gyro`` in the driver's frame before both; ArduPilot
+``IMU``/``ACC``/``GYR`` after ArduPilot's calibration and
+``AHRS_ORIENTATION`` (docs/import.md has the table).
 """
 
 from __future__ import annotations
