@@ -165,3 +165,27 @@ def test_stream_errors_across_blocks(tmp_path, sim, monkeypatch):
             with pytest.raises(InputError) as got:
                 import_csv_stream(tmp_path / "m.csv", plan, tmp_path / "r.h5", fast=fast)
             assert str(got.value) == str(ref.value)
+
+
+H_TEXT = ["time,ax,ay,az,gx,gy,gz\n0,1,2,3,4,5,6\n0.01,1,2,3,4,5,6\n",
+          "t;acc_x;acc_y;acc_z\n0;1;2;3\n0.01;1;2;3\n",
+          "0,1,2,3,4,5,6\n0.01,1,2,3,4,5,6\n"]
+
+
+@pytest.mark.parametrize("body", H_TEXT + ['time,ax,ay,az\n0,1,2,3\n0.01,"1",2,3\n',
+                                           "time,ax,ay,az\n0,1,2,3\n%c\n0.01,1,2,3\n",
+                                           "time,ax,ay,az\n0,1,2,3\n0.01,1,nan,3\n"])
+def test_text_fast_reader_same_as_reference(tmp_path, body):
+    """import text: pyarrow's reader gives the reference reader's numbers, or
+    leaves the file to it."""
+    from calib_cli.io.textlog import read_text
+
+    p = tmp_path / "x.txt"
+    p.write_text(body)
+    ref = read_text(str(p), fast=False)
+    got = read_text(str(p))
+    assert got[0] == ref[0] and np.array_equal(got[2], ref[2])
+    if got[1].dtype != object:
+        assert np.array_equal(got[1], ref[1].astype(float))
+    else:
+        assert np.array_equal(got[1], ref[1])

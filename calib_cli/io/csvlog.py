@@ -328,6 +328,7 @@ class _CommentFilter:
         hasher.update(head)
         self.tail = b""
         self.closed = False
+        self.removed = 0  # lines dropped (comments, blank lines)
 
     def readable(self):
         return True
@@ -355,11 +356,14 @@ class _CommentFilter:
             if out:
                 return out
 
-    @staticmethod
-    def _filter(data: bytes) -> bytes:
+    def _filter(self, data: bytes) -> bytes:
         if b"#" not in data and b"\n\n" not in data and not data.startswith(b"\n"):
             return data
-        keep = [ln for ln in data.split(b"\n") if ln.strip() and not ln.lstrip().startswith(b"#")]
+        lines = data.split(b"\n")
+        if not lines[-1]:
+            lines.pop()
+        keep = [ln for ln in lines if ln.strip() and not ln.lstrip().startswith(b"#")]
+        self.removed += len(lines) - len(keep)
         return b"\n".join(keep) + b"\n" if keep else b""
 
     def close(self):
@@ -377,7 +381,7 @@ def _arrow_chunks(path, header, offset, head, cols, hasher):
         reader = pacsv.open_csv(
             stream,
             read_options=pacsv.ReadOptions(column_names=header, block_size=ARROW_BLOCK),
-            parse_options=pacsv.ParseOptions(delimiter=","),
+            parse_options=pacsv.ParseOptions(delimiter=",", quote_char=False),
             convert_options=pacsv.ConvertOptions(
                 column_types={h: pa.float64() for h in header}, strings_can_be_null=False,
                 quoted_strings_can_be_null=False, null_values=[]))
