@@ -68,6 +68,13 @@ def test_stream_quantiles_exact():
     ss.BRACKET_CAP = 50
     try:
         assert np.array_equal(stream_percentile(blocks, len(x), 10), np.percentile(x, 10, axis=0))
+        # ties: a regular clock's steps differ in their last bits only, or not at all
+        tr = np.round(np.arange(20000) * 0.001, 6)
+        assert stream_median_diff(lambda: (tr[i:i + 999] for i in range(0, len(tr), 999)),
+                                  len(tr)) == np.median(np.diff(tr))
+        tq = np.arange(20000) * 0.25
+        assert stream_median_diff(lambda: (tq[i:i + 999] for i in range(0, len(tq), 999)),
+                                  len(tq)) == 0.25
     finally:
         ss.BRACKET_CAP = old
     t = np.cumsum(rng.uniform(0.9, 1.1, 5000))

@@ -86,10 +86,7 @@ def gap_check(path: str, name: str):
     from calib_cli.methods.static_stream import stream_median_diff
 
     def check(sink, segments):
-        def times():
-            for t, _, _ in sink.blocks():
-                yield t
-
+        times = sink.times
         dt = stream_median_diff(times, sink.n)
         starts = np.array([s.start for s in segments])
         stops = np.array([s.stop for s in segments])

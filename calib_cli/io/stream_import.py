@@ -79,6 +79,12 @@ class _Sink:
         d.resize(self.n + m, axis=0)
         d[self.n:self.n + m] = arr
 
+    def times(self, rows=READ_ROWS):
+        """Fresh iterator of the time blocks alone."""
+        t = self.ds["time"]
+        for i in range(0, self.n, rows):
+            yield t[i:min(self.n, i + rows)]
+
     def blocks(self, rows=READ_ROWS):
         """Fresh iterator of (t, accel, gyro) blocks of what was written."""
         t, a = self.ds["time"], self.ds["accel"]
@@ -106,6 +112,12 @@ class _SpillStore:
         self.k = arr.shape[1]
         self.fh.write(memoryview(arr).cast("B"))
         self.rows += len(arr)
+
+    def times(self, rows=READ_ROWS):
+        """Fresh iterator of the time blocks alone."""
+        t = self.ds["time"]
+        for i in range(0, self.n, rows):
+            yield t[i:min(self.n, i + rows)]
 
     def blocks(self, rows=READ_ROWS):
         self.fh.flush()
@@ -188,7 +200,10 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
             m = len(ch.time)
             if not m:
                 continue
-            a, g, _ = convert_units(ch.accel, ch.gyro, accel_units, gyro_units, path)
+            if (accel_units, gyro_units) == ("m/s^2", "rad/s"):
+                a, g = ch.accel, ch.gyro  # SI already: no copy
+            else:
+                a, g, _ = convert_units(ch.accel, ch.gyro, accel_units, gyro_units, path)
             sink.append("time", ch.time)
             sink.append("accel", a)
             if runs is None and ch.segment is None:
@@ -210,7 +225,7 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
         else:
             from calib_cli.io.csvlog import segments_from_detection
 
-            report = det.result(sink.blocks, multiplier, min_static_s)
+            report = det.result(sink.blocks, multiplier, min_static_s, times=sink.times)
             segments = segments_from_detection(report, plan, n, path)
         if not segments:
             raise InputError("no segments found in the data", path)

@@ -37,7 +37,7 @@ from calib_cli.methods.static_detect import (
 )
 
 SAMPLE_ROWS = 100_000  # decimated series kept for the bracket
-BRACKET_CAP = 4_000_000  # values per axis kept inside a bracket
+BRACKET_CAP = 1_000_000  # values per axis kept inside a bracket
 HIST_BINS = 65536
 
 Blocks = Callable[[], Iterable[tuple]]
@@ -166,32 +166,41 @@ def stream_percentile(values: Callable[[], Iterable[np.ndarray]], n: int, q: flo
     hi = np.array([sample[hi_i, j] if hi_i < m else np.inf for j in range(k)])
     result = np.empty(k)
     todo = list(range(k))
-    for _ in range(12):
+    for _ in range(40):
         lo_t, hi_t = lo[todo], hi[todo]
         below = np.zeros(len(todo), dtype=np.int64)
         inside = np.zeros(len(todo), dtype=np.int64)
+        imin = np.full(len(todo), np.inf)
+        imax = np.full(len(todo), -np.inf)
         kept: list[list[np.ndarray]] | None = [[] for _ in todo]
         for blk in values():
             x = blk[:, todo]
             below += np.sum(x < lo_t, axis=0)
             ins = (x >= lo_t) & (x <= hi_t)
             inside += ins.sum(axis=0)
+            for j in range(len(todo)):
+                xj = x[ins[:, j], j]
+                if len(xj):
+                    imin[j] = min(imin[j], xj.min())
+                    imax[j] = max(imax[j], xj.max())
+                    if kept is not None:
+                        kept[j].append(xj)
             if kept is not None and np.any(inside > BRACKET_CAP):
                 kept = None  # too many values in the bracket: narrow it first
-            if kept is not None:
-                for j in range(len(todo)):
-                    kept[j].append(x[ins[:, j], j])
-        if kept is None:
-            lo, hi = _narrow(values, todo, lo, hi, r0, r1)
-            continue
         done = []
         for j, ax in enumerate(todo):
             c = int(below[j])
             if c > r0:
-                lo[ax] = _widen(lo[ax], -1)
+                lo[ax] = -np.inf
                 continue
             if c + int(inside[j]) <= r1:
-                hi[ax] = _widen(hi[ax], +1)
+                hi[ax] = np.inf
+                continue
+            if imin[j] == imax[j]:  # every value in the bracket is the same
+                result[ax] = imin[j]
+                done.append(ax)
+                continue
+            if kept is None:
                 continue
             vals = np.concatenate(kept[j])
             vals = np.partition(vals, sorted({r0 - c, r1 - c}))
@@ -201,6 +210,8 @@ def stream_percentile(values: Callable[[], Iterable[np.ndarray]], n: int, q: flo
         todo = [ax for ax in todo if ax not in done]
         if not todo:
             return result
+        if kept is None:
+            lo, hi = _narrow(values, todo, lo, hi, r0, r1)
     raise RuntimeError("percentile bracket did not converge")
 
 
@@ -379,14 +390,17 @@ class StreamDetector:
                 self.store.write(s)
 
     def result(self, blocks: Blocks, multiplier: float = DEFAULT_MULTIPLIER,
-               min_duration_s: float = 1.0) -> DetectionReport:
+               min_duration_s: float = 1.0, times=None) -> DetectionReport:
+        """``times``: a fresh iterator of the time blocks alone (cheaper to read
+        than ``blocks``); taken from ``blocks`` when not given."""
         n = self.n
         if self.ms is not None:
             self._out(self.ms.finish(n))
 
-        def times():
-            for t, _, _ in blocks():
-                yield t
+        if times is None:
+            def times():
+                for t, _, _ in blocks():
+                    yield t
 
         dt = stream_median_diff(times, n, self.diffs.series()) if n > 1 else 1.0
         w = max(3, int(round(self.window_s / dt)))
