@@ -14,9 +14,10 @@ peak RSS of
 - the baseline: ``pyarrow.csv.open_csv`` streaming the same file to float64
   numpy arrays in one pass,
 
-and prints the median over ``--repeat`` runs with the ratios. The peak RSS
-is that of the measured process alone (``getrusage(RUSAGE_CHILDREN)`` in a
-wrapper process that runs only it).
+and prints the median over ``--repeat`` runs (wall time and CPU time, user +
+system, which is steadier on a shared machine) with the ratios. The peak
+RSS is that of the measured process alone (``getrusage(RUSAGE_CHILDREN)`` in
+a wrapper process that runs only it).
 """
 
 from __future__ import annotations
@@ -24,13 +25,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import shutil
 import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 PLAN = 'name = "bench"\nkind = "static"\n[[segment]]\nlabel = "pos"\nrepeat = "auto"\n'
@@ -87,20 +86,20 @@ def write_log(path: Path, mb: float, rate: float = 1000.0) -> int:
     return n
 
 
-def measure(cmd: list[str]) -> tuple[float, float]:
-    """(wall s, peak RSS MB) of ``cmd`` run alone in a fresh wrapper process."""
+def measure(cmd: list[str]) -> tuple[float, float, float]:
+    """(wall s, peak RSS MB, CPU s) of ``cmd`` run alone in a fresh wrapper process."""
     wrapper = ("import resource, subprocess, sys, time, json\n"
                "t0 = time.perf_counter()\n"
                "p = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL)\n"
                "dt = time.perf_counter() - t0\n"
                "ru = resource.getrusage(resource.RUSAGE_CHILDREN)\n"
-               "print(json.dumps([p.returncode, dt, ru.ru_maxrss]))\n")
+               "print(json.dumps([p.returncode, dt, ru.ru_maxrss, ru.ru_utime + ru.ru_stime]))\n")
     out = subprocess.run([sys.executable, "-c", wrapper] + cmd, capture_output=True, text=True,
                          check=True).stdout
-    code, dt, rss_kb = json.loads(out)
+    code, dt, rss_kb, cpu = json.loads(out)
     if code != 0:
         raise SystemExit(f"benchmark command failed ({code}): {' '.join(cmd)}")
-    return dt, rss_kb / 1024.0
+    return dt, rss_kb / 1024.0, cpu
 
 
 def main(argv=None) -> None:
@@ -118,8 +117,8 @@ def main(argv=None) -> None:
         plan.write_text(PLAN)
         base_py = tmp / "baseline.py"
         base_py.write_text(BASELINE)
-        print(f"{'log':>8s} {'rows':>10s} {'reader':28s} {'time s':>8s} {'peak MB':>8s} "
-              f"{'x time':>7s} {'x mem':>6s}")
+        print(f"{'log':>8s} {'rows':>10s} {'reader':28s} {'time s':>8s} {'cpu s':>7s} "
+              f"{'peak MB':>8s} {'x time':>7s} {'x cpu':>6s} {'x mem':>6s}")
         for mb in [float(s) for s in a.sizes.split(",") if s]:
             log = tmp / f"log_{mb:g}MB.csv"
             rows = write_log(log, mb)
@@ -136,16 +135,16 @@ def main(argv=None) -> None:
                 if name.startswith("calib import text") and mb > 200:
                     continue  # the text reader is not streaming: 100 MB case only
                 ms = [measure(cmd) for _ in range(a.repeat if mb <= 200 else 1)]
-                res[name] = (statistics.median(m[0] for m in ms), max(m[1] for m in ms))
-            bt, bm = res["pyarrow open_csv -> float64"]
-            for name, (t, m) in res.items():
-                print(f"{size:7.0f}M {rows:10d} {name:28s} {t:8.2f} {m:8.0f} {t / bt:7.2f} "
-                      f"{m / bm:6.2f}", flush=True)
+                res[name] = (statistics.median(m[0] for m in ms), max(m[1] for m in ms),
+                             statistics.median(m[2] for m in ms))
+            bt, bm, bc = res["pyarrow open_csv -> float64"]
+            for name, (t, m, c) in res.items():
+                print(f"{size:7.0f}M {rows:10d} {name:28s} {t:8.2f} {c:7.2f} {m:8.0f} "
+                      f"{t / bt:7.2f} {c / bc:6.2f} {m / bm:6.2f}", flush=True)
             log.unlink()
     finally:
         if not a.dir:
             shutil.rmtree(tmp, ignore_errors=True)
-    _ = resource, time
 
 
 if __name__ == "__main__":
