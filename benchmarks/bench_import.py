@@ -37,7 +37,7 @@ PLAN = 'name = "bench"\nkind = "static"\n[[segment]]\nlabel = "pos"\nrepeat = "a
 BASELINE = r"""
 import sys, numpy as np, pyarrow as pa, pyarrow.csv as pc
 names = "time,ax,ay,az,gx,gy,gz,temp".split(",")
-r = pc.open_csv(sys.argv[1], read_options=pc.ReadOptions(skip_rows=1, block_size=8 << 20),
+r = pc.open_csv(sys.argv[1], read_options=pc.ReadOptions(skip_rows=1),
                 convert_options=pc.ConvertOptions(column_types={n: pa.float64() for n in names}))
 n = 0
 for b in r:

@@ -129,10 +129,14 @@ def _list_streams(rows, as_json, what):
 
 
 def _import_stream(path, stream, plan_path, out, window_s, multiplier, min_static_s, inputs):
+    from pathlib import Path
+
     from calib_cli.io.imu_logs import gap_check, stream_chunks
     from calib_cli.io.stream_import import import_to_raw
 
     plan = load_plan(plan_path)
+    if Path(path).is_dir():  # a ROS 2 bag folder: hash every file in it
+        inputs = sorted(str(p) for p in Path(path).rglob("*") if p.is_file())
     counters = {"source_stream": stream.name}
     counters.update({k: v for k, v in stream.info.items() if isinstance(v, (str, int, float))})
     res = import_to_raw(out, stream_chunks(path, stream), plan, path, inputs + [plan_path],

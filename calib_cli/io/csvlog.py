@@ -250,7 +250,9 @@ def write_csv(path, rec: Recording) -> None:
 # raw file; memory does not grow with the log's length.
 
 STREAM_ROWS = 65536  # rows per block of the pure-Python reader
-ARROW_BLOCK = 8 << 20  # bytes per block of the pyarrow reader
+ARROW_BLOCK = 1 << 20  # bytes per block of the pyarrow reader (its default; larger blocks
+# are no faster and its readahead then holds hundreds of MB)
+USE_THREADS = True
 
 
 class _Fallback(Exception):
@@ -380,7 +382,8 @@ def _arrow_chunks(path, header, offset, head, cols, hasher):
     try:
         reader = pacsv.open_csv(
             stream,
-            read_options=pacsv.ReadOptions(column_names=header, block_size=ARROW_BLOCK),
+            read_options=pacsv.ReadOptions(column_names=header, block_size=ARROW_BLOCK,
+                                           use_threads=USE_THREADS),
             parse_options=pacsv.ParseOptions(delimiter=",", quote_char=False),
             convert_options=pacsv.ConvertOptions(
                 column_types={h: pa.float64() for h in header}, strings_can_be_null=False,
@@ -392,6 +395,15 @@ def _arrow_chunks(path, header, offset, head, cols, hasher):
         raise _Fallback(str(exc)) from None
     t_last = None
     ti, si = cols[0], cols[4]
+    pending: list[list[np.ndarray]] = []
+    rows = 0
+
+    def flush():
+        data = [np.concatenate([p[i] for p in pending]) for i in range(len(header))] \
+            if len(pending) > 1 else pending[0]
+        pending.clear()
+        return _chunk(data, cols)
+
     try:
         while True:
             try:
@@ -410,7 +422,13 @@ def _arrow_chunks(path, header, offset, head, cols, hasher):
                 raise _Fallback("segment")
             if len(t):
                 t_last = t[-1]
-                yield _chunk(data, cols)
+                pending.append(data)
+                rows += len(t)
+                if rows >= STREAM_ROWS:  # pyarrow's blocks are small: write in larger ones
+                    yield flush()
+                    rows = 0
+        if pending:
+            yield flush()
     finally:
         stream.close()
 
