@@ -196,3 +196,18 @@ def test_text_fast_reader_same_as_reference(tmp_path, body):
         assert np.array_equal(got[1], ref[1].astype(float))
     else:
         assert np.array_equal(got[1], ref[1])
+
+
+def test_plan_layout_same_as_simulator():
+    from pathlib import Path
+
+    from calib_cli.io.plan import load_plan
+    from calib_cli.io.stream_import import plan_layout
+    from calib_cli.sim import simulate
+
+    root = Path(__file__).resolve().parents[1] / "sample_data"
+    for name in ("twelve_position.toml", "rimu_six_position.toml"):
+        plan = load_plan(root / name)
+        a, b = plan_layout(plan), simulate.plan_layout(plan)
+        assert a.n == b.n and a.n_cycles == b.n_cycles
+        assert np.array_equal(a.el0, b.el0) if a.el0 is not None else b.el0 is None

@@ -196,7 +196,7 @@ def import_csv(path, plan: Plan, window_s: float = 1.0, multiplier: float = 3.0,
                min_static_s: float = 1.0, units: dict | None = None) -> Recording:
     """A contract CSV and its plan -> Recording. Raises InputError naming the file."""
     path = str(path)
-    from calib_cli.sim.simulate import plan_layout
+    from calib_cli.io.stream_import import plan_layout
 
     layout = plan_layout(plan)
     t, accel, gyro, opt, seg = read_columns(path, layout)
@@ -540,8 +540,7 @@ def import_csv_stream(path, plan: Plan, out, inputs=(), window_s: float = 1.0,
     same data and the same error messages either way). Returns ImportSummary."""
     import hashlib
 
-    from calib_cli.io.stream_import import import_to_raw
-    from calib_cli.sim.simulate import plan_layout
+    from calib_cli.io.stream_import import import_to_raw, plan_layout
 
     path = str(path)
     layout = plan_layout(plan)

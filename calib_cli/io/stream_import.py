@@ -174,6 +174,16 @@ def segments_from_runs(vals, starts, n, plan: Plan, path: str):
     return out
 
 
+def plan_layout(plan: Plan) -> Layout:
+    """``sim.simulate.plan_layout`` without importing the simulator (and SciPy)
+    into every import (tests/test_import_stream.py checks they agree)."""
+    n_cycles = sum(1 for s in plan.segments if s.kind == "rotating")
+    if plan.kind == "rimu":
+        return Layout(n=len(plan.rimu_el0), el0=plan.rimu_el0, az0=plan.rimu_az0,
+                      n_cycles=n_cycles)
+    return Layout(n_cycles=n_cycles)
+
+
 def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=(),
                   window_s: float = 1.0, multiplier: float = 3.0, min_static_s: float = 1.0,
                   accel_units: str = "m/s^2", gyro_units: str = "rad/s",
@@ -187,7 +197,6 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
     counters to record.
     """
     from calib_cli.io.textlog import convert_units
-    from calib_cli.sim.simulate import plan_layout
 
     layout = plan_layout(plan)
     units = convert_units(np.zeros((1, 3)), np.zeros((1, 3)), accel_units, gyro_units, path)[2]

@@ -309,7 +309,7 @@ def import_text(acc_path, plan: Plan, gyro_path=None, columns: str | None = None
                 multiplier: float = 3.0, min_static_s: float = 1.0) -> Recording:
     """A foreign-layout text log (one file, or accelerometer + gyro files) -> Recording."""
     acc_path = str(acc_path)
-    from calib_cli.sim.simulate import plan_layout
+    from calib_cli.io.stream_import import plan_layout
 
     layout = plan_layout(plan)
     if layout.redundant:
