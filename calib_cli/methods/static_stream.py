@@ -63,14 +63,23 @@ class MovingStd:
         self.buf_start = keep
         return out
 
-    def feed(self, x: np.ndarray) -> np.ndarray | None:
-        x = np.asarray(x, dtype=float)
-        if x.ndim == 1:
-            x = x[:, None]
+    def feed(self, x: np.ndarray, x2: np.ndarray | None = None) -> np.ndarray | None:
+        """``x2``: more columns of the same rows (the gyro beside the accelerometer)."""
+        parts = [np.asarray(x, dtype=float)] + ([] if x2 is None else [np.asarray(x2, float)])
+        parts = [p[:, None] if p.ndim == 1 else p for p in parts]
+        m = len(parts[0])
+        k = sum(p.shape[1] for p in parts)
         if self.ref is None:
-            self.ref = x.mean(axis=0)  # conditioning for the running sums
-        x = x - self.ref
-        self.buf = x if self.buf is None else np.concatenate([self.buf, x])
+            self.ref = np.concatenate([p.mean(axis=0) for p in parts])  # conditioning
+        old = 0 if self.buf is None else len(self.buf)
+        buf = np.empty((old + m, k))
+        if old:
+            buf[:old] = self.buf
+        j = 0
+        for p in parts:  # subtract the reference straight into the buffer
+            np.subtract(p, self.ref[j:j + p.shape[1]], out=buf[old:, j:j + p.shape[1]])
+            j += p.shape[1]
+        self.buf = buf
         avail = self.buf_start + len(self.buf)
         w, h = self.w, self.w // 2
         if avail < w:
@@ -106,10 +115,12 @@ def _window_std(buf, buf_start, i0, i1, w, h, n):
     lo = np.clip(np.arange(i0, i1) - h, 0, n - w) - buf_start
     a, b = int(lo[0]), int(lo[-1]) + w
     seg = buf[a:b]
-    c1 = np.zeros((len(seg) + 1, seg.shape[1]))
+    c1 = np.empty((len(seg) + 1, seg.shape[1]))
+    c1[0] = 0.0
     np.cumsum(seg, axis=0, out=c1[1:])
-    c2 = np.zeros_like(c1)
-    np.cumsum(seg * seg, axis=0, out=c2[1:])
+    c2 = np.empty_like(c1)
+    c2[0] = 0.0
+    np.cumsum(np.square(seg), axis=0, out=c2[1:])
     lo = lo - a
     if lo[-1] - lo[0] == len(lo) - 1:  # contiguous windows: slices, not gathers
         j0, j1 = int(lo[0]), int(lo[-1]) + 1
@@ -118,12 +129,12 @@ def _window_std(buf, buf_start, i0, i1, w, h, n):
     else:
         s1 = c1[lo + w] - c1[lo]
         s2 = c2[lo + w] - c2[lo]
-    s1 /= w
-    s2 /= w
-    s1 *= s1
+    # var = (s2 - s1^2 / w) / (w - 1), in place
+    np.square(s1, out=s1)
+    s1 *= 1.0 / w
     s2 -= s1
+    s2 *= 1.0 / (w - 1)
     np.maximum(s2, 0.0, out=s2)
-    s2 *= w / (w - 1)
     return np.sqrt(s2, out=s2)
 
 
@@ -379,8 +390,7 @@ class StreamDetector:
         d = np.diff(t) if self.t_last is None else np.diff(np.concatenate([[self.t_last], t]))
         self.t_last = t[-1]
         self.diffs.feed(d[:, None])
-        x = accel if gyro is None else np.concatenate([accel, gyro], axis=1)
-        self._out(self.ms.feed(x))
+        self._out(self.ms.feed(accel, gyro))
         self.n += len(t)
 
     def _out(self, s):
