@@ -13,6 +13,7 @@ from calib_cli.io.h5 import read_raw
 from calib_cli.io.plan import parse_plan
 from calib_cli.methods.static_detect import detect_static
 from calib_cli.methods.static_stream import (
+    detect_static_arrays,
     detect_static_stream,
     moving_std_blocks,
     stream_median_diff,
@@ -47,6 +48,8 @@ def test_stream_detector_same_intervals(sim, kw, bs):
     assert np.allclose(got.floor_gyro, ref.floor_gyro, rtol=1e-6)
     assert got.static_fraction == pytest.approx(ref.static_fraction, abs=1e-12)
     assert got.explain(12) == ref.explain(12) or got.counts == ref.counts
+    arr = detect_static_arrays(sim.time, sim.accel, sim.gyro, rows=bs, **kw)  # import text's
+    assert arr.intervals == ref.intervals and arr.counts == ref.counts
 
 
 def test_stream_quantiles_exact():

@@ -20,7 +20,7 @@ from calib_cli.data import Recording
 from calib_cli.errors import InputError
 from calib_cli.io.csvlog import segments_from_column, segments_from_detection
 from calib_cli.io.plan import Plan
-from calib_cli.methods.static_detect import detect_static
+from calib_cli.methods.static_stream import detect_static_arrays
 from calib_cli.model.effects import Layout
 
 G0 = 9.80665
@@ -50,8 +50,8 @@ def convert_units(accel, gyro, accel_units: str, gyro_units: str, path: str = ""
     fa, fg = ACCEL_UNITS[accel_units], GYRO_UNITS[gyro_units]
     units = {"accel": "count" if fa is None else "m/s^2",
              "gyro": "count" if fg is None else "rad/s"}
-    accel = accel if fa is None else accel * fa
-    gyro = None if gyro is None else (gyro if fg is None else gyro * fg)
+    accel = accel if fa in (None, 1.0) else accel * fa
+    gyro = None if gyro is None else (gyro if fg in (None, 1.0) else gyro * fg)
     return accel, gyro, units
 
 
@@ -394,7 +394,7 @@ def import_text(acc_path, plan: Plan, gyro_path=None, columns: str | None = None
         segments = segments_from_column(_segment_indices(seg_col, plan, lines, acc_path), plan,
                                         acc_path)
     else:
-        report = detect_static(t, accel, gyro, window_s, multiplier, min_static_s)
+        report = detect_static_arrays(t, accel, gyro, window_s, multiplier, min_static_s)
         segments = segments_from_detection(report, plan, n, acc_path)
     if not segments:
         raise InputError("no segments found in the data", acc_path)

@@ -422,6 +422,41 @@ class StreamDetector:
                        min_duration_s)
 
 
+class ListStore:
+    """An in-memory store for ``StreamDetector`` (a record that is in memory
+    anyway, e.g. ``import text``)."""
+
+    def __init__(self):
+        self.parts: list[np.ndarray] = []
+
+    def write(self, arr):
+        self.parts.append(np.array(arr))
+
+    def blocks(self):
+        return iter(self.parts)
+
+
+def detect_static_arrays(t, accel, gyro=None, window_s: float = 1.0,
+                         multiplier: float = DEFAULT_MULTIPLIER, min_duration_s: float = 1.0,
+                         rows: int = 65536) -> DetectionReport:
+    """``detect_static`` of in-memory arrays through the block detector (one
+    moving-std computation instead of one per threshold)."""
+    t = np.asarray(t, dtype=float)
+    det = StreamDetector(window_s, ListStore())
+    for i in range(0, len(t), rows):
+        det.feed(t[i:i + rows], accel[i:i + rows], None if gyro is None else gyro[i:i + rows])
+
+    def blocks():
+        for i in range(0, len(t), rows):
+            yield t[i:i + rows], accel[i:i + rows], None if gyro is None else gyro[i:i + rows]
+
+    def times():
+        for i in range(0, len(t), rows):
+            yield t[i:i + rows]
+
+    return det.result(blocks, multiplier, min_duration_s, times=times)
+
+
 def _std_source(blocks, w, n):
     def sensors():
         for _, a, g in blocks():
