@@ -146,7 +146,9 @@ def _import_stream(path, stream, plan_path, out, window_s, multiplier, min_stati
     gaps = res.counters.get("gaps", 0)
     gap_txt = (f", {gaps} short gap{'s' * (gaps != 1)} (longest "
                f"{res.counters['longest_gap_periods']:.1f} sample periods)") if gaps else ""
-    info(f"imported {res.n} samples of {stream.name}, {len(res.segments)} segments "
+    from calib_cli.io.escape import term_text
+
+    info(f"imported {res.n} samples of {term_text(stream.name)}, {len(res.segments)} segments "
          f"({n_static} static){gap_txt} -> {out}")
 
 

@@ -232,10 +232,16 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
         if runs is not None:
             segments = segments_from_runs(runs.vals, runs.starts, n, plan, path)
         else:
-            from calib_cli.io.csvlog import segments_from_detection
+            from calib_cli.io.csvlog import plan_cycles, segments_from_detection
 
             report = det.result(sink.blocks, multiplier, min_static_s, times=sink.times)
-            segments = segments_from_detection(report, plan, n, path)
+            cycles = None
+            if "gyro" in sink.ds and any(s.kind == "rotating" for s in plan.segments):
+                # rotation cycles (methods/cycle_detect.py) work on the whole record: a
+                # turntable plan without a segment column reads time and gyro back in full
+                tr = sink.ds["table_rate"][()] if "table_rate" in sink.ds else None
+                cycles = plan_cycles(plan, sink.ds["time"][()], sink.ds["gyro"][()], tr)
+            segments = segments_from_detection(report, plan, n, path, cycles)
         if not segments:
             raise InputError("no segments found in the data", path)
         counters = dict(counters or {})
