@@ -214,3 +214,28 @@ def test_plan_layout_same_as_simulator():
         a, b = plan_layout(plan), simulate.plan_layout(plan)
         assert a.n == b.n and a.n_cycles == b.n_cycles
         assert np.array_equal(a.el0, b.el0) if a.el0 is not None else b.el0 is None
+
+
+@pytest.mark.parametrize("fast", MODES)
+def test_stream_import_rotating_plan_same_segments(tmp_path, fast):
+    """A turntable plan without a segment column: the rotation cycles
+    (methods/cycle_detect.py) give the same segments streamed or in memory."""
+    from test_plan_semantics import CONTRACT_TT
+
+    from calib_cli.sim.simulate import simulate
+
+    plan = parse_plan(CONTRACT_TT)
+    rec = simulate(plan, None, 4)
+    write_csv(tmp_path / "log.csv", rec)
+    lines = (tmp_path / "log.csv").read_text().splitlines()
+    hdr = next(i for i, ln in enumerate(lines) if not ln.startswith("#"))
+    j = lines[hdr].split(",").index("segment")
+    (tmp_path / "noseg.csv").write_text("\n".join(
+        lines[:hdr] + [",".join(p for k, p in enumerate(ln.split(",")) if k != j)
+                       for ln in lines[hdr:]]) + "\n")
+    ref = import_csv(tmp_path / "noseg.csv", plan)
+    import_csv_stream(tmp_path / "noseg.csv", plan, tmp_path / "raw.h5", fast=fast)
+    got = read_raw(tmp_path / "raw.h5")
+    assert [(s.kind, s.start, s.stop) for s in got.segments] == \
+        [(s.kind, s.start, s.stop) for s in ref.segments]
+    assert [s.kind for s in got.segments] == ["rotating"] * 3
