@@ -38,7 +38,7 @@ def plan_group():
     """Experiment design: predict what a plan delivers, make plans (docs/plan.md)."""
 
 
-def _noise(plan, like, accel_noise, gyro_noise, rate):
+def _noise(plan, like, accel_noise, gyro_noise, rate, truth=None):
     from calib_cli.methods.design import Noise, default_noise, noise_like
 
     if like and (accel_noise or gyro_noise or rate):
@@ -54,7 +54,7 @@ def _noise(plan, like, accel_noise, gyro_noise, rate):
             raise InputError(f"the recording has {len(nz.accel)} accelerometer channels, the "
                              f"plan's unit {n}", like)
         return nz
-    d = default_noise(plan, rate)
+    d = default_noise(plan, rate, truth)
     if accel_noise is None and gyro_noise is None:
         return d
     a = d.accel if accel_noise is None else np.full(len(d.accel), parse_noise(accel_noise,
@@ -132,8 +132,8 @@ def plan_check_cmd(plan, like, accel_noise, gyro_noise, rate, truth_path, method
     if rate is not None and rate <= 0:
         raise click.BadParameter("--rate must be positive")
     p = load_plan(plan)
-    nz = _noise(p, like, accel_noise, gyro_noise, rate)
     truth = load_truth(truth_path, plan_layout(p)) if truth_path else None
+    nz = _noise(p, like, accel_noise, gyro_noise, rate, truth)
     pr = check(p, method, nz, truth, {"g_sensitivity": g_sensitivity},
                suggestions=not no_suggest)
     if as_json:

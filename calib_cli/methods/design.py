@@ -94,11 +94,20 @@ def resolve_method(plan: Plan, method: str = "auto") -> str:
     return "vector" if statics and all(s.attitude is not None for s in statics) else "scalar"
 
 
-def default_noise(plan: Plan, rate: float | None = None) -> Noise:
-    """The simulator's default noise for the plan (docs/simulate.md): MEMS for
-    static and rimu plans, the navigation-grade unit for align plans."""
+def default_noise(plan: Plan, rate: float | None = None, truth: Truth | None = None) -> Noise:
+    """The noise of the truth model where given (its [noise] table), else the
+    simulator's default for the plan (docs/simulate.md): MEMS for static and
+    rimu plans, the navigation-grade unit for align plans."""
     rate = float(rate or plan.sample_rate)
     n = len(plan.rimu_el0) if plan.kind == "rimu" else 3
+    if truth is not None and truth.noise:
+        out = []
+        for sensor in ("accel", "gyro"):
+            v = np.asarray(truth.noise.get(f"{sensor}_white", 0.0), float)
+            if f"{sensor}_white_density" in truth.noise:
+                v = np.asarray(truth.noise[f"{sensor}_white_density"], float) * np.sqrt(rate)
+            out.append(np.broadcast_to(v, (n,)).astype(float))
+        return Noise(out[0], out[1], rate, "the truth model's")
     if plan.kind == "align" and plan.extra.get("sim_grade", "navigation") != "mems":
         from calib_cli.sim.align_cases import ACCEL_NOISE, ARW
 
@@ -426,7 +435,7 @@ def check(plan: Plan, method: str = "auto", noise: Noise | None = None,
     """``calib plan check``: predicted sigma, unobservable entries, condition,
     weak entries and the ranked additions that help them."""
     m = resolve_method(plan, method)
-    noise = noise or default_noise(plan)
+    noise = noise or default_noise(plan, truth=truth)
     res, rec = predict_result(plan, m, noise, truth, options)
     weak = weak_entries(res)
     targets = list(res.stats.get("unobservable", [])) + weak

@@ -192,8 +192,8 @@ def turntable_plan(tilted: bool = False, tilt_deg: float = 5.0, duration: float 
         if f * min(durs) < 60.0:
             raise InputError(f"--max-duration {max_duration:g} s leaves under 60 s per cycle")
         durs = [x * f for x in durs]
-    # the smoothstep peaks at 1.5 x the straight ramp's acceleration
-    ramp = max_rate / max_accel * (1.5 if profile == "smooth" else 1.0)
+    # the largest step is +max -> -max; the smoothstep peaks at 1.5 x the straight ramp's
+    ramp = 2.0 * max_rate / max_accel * (1.5 if profile == "smooth" else 1.0)
     gen = {"method": "turntable", "tilted": bool(tilted), "tilt_deg": tilt_deg,
            "duration_s": duration, "tilted_duration_s": tilted_duration,
            "max_rate_dps": max_rate, "max_accel_dps2": max_accel,
