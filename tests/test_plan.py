@@ -171,3 +171,12 @@ def test_noise_units_and_usage(tmp_path, run_cli):
     auto.write_text("kind = 'static'\n[[segment]]\nrepeat = 'auto'\n")
     code, _, err = run_cli("plan", "check", auto)
     assert code == 4 and "repeat" in err
+
+
+def test_optimize_static_target_few_seeds(tmp_path, run_cli):
+    from tests.test_plan_slow import optimized_static
+
+    d, worst, z = optimized_static(range(3), tmp_path, run_cli)
+    assert d["achieved"]["accel_K.diag=5e-05"] <= 50e-6
+    assert worst <= 1.1 and np.abs(z).max() < 4.0
+    assert d["member"] == "6 positions" and d["duration_s"] < 0.5 * d["duration_before_s"]

@@ -229,3 +229,83 @@ def plan_make_cmd(method, out, positions, fit_method, duration, sample_rate, tur
     if warning:
         info(f"[yellow]warning:[/] {warning}")
     info(f"{method} plan, {len(d['segment'])} segments -> {out}")
+
+
+@plan_group.command("optimize")
+@click.argument("plan", type=click.Path(dir_okay=False))
+@click.option("--target", "targets", multiple=True, required=True,
+              help="KEY[.diag|.offdiag]=SIGMA (SI), e.g. accel_K.diag=50e-6; repeatable.")
+@click.option("--max-duration", type=float, help="Refuse plans longer than this, s.")
+@click.option("--out", type=click.Path(dir_okay=False), help="Write the optimized plan here.")
+@click.option("--like", type=click.Path(dir_okay=False),
+              help="Take the noise levels and the sample rate from this recording.")
+@click.option("--accel-noise", help="Accelerometer noise, 1-sigma per sample (SI, or 8mg).")
+@click.option("--gyro-noise", help="Gyro noise, 1-sigma per sample (SI, or 0.05dps).")
+@click.option("--rate", type=float, help="Sample rate, Hz (default: the plan's).")
+@click.option("--truth", "truth_path", type=click.Path(dir_okay=False),
+              help="Predict at this truth model (default: a neutral unit).")
+@click.option("--method", type=click.Choice(["auto", "vector", "scalar", "gyro", "align",
+                                             "rimu"]), default="auto", show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
+def plan_optimize_cmd(plan, targets, max_duration, out, like, accel_noise, gyro_noise, rate,
+                      truth_path, method, as_json):
+    """The shortest plan of PLAN's family (generated plans: number of positions
+    and durations; other plans: durations only) whose predicted sigma meets
+    every --target."""
+    import tomllib
+
+    from calib_cli.io.plan import load_plan
+    from calib_cli.methods import design
+    from calib_cli.sim import plan_make as pm
+    from calib_cli.sim.simulate import plan_layout
+    from calib_cli.sim.truth import load_truth
+
+    try:
+        tg = [design.parse_target(t) for t in targets]
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--target") from None
+    if out:
+        from pathlib import Path
+
+        if Path(out).resolve() == Path(plan).resolve():
+            raise click.UsageError("--out must not be the input plan")
+    p = load_plan(plan)
+    truth = load_truth(truth_path, plan_layout(p)) if truth_path else None
+    nz = _noise(p, like, accel_noise, gyro_noise, rate, truth)
+    opt = design.optimize(p, tomllib.loads(p.text), tg, method, nz, truth, max_duration)
+    sheet = design.operator_sheet(opt.plan)
+    res = opt.prediction.result
+    achieved = {t.text: design.target_sigmas(res, t).max() for t in tg}
+    if out:
+        from calib_cli.io.h5 import atomic_path
+
+        text = pm.to_toml(opt.plan_dict, header=f"optimized by: calib plan optimize "
+                                                 f"{' '.join('--target ' + t for t in targets)}")
+        with atomic_path(out) as tmp:
+            with open(tmp, "w", encoding="utf-8") as fh:
+                fh.write(text)
+    if as_json:
+        print_json({"method": opt.prediction.method, "member": opt.member,
+                    "targets": {t.text: t.sigma for t in tg}, "achieved": achieved,
+                    "sigma": res.sigma, "unobservable": opt.prediction.unobservable,
+                    "duration_s": opt.duration_after, "duration_before_s": opt.duration_before,
+                    "time_saved_s": opt.duration_before - opt.duration_after,
+                    "operator_sheet": sheet, "out": out})
+        return
+    from rich.table import Table
+
+    for t in tg:
+        info(f"{t.text}: predicted {achieved[t.text]:.3g} (worst entry)")
+    saved = opt.duration_before - opt.duration_after
+    info(f"{opt.member}: {opt.duration_after:.0f} s recorded (was {opt.duration_before:.0f} s; "
+         f"{'saves' if saved >= 0 else 'adds'} {abs(saved):.0f} s)")
+    tab = Table(title="operator sheet")
+    for c in ("step", "label", "what", "attitude (roll, pitch, yaw) deg", "duration s"):
+        tab.add_column(c)
+    for r in sheet:
+        what = r.get("turn") or ("position" if r["kind"] == "static" else r["kind"])
+        tab.add_row(str(r["step"]), r["label"], what, str(r.get("attitude_deg", "-")),
+                    f"{r['duration_s']:g}" if r.get("duration_s") else "-")
+    err_console.print(tab)
+    if out:
+        info(f"-> {out}")

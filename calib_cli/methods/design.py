@@ -442,3 +442,216 @@ def check(plan: Plan, method: str = "auto", noise: Noise | None = None,
     sug = suggest(plan, m, noise, res, targets, truth, options) if suggestions else []
     return Prediction(res.method if m != "gyro" else "gyro", res, noise, plan_duration(rec),
                       condition_number(res), weak, sug)
+
+
+# ---------------------------------------------------------------------------
+# plan optimize
+
+MIN_SEGMENT_S = 2.0  # the shortest static position plan optimize proposes
+
+
+@dataclass(frozen=True)
+class Target:
+    key: str
+    select: str  # "all", "diag", "offdiag"
+    sigma: float
+
+    @property
+    def text(self) -> str:
+        return f"{self.key}{'' if self.select == 'all' else '.' + self.select}={self.sigma:g}"
+
+
+def parse_target(text: str) -> Target:
+    """KEY[.diag|.offdiag]=SIGMA (SI)."""
+    lhs, eq, rhs = text.partition("=")
+    if not eq:
+        raise ValueError(f"{text!r}: expected KEY[.diag|.offdiag]=SIGMA")
+    key, _, sel = lhs.strip().partition(".")
+    sel = sel or "all"
+    if sel not in ("all", "diag", "offdiag"):
+        raise ValueError(f"{text!r}: the selector must be .diag or .offdiag")
+    try:
+        v = float(rhs)
+    except ValueError:
+        raise ValueError(f"{text!r}: SIGMA must be a number (SI)") from None
+    if not np.isfinite(v) or v <= 0:
+        raise ValueError(f"{text!r}: SIGMA must be positive")
+    return Target(key, sel, v)
+
+
+def target_sigmas(res: CalibrationResult, t: Target) -> np.ndarray:
+    """The predicted sigma of the entries a target names (NaN: unobservable);
+    entries fixed by convention (sigma 0) are left out."""
+    if t.key not in res.sigma:
+        raise EstimationError(f"the fit of this plan ({res.method}) does not report {t.key}; "
+                              f"it reports {', '.join(res.sigma)}")
+    s = np.asarray(res.sigma[t.key], float)
+    if t.select != "all":
+        if s.ndim != 2 or s.shape[0] != s.shape[1]:
+            raise EstimationError(f"{t.key} is not a square matrix: .{t.select} does not apply")
+        eye = np.eye(s.shape[0], dtype=bool)
+        s = s[eye] if t.select == "diag" else s[~eye]
+    s = s.ravel()
+    return s[s != 0.0]
+
+
+def worst_ratio(res: CalibrationResult, targets: list[Target]) -> float:
+    """max over the targets' entries of predicted sigma / target (inf: unobservable)."""
+    r = 0.0
+    for t in targets:
+        s = target_sigmas(res, t)
+        if not len(s) or not np.all(np.isfinite(s)):
+            return float("inf")
+        r = max(r, float(s.max() / t.sigma))
+    return r
+
+
+def _durations_scaled(plan_dict: dict, factor: float) -> dict:
+    d = dict(plan_dict)
+    segs = []
+    for s in plan_dict["segment"]:
+        s = dict(s)
+        turn = "rotation_angle_deg" in s
+        if not turn and "rate_profile" not in s:
+            s["duration_s"] = round(max(MIN_SEGMENT_S, float(s.get("duration_s", 10.0)) * factor),
+                                    3)
+        segs.append(s)
+    d["segment"] = segs
+    return d
+
+
+def family(plan_dict: dict) -> list[tuple[str, dict]]:
+    """The members of a generated plan's family (other position counts) as plan
+    dicts at the generator's durations; [(description, dict)]. A plan without
+    a [generator] table is its own family (durations only)."""
+    from calib_cli.sim import plan_make as pm
+
+    gen = plan_dict.get("generator")
+    if not isinstance(gen, dict) or gen.get("method") != "static":
+        return [("this plan", plan_dict)]
+    fitm = gen.get("fit", "vector")
+    out = []
+    for n in pm.STATIC_COUNTS:
+        if fitm == "scalar" and n < 9:
+            continue
+        d = pm.static_plan(n, fitm, float(gen.get("duration_s", 10.0)),
+                           float(gen.get("sample_rate_hz", 100.0)))
+        out.append((f"{n} positions", d))
+    return out
+
+
+def _plan_from_dict(d: dict, path: str) -> Plan:
+    from calib_cli.io.plan import parse_plan
+    from calib_cli.sim import plan_make as pm
+
+    return parse_plan(pm.to_toml(d), path)
+
+
+def plan_total(plan: Plan) -> float:
+    """Recorded time of a plan as simulate runs it: segments and transitions, s."""
+    from calib_cli.sim.simulate import DEFAULT_ROTATING_S
+
+    trans = float(plan.extra.get("transition_s", 4.0))
+    total = 0.0
+    for i, s in enumerate(plan.segments):
+        if s.kind == "rotating" and "rate_profile" in s.extra:
+            total += float(np.asarray(s.extra["rate_profile"], float)[-1, 0])
+        else:
+            total += s.duration or (DEFAULT_ROTATING_S if s.kind == "rotating" else 10.0)
+        if i:
+            total += float(s.extra.get("transition_s", trans))
+    return total
+
+
+@dataclass(frozen=True)
+class Optimized:
+    plan_dict: dict
+    plan: Plan
+    prediction: Prediction
+    member: str
+    duration_before: float
+    duration_after: float
+    tried: list
+
+
+def optimize(plan: Plan, plan_dict: dict, targets: list[Target], method: str = "auto",
+             noise: Noise | None = None, truth: Truth | None = None,
+             max_duration: float | None = None, options: dict | None = None) -> Optimized:
+    """The shortest member of the plan's family (position count, then the
+    common duration scale of its static positions, by bisection on the
+    predicted sigma) whose predicted sigma meets every target."""
+    m = resolve_method(plan, method)
+    noise = noise or default_noise(plan, truth=truth)
+    before = plan_total(plan)
+
+    def ratio(d):
+        p = _plan_from_dict(d, plan.path)
+        res, _ = predict_result(p, m, noise, truth, options)
+        return worst_ratio(res, targets), p
+
+    best, tried = None, []
+    for desc, d0 in family(plan_dict):
+        r_hi, _ = ratio(_durations_scaled(d0, 64.0))
+        if not np.isfinite(r_hi) or r_hi > 1.0:
+            tried.append((desc, None))
+            continue
+        lo, hi = -8.0, 6.0  # log2 of the duration factor
+        if ratio(_durations_scaled(d0, 2.0 ** lo))[0] <= 1.0:
+            hi = lo
+        for _ in range(14):
+            if hi - lo < 0.01:
+                break
+            mid = 0.5 * (lo + hi)
+            if ratio(_durations_scaled(d0, 2.0 ** mid))[0] <= 1.0:
+                hi = mid
+            else:
+                lo = mid
+        d = _durations_scaled(d0, 2.0 ** hi)
+        r, p = ratio(d)
+        while r > 1.0:  # rounding of the durations: a little more
+            hi += 0.01
+            d = _durations_scaled(d0, 2.0 ** hi)
+            r, p = ratio(d)
+        tot = plan_total(p)
+        tried.append((desc, tot))
+        if best is None or tot < best[2]:
+            best = (desc, d, tot, p)
+    if best is None:
+        names = ", ".join(t.text for t in targets)
+        raise EstimationError(f"no plan of this family meets {names} (unobservable, or beyond "
+                              "64 x the durations): change the plan's positions")
+    desc, d, tot, p = best
+    if max_duration is not None and tot > max_duration:
+        raise EstimationError(f"the shortest plan that meets the targets takes {tot:.0f} s, "
+                              f"over --max-duration {max_duration:g} s")
+    if isinstance(d.get("generator"), dict):
+        d["generator"] = {**d["generator"], "optimized_for": [t.text for t in targets],
+                          "duration_scale": round(_duration_scale(d), 4)}
+    pred = check(p, m, noise, truth, options, suggestions=False)
+    return Optimized(d, p, pred, desc, before, tot, tried)
+
+
+def _duration_scale(d: dict) -> float:
+    gen = d.get("generator", {})
+    base = float(gen.get("duration_s", 10.0))
+    durs = [s.get("duration_s") for s in d["segment"] if "rotation_angle_deg" not in s]
+    durs = [x for x in durs if x]
+    return float(np.median(durs)) / base if durs and base else 1.0
+
+
+def operator_sheet(plan: Plan) -> list[dict]:
+    """What the operator does, in order: position/turn, attitude, duration."""
+    rows = []
+    for i, s in enumerate(plan.segments):
+        row = {"step": i + 1, "label": s.label, "kind": s.kind,
+               "duration_s": s.duration}
+        if s.attitude is not None:
+            row["attitude_deg"] = [round(float(x), 3) for x in np.degrees(s.attitude)]
+        elif "sim_attitude_deg" in s.extra:
+            row["attitude_deg"] = list(s.extra["sim_attitude_deg"])
+            row["note"] = "any attitude near this one (not used by the fit)"
+        if s.kind == "turn":
+            row["turn"] = (f"{np.degrees(s.rotation_angle):g} deg about body "
+                           f"{[round(float(x), 3) for x in s.rotation_axis_body]}")
+        rows.append(row)
+    return rows
