@@ -180,3 +180,19 @@ def test_optimize_static_target_few_seeds(tmp_path, run_cli):
     assert d["achieved"]["accel_K.diag=5e-05"] <= 50e-6
     assert worst <= 1.1 and np.abs(z).max() < 4.0
     assert d["member"] == "6 positions" and d["duration_s"] < 0.5 * d["duration_before_s"]
+
+
+def test_record_warning_one_line(run_cli):
+    """calib record's pre-check: one line for a plan that cannot deliver, nothing
+    for a good plan or a repeat = "auto" plan."""
+    d = pm.static_plan(6)
+    good = parse_plan(pm.to_toml(d), "good.toml")
+    assert design.record_warning(good, 100.0) is None
+    d["segment"] = [s for s in d["segment"] if not s["label"].startswith("z")]
+    flat = parse_plan(pm.to_toml(d), "flat.toml")
+    w = design.record_warning(flat, 100.0)
+    assert w and "unobservable" in w and "flat.toml" in w and "\n" not in w
+    auto = parse_plan("kind = 'static'\n[[segment]]\nrepeat = 'auto'\n", "auto.toml")
+    assert design.record_warning(auto, 100.0) is None
+    code, out, _ = run_cli("record", "--help")
+    assert code == 0 and "--no-check" in out

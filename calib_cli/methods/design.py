@@ -655,3 +655,23 @@ def operator_sheet(plan: Plan) -> list[dict]:
                            f"{[round(float(x), 3) for x in s.rotation_axis_body]}")
         rows.append(row)
     return rows
+
+
+def record_warning(plan: Plan, rate: float | None = None) -> str | None:
+    """The one line ``calib record`` prints before it starts when the plan
+    cannot deliver what its method reports (unobservable entries, or the fit
+    would fail); None when it can, for ``repeat = "auto"`` plans and for plans
+    plan check does not cover yet. Never raises."""
+    if plan.kind == "turntable" or any(s.repeat_auto for s in plan.segments):
+        return None
+    try:
+        pr = check(plan, noise=default_noise(plan, rate), suggestions=False)
+    except EstimationError as exc:
+        return f"plan check: the fit will fail on this plan: {exc.message}"
+    except Exception:  # noqa: BLE001 - a warning must never stop a recording
+        return None
+    if pr.unobservable:
+        lost = ", ".join(pr.unobservable[:6]) + (" ..." if len(pr.unobservable) > 6 else "")
+        return (f"plan check: this plan leaves {lost} unobservable (calib plan check "
+                f"{plan.path} for the additions that help; --no-check to skip)")
+    return None
