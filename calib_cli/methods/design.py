@@ -527,6 +527,11 @@ def family(plan_dict: dict) -> list[tuple[str, dict]]:
     from calib_cli.sim import plan_make as pm
 
     gen = plan_dict.get("generator")
+    if isinstance(gen, dict) and gen.get("method") == "ferraris":
+        td = float(gen.get("turn_duration_s", 10.0))
+        return [(f"turns of {t:g} s", pm.ferraris_plan(float(gen.get("duration_s", 10.0)), t,
+                                                       float(gen.get("sample_rate_hz", 100.0))))
+                for t in sorted({max(4.0, td / 2), td, 2 * td})]
     if not isinstance(gen, dict) or gen.get("method") != "static":
         return [("this plan", plan_dict)]
     fitm = gen.get("fit", "vector")

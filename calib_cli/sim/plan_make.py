@@ -97,8 +97,9 @@ def static_plan(n: int = 12, method: str = "vector", duration: float = 10.0,
 
 def ferraris_plan(duration: float = 10.0, turn_duration: float = 10.0,
                   rate: float = 100.0) -> dict:
-    """Ferraris et al.: six positions (each axis up and down) and a 360 deg turn
-    about each axis while it points up."""
+    """Ferraris et al.: six positions (each axis up and down) and three 360 deg
+    turns, each about an axis while it points up (between its up and down
+    positions)."""
     gen = {"method": "ferraris", "duration_s": duration, "turn_duration_s": turn_duration,
            "sample_rate_hz": rate}
     d = _base("ferraris", "static", rate, gen, "ferraris")
@@ -109,8 +110,6 @@ def ferraris_plan(duration: float = 10.0, turn_duration: float = 10.0,
         d["segment"].append({"label": f"{ax}-turn", "attitude_deg": up,
                              "rotation_axis_body": _r(np.eye(3)[i]), "rotation_angle_deg": 360.0,
                              "duration_s": turn_duration})
-        d["segment"].append({"label": f"{ax}-up-after", "attitude_deg": up,
-                             "duration_s": duration})
         d["segment"].append({"label": f"{ax}-down", "attitude_deg": faces[f"{ax}-down"],
                              "duration_s": duration})
     return d
