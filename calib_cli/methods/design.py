@@ -61,9 +61,6 @@ class Prediction:
     def unobservable(self) -> list:
         return list(self.result.stats.get("unobservable", []))
 
-    def inflation(self) -> float:
-        return 1.0
-
 
 # ---------------------------------------------------------------------------
 # inputs
@@ -280,7 +277,8 @@ def entry_label(key: str, idx: tuple) -> str:
 def weak_entries(res: CalibrationResult) -> list[str]:
     """Determined entries whose predicted sigma is large: above WEAK_TYPICAL x
     the catalogue's typical size of the key, or WEAK_SPREAD x the median sigma
-    of the same key's entries."""
+    of the same key's entries (not for the attitude or a RIMU's dAz, whose
+    entries differ by nature)."""
     _fill_typical()
     out = []
     for k, s in res.sigma.items():
@@ -290,11 +288,14 @@ def weak_entries(res: CalibrationResult) -> list[str]:
             continue
         med = float(np.median(good))
         typ = TYPICAL.get(k)
+        # entries that differ by nature: heading against tilt, a RIMU's dAz (1/tilt
+        # for a sensor along z)
+        spread = k != "attitude" and not k.endswith("_dAz")
         for idx in np.ndindex(s.shape):
             v = float(s[idx])
             if not np.isfinite(v) or v == 0:
                 continue
-            if (typ is not None and v > WEAK_TYPICAL * typ) or v > WEAK_SPREAD * med:
+            if (typ is not None and v > WEAK_TYPICAL * typ) or (spread and v > WEAK_SPREAD * med):
                 out.append(entry_label(k, idx))
     return out
 
@@ -346,25 +347,25 @@ def candidates(plan: Plan, method: str) -> list[tuple[str, tuple]]:
     """Candidate additions: (description, segments to append)."""
     out = []
     dur = _median_duration(plan)
-    template = next((s for s in plan.segments if s.kind == "static"), None)
-    rot_keys = {}
-    if plan.kind == "rimu" and template is not None and template.table_axis_enu is not None:
-        rot_keys = {"table_axis_enu": template.table_axis_enu, "table_rate": template.table_rate}
     if method in ("vector", "scalar", "rimu", "gyro"):
+        # a RIMU plan on a turning table gets positions on the turning table
+        spin = next((s for s in plan.segments if s.kind == "rotating"), None)
+        if method != "rimu":
+            spin = None
         dirs = candidate_directions()
         if method == "gyro":
             dirs = [d for d in dirs if np.count_nonzero(d[1]) == 1]
         for lab, u in dirs:
             att = _attitude_up(u)
-            seg = PlanSegment(label=f"add-{lab.replace(' ', '-')}",
-                              attitude=None if method == "scalar" else np.array(att) * D2R,
-                              duration=dur,
-                              extra={"attitude_deg": att, "duration_s": dur,
-                                     **({"sim_attitude_deg": att} if method == "scalar" else {})},
-                              **({"table_axis_enu": rot_keys["table_axis_enu"],
-                                  "table_rate": rot_keys["table_rate"]} if rot_keys else {}))
-            if method == "scalar":
-                seg = replace(seg, extra={"sim_attitude_deg": att, "duration_s": dur})
+            name = f"add-{lab.replace(' ', '-')}"
+            if method == "scalar":  # unknown attitude: only the simulation needs it
+                seg = PlanSegment(label=name, duration=dur,
+                                  extra={"sim_attitude_deg": att, "duration_s": dur})
+            else:
+                seg = PlanSegment(label=name, attitude=np.array(att) * D2R, duration=dur,
+                                  extra={"attitude_deg": att, "duration_s": dur})
+            if spin is not None:
+                seg = replace(seg, table_axis_enu=spin.table_axis_enu, table_rate=spin.table_rate)
             out.append((f"add a static position with body {lab} ({dur:g} s)", (seg,)))
     if method == "gyro":
         last = next((s for s in reversed(plan.segments) if s.kind == "static"
@@ -390,6 +391,25 @@ def candidates(plan: Plan, method: str) -> list[tuple[str, tuple]]:
     return out
 
 
+def segment_toml(seg: PlanSegment) -> dict:
+    """A plan segment as the [[segment]] keys to paste into a plan."""
+    d = {"label": seg.label}
+    if seg.attitude is not None:
+        d["attitude_deg"] = [round(float(x), 4) for x in np.degrees(seg.attitude)]
+    if "sim_attitude_deg" in seg.extra:
+        d["sim_attitude_deg"] = seg.extra["sim_attitude_deg"]
+    if seg.rotation_axis_body is not None:
+        d["rotation_axis_body"] = [float(x) for x in seg.rotation_axis_body]
+        d["rotation_angle_deg"] = round(float(np.degrees(seg.rotation_angle)), 4)
+    if seg.table_axis_enu is not None:
+        d["table_axis_enu"] = [float(x) for x in seg.table_axis_enu]
+        if seg.table_rate is not None:
+            d["table_rate_dps"] = round(float(np.degrees(seg.table_rate)), 6)
+    if seg.duration is not None:
+        d["duration_s"] = float(seg.duration)
+    return d
+
+
 def _scaled(plan: Plan, factor: float) -> Plan:
     segs = tuple(replace(s, duration=(s.duration or 10.0) * factor) if s.kind == "static" else s
                  for s in plan.segments)
@@ -401,15 +421,16 @@ def suggest(plan: Plan, method: str, noise: Noise, base: CalibrationResult,
             limit: int = N_SUGGEST) -> list[dict]:
     """Candidate additions ranked by how much they reduce the targets' sigma:
     each unobservable target made observable counts first, then the mean
-    log-reduction of the targets' sigma."""
+    log-reduction of the targets' sigma, then (between candidates that fix the
+    same number) the smaller sigma of the entries they fix."""
     if not targets:
         return []
     before = {t: _sigma_of(base, t) for t in targets}
-    trials = [(desc, replace(plan, segments=plan.segments + segs))
+    trials = [(desc, segs, replace(plan, segments=plan.segments + segs))
               for desc, segs in candidates(plan, method)]
-    trials.append(("double the duration of every static position", _scaled(plan, 2.0)))
+    trials.append(("double the duration of every static position", (), _scaled(plan, 2.0)))
     ranked = []
-    for desc, p in trials:
+    for desc, segs, p in trials:
         try:
             res, _ = predict_result(p, method, noise, truth, options)
         except EstimationError:
@@ -421,11 +442,17 @@ def suggest(plan: Plan, method: str, noise: Noise, base: CalibrationResult,
         gain = -float(np.mean(np.log(list(ratios.values())))) if ratios else 0.0
         if not fixed and gain < 0.01:
             continue
-        ranked.append({"add": desc, "fixes": fixed,
+        ranked.append({"add": desc, "segments": [segment_toml(x) for x in segs],
+                       "fixes": fixed,
                        "sigma_after": {t: (after[t] if np.isfinite(after[t]) else None)
                                        for t in targets},
-                       "score": len(fixed) * 100.0 + gain})
-    ranked.sort(key=lambda d: -d["score"])
+                       "score": len(fixed) * 100.0 + gain,
+                       # among candidates fixing the same entries: the smaller sigma first
+                       "tie": float(np.mean(np.log([after[t] for t in fixed]))) if fixed
+                       else 0.0})
+    ranked.sort(key=lambda d: (-d["score"], d["tie"]))
+    for d in ranked:
+        del d["tie"]
     return ranked[:limit]
 
 
@@ -440,8 +467,8 @@ def check(plan: Plan, method: str = "auto", noise: Noise | None = None,
     weak = weak_entries(res)
     targets = list(res.stats.get("unobservable", [])) + weak
     sug = suggest(plan, m, noise, res, targets, truth, options) if suggestions else []
-    return Prediction(res.method if m != "gyro" else "gyro", res, noise, plan_duration(rec),
-                      condition_number(res), weak, sug)
+    return Prediction(res.method, res, noise, plan_duration(rec), condition_number(res), weak,
+                      sug)
 
 
 # ---------------------------------------------------------------------------
