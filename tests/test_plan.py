@@ -119,6 +119,28 @@ def test_plan_make_check_simulate_fit(tmp_path, run_cli, args, fit):
     shown = json.loads(out)
     for k, s in d["sigma"].items():
         assert np.shape(shown["sigma"][k]) == np.shape(s), k
+    # plan check --like RAW against the fit's sigma on RAW (its inflation removed)
+    code, out, err = run_cli("plan", "check", plan, "--like", raw, "--json", "--no-suggest")
+    assert code == 0, err
+    like = json.loads(out)
+    infl = float(shown["stats"].get("sigma_inflation") or 1.0)
+    for k, s in like["sigma"].items():
+        a = np.array(s, dtype=float)
+        b = np.array(shown["sigma"][k], dtype=float) / np.sqrt(infl)
+        ok = np.isfinite(a) & (a > 0) & np.isfinite(b) & (b > 0)
+        if args[0] == "rimu" and k.endswith(("_dAz", "_dEl")):
+            # a sensor along body z: its sigma depends on its unknown tilt (docs/plan.md)
+            el0 = parse_plan(plan.read_text(), str(plan)).rimu_el0
+            ok &= np.abs(np.abs(el0) - np.pi / 2) > 1e-6
+        r = a[ok] / b[ok]
+        assert r.min() >= 0.87 and r.max() <= 1.15, (k, r.min(), r.max())
+
+
+def test_plan_make_bad_options_exit_2(tmp_path, run_cli):
+    code, _, err = run_cli("plan", "make", "static", "--positions", "6", "--fit", "scalar",
+                           "--out", tmp_path / "x.toml")
+    assert code == 2 and "9 positions" in err
+    assert not (tmp_path / "x.toml").exists()
 
 
 def test_plan_make_turntable_and_check_not_yet(tmp_path, run_cli):

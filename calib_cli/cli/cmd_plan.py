@@ -220,7 +220,10 @@ def plan_make_cmd(method, out, positions, fit_method, duration, sample_rate, tur
         kw.update(tilted=tilted, tilt_deg=tilt_deg, tilted_duration=tilted_duration,
                   max_rate=max_rate, max_accel=max_accel, max_duration=max_duration,
                   profile=rate_family)
-    d, warning = pm.make(method, **kw)
+    try:
+        d, warning = pm.make(method, **kw)
+    except InputError as exc:  # a generator refuses its options: a usage error
+        raise click.UsageError(exc.message) from None
     text = pm.to_toml(d, header=f"made by: calib plan make {method}")
     parse_plan(text, out)  # what is written must load
     with atomic_path(out) as tmp:
