@@ -189,6 +189,12 @@ def test_noise_units_and_usage(tmp_path, run_cli):
     bad.write_text("kind = 'static'\n")
     code, _, err = run_cli("plan", "check", bad)
     assert code == 3 and "bad.toml" in err and len(err.strip().splitlines()) == 1
+    three = tmp_path / "three.toml"
+    three.write_text("kind = 'static'\n" + "".join(
+        f"[[segment]]\nattitude_deg = {a}\n" for a in ([0, 0, 0], [180, 0, 0], [90, 0, 0])))
+    code, _, err = run_cli("plan", "check", three)
+    assert code == 4 and "three.toml" in err and ">= 4 static positions" in err
+    assert "static detection" not in err and len(err.strip().splitlines()) == 1
     auto = tmp_path / "auto.toml"
     auto.write_text("kind = 'static'\n[[segment]]\nrepeat = 'auto'\n")
     code, _, err = run_cli("plan", "check", auto)

@@ -219,7 +219,13 @@ def predict_result(plan: Plan, method: str, noise: Noise, truth: Truth | None = 
     check_plannable(plan)
     p = _with_rate(plan, noise.rate)
     rec = simulate(p, nominal_truth(plan, truth), seed=0)
-    return _fit(method, rec, noise, options or {}), rec
+    try:
+        return _fit(method, rec, noise, options or {}), rec
+    except EstimationError as exc:
+        # the fit's hint about static detection concerns recordings, not plans
+        msg = exc.message.split(" (static detection with the defaults")[0]
+        raise EstimationError(f"the {method} fit would fail on this plan: {msg}",
+                              plan.path) from None
 
 
 def condition_number(res: CalibrationResult) -> float:
@@ -699,7 +705,7 @@ def record_warning(plan: Plan, rate: float | None = None) -> str | None:
     try:
         pr = check(plan, noise=default_noise(plan, rate), suggestions=False)
     except EstimationError as exc:
-        return f"plan check: the fit will fail on this plan: {exc.message}"
+        return f"plan check: {exc.message}"
     except Exception:  # noqa: BLE001 - a warning must never stop a recording
         return None
     if pr.unobservable:
