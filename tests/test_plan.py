@@ -161,6 +161,15 @@ def test_plan_make_turntable_and_check_not_yet(tmp_path, run_cli):
     assert code == 4 and "not yet" in err and len(err.strip().splitlines()) == 1
 
 
+def test_plan_make_turntable_simulate_fit(tmp_path, run_cli):
+    plan, raw, cal = tmp_path / "tt.toml", tmp_path / "tt.h5", tmp_path / "ttc.h5"
+    assert run_cli("plan", "make", "turntable", "--duration", "120", "--out", plan)[0] == 0
+    assert "lever_arm_m" not in plan.read_text()
+    assert run_cli("simulate", plan, "--out", raw, "--seed", "1")[0] == 0
+    code, _, err = run_cli("fit", "turntable", raw, "--out", cal)
+    assert code == 0, err
+
+
 def test_align_degenerate_axis_warns(tmp_path, run_cli):
     code, _, err = run_cli("plan", "make", "align", "--axis", "1,0,0", "--start", "0,0,0",
                            "--out", tmp_path / "a.toml")

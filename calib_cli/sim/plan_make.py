@@ -203,7 +203,7 @@ def turntable_plan(tilted: bool = False, tilt_deg: float = 5.0, duration: float 
     for c, (label, att, _a) in enumerate(cycles):
         knots = _profile(durs[c], max_rate, ramp)
         seg = {"label": label, "attitude_deg": _r(att, 6), "table_axis_enu": _r(TABLE_AXIS),
-               "lever_arm_m": [0.0, 0.0, 0.0], "rate_profile": knots, "duration_s": knots[-1][0]}
+               "rate_profile": knots, "duration_s": knots[-1][0]}
         if profile == "smooth":
             seg["rate_shape"] = "smooth"
         d["segment"].append(seg)
