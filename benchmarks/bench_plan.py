@@ -1,6 +1,6 @@
 """Benchmark `calib plan check` against the fit of the same plan (docs/plan.md).
 
-    python -m calib_cli.bench_plan
+    python -m benchmarks.bench_plan
 
 For each generated plan (static 12 vector and scalar, Ferraris, two-position
 alignment, RIMU six-position): the time of `plan check` without suggestions
