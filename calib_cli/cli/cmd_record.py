@@ -105,9 +105,10 @@ def _raise_interrupt(*_):
               help="Duration of plan segments without duration_s, s.")
 @click.option("--reconnect-timeout", default=30.0, show_default=True, type=float,
               help="How long to wait for a disconnected device, s.")
+@click.option("--no-check", is_flag=True, help="Skip the plan check before recording.")
 def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_path, duration,
                rate, out, journal_path, keep_journal, settle_window, accel_still, gyro_still,
-               settle_timeout, segment_duration, reconnect_timeout):
+               settle_timeout, segment_duration, reconnect_timeout, no_check):
     """Record an experiment plan (or a free-running log) from an IMU into raw.h5."""
     from calib_cli.acquire.profile import load_imu_profile, load_table_profile
     from calib_cli.acquire.session import Session, SettleConfig, free_run_plan, journal_to_recording
@@ -132,6 +133,12 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
             raise click.UsageError(f"profile {prof.name!r} is a serial device: give --port")
         transport = SerialTransport(port, prof.transport)
     plan = load_plan(plan_path) if plan_path else parse_plan(free_run_plan(duration), "free-run")
+    if plan_path and not no_check:  # issue 20: warn when the plan cannot deliver
+        from calib_cli.methods.design import record_warning
+
+        warning = record_warning(plan, prof.rate_hz)
+        if warning:
+            err_console.print(f"calib: warning: {warning}", markup=False, soft_wrap=True)
     out_dir = os.path.dirname(os.path.abspath(out))
     if not os.path.isdir(out_dir):
         raise InputError("output directory does not exist", out)
