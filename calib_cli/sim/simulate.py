@@ -28,18 +28,18 @@ being a random navigation-grade unit, docs/align.md; "mems" for the MEMS default
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from scipy.spatial.transform import Rotation
-
-from dataclasses import replace
 
 from calib_cli.data import SAMPLE_KINDS, Recording, Segment
 from calib_cli.errors import InputError
 from calib_cli.io.plan import Plan, PlanSegment
 from calib_cli.model import kinematics as kn
-from calib_cli.sim import rate_profiles as rp
 from calib_cli.model.effects import Layout
 from calib_cli.model.frames import attitude_to_rotation, axis_angle, rotation_to_attitude
+from calib_cli.sim import rate_profiles as rp
 from calib_cli.sim.truth import Truth, default_truth
 
 D2R = np.pi / 180.0
