@@ -89,6 +89,11 @@ def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis
     except InputError as exc:
         exc.path = exc.path or raw
         raise
+    clipped = res.stats.get("accel_clipped_samples") or []
+    if any(clipped):
+        info(f"[yellow]warning:[/] {sum(clipped)} accelerometer samples sit at full scale "
+             "(saturated?): the centripetal and tangential terms may exceed the range; the fit "
+             "does not model clipping")
     if res.stats.get("accel_noise_inflation", 1.0) > 1.0:
         info(f"[yellow]the model does not explain the accelerometer data:[/] noise widened "
              f"x{res.stats['accel_noise_inflation']:.1f} (lever arms or proof masses missing?)")

@@ -722,9 +722,23 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
         raise EstimationError("the turntable filter diverged")
     res = _result(rec, cycles, L, out, opt, s_known, sig_a * inflation, sig_g, block_n,
                   inflation, sd, width)
+    res.stats["accel_clipped_samples"] = _clipped(rec, cycles)
     res.stats["table_encoder"] = _encoder_stats(enc, L, out, sig_enc * enc_inflation,
                                                 enc_inflation, enc_notes)
     return res
+
+
+def _clipped(rec: Recording, cycles) -> list[int]:
+    """Per accelerometer axis, samples of the cycles that sit exactly at the axis's extreme
+    value: a saturated sensor repeats its full-scale reading, noise never does (the
+    centripetal and tangential terms at a large lever arm can exceed the range)."""
+    A = np.concatenate([rec.accel[cy.sl] for cy in cycles])
+    out = []
+    for i in range(A.shape[1]):
+        col = A[:, i]
+        n = int(np.sum(col == col.max())) + int(np.sum(col == col.min()))
+        out.append(n if n > 10 else 0)
+    return out
 
 
 def _encoder_stats(enc, L, out, sig_enc, inflation, notes) -> dict:
