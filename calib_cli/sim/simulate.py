@@ -22,6 +22,7 @@ continuously (transition samples have segment index -1). Per segment kind:
 
 Top-level simulation keys: ``sample_rate_hz`` (100), ``transition_s`` (4),
 ``temperature_c`` (constant) or ``temperature_profile = [[t_s, degC], ...]``,
+or a chamber setpoint per segment ``chamber_temp_degC`` (sim/chamber.py),
 ``sim_grade`` ("navigation" for plans of kind align, the default truth then
 being a random navigation-grade unit, docs/align.md; "mems" for the MEMS default).
 """
@@ -242,6 +243,11 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
 
     kin = kn.Kinematics.concatenate(parts)
     kin = kin.with_(temp=_temperature(plan, kin.t))
+    from calib_cli.sim.chamber import chamber_temperature, has_chamber  # docs/thermal.md
+
+    if has_chamber(plan):
+        pidx = np.array([-1] + [s.plan_index for s in segments])[kin.segment + 1]
+        kin = kin.with_(temp=chamber_temperature(plan, kin.t, pidx)[1])
     out = truth.model.predict(truth.params, kin)
     stoch = truth.model.realise_noise(truth.params, kin, rng)
     noisy = {}
