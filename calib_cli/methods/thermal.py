@@ -19,7 +19,8 @@ With ``thermal_lag`` the sensing elements see the first-order lag of the
 recorded temperature (``effects.lag_temperature``) and tau is estimated.
 
 Warm-up rule: a static segment is a soak when its temperature over the last
-quarter moves by less than SOAK_RATE degC/min; its samples before the
+quarter moves by less than SOAK_RATE degC/min, or by less than a fifth of
+its fastest rate over any tenth of the segment (it is settling); its samples before the
 temperature last leaves the band +-WARMUP_TOL degC about its final value
 (median of the last 10 %) are the warm-up and are not used.
 
@@ -55,7 +56,7 @@ from calib_cli.model.imu_model import ImuModel, Packing
 from calib_cli.model.kinematics import from_attitude
 
 BLOCK_S = 10.0  # s, block length
-SOAK_RATE = 0.05  # degC/min: a segment whose last quarter moves less is a soak
+SOAK_RATE = 0.1  # degC/min: a segment whose last quarter moves less is a soak
 WARMUP_TOL = 0.2  # degC: warm-up ends when the temperature stays within this of its final value
 RAMP_RATE = 0.1  # degC/min: heating / cooling blocks for the hysteresis
 MIN_BLOCK = 10  # samples
@@ -108,7 +109,9 @@ def make_blocks(rec: Recording, block_s: float = BLOCK_S) -> Blocks:
         tq = t[q:b]
         if len(tq) > 2 and tq[-1] > tq[0]:
             slope = np.polyfit(tq - tq[0], T[q:b], 1)[0] * 60.0
-            if abs(slope) < SOAK_RATE:  # a soak: drop its warm-up
+            edges = np.linspace(a, b - 1, 11).astype(int)
+            tenths = np.abs(np.diff(T[edges]) / np.maximum(np.diff(t[edges]), 1e-9)) * 60.0
+            if abs(slope) < SOAK_RATE or abs(slope) < tenths.max() / 5:  # a soak: drop its warm-up
                 tail = T[b - max((b - a) // 10, 1):b]
                 out = np.flatnonzero(np.abs(T[a:b] - np.median(tail)) > WARMUP_TOL)
                 if len(out):
@@ -223,9 +226,7 @@ def _fit_one(rec, bl: Blocks, prob: _Problem, sig: dict, start: dict | None):
             H = np.column_stack([np.ones(len(bl.t)), kin0.f])
             coef = np.linalg.lstsq(H, bl.accel, rcond=None)[0]
             p0["accel_bias"] = coef[0]
-            if "accel_K" not in [s.key for s in prob.packing.specs]:
-                pass
-            else:
+            if "accel_K" in [s.key for s in prob.packing.specs]:
                 p0["accel_K"] = coef[1:].T
         if "gyro" in prob.sensors:
             p0["gyro_bias"] = bl.gyro.mean(0) - (kin0.w @ np.asarray(p0.get(
@@ -337,8 +338,6 @@ def fit_thermal(rec: Recording, order: int | None = None, temp_ref: float = TEMP
     for s in sensors:
         tables[f"block_{s}"] = getattr(bl, s)
         tables[f"block_{s}_resid"] = res[s]
-    for sp in prob.packing.specs:
-        pass
     result = build_result("thermal", prob.full, prob.packing, fit, prob.base,
                           rec.units, stats, serial=rec.serial,
                           residuals={s: res[s] for s in sensors}, tables=tables,
