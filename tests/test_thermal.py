@@ -252,3 +252,12 @@ def test_export_json_holds_thermal_terms(thermal_files):
     assert obj["thermal"]["order"] == 2 and obj["thermal"]["temp_ref_degC"] == 25.0
     assert np.array(obj["correction"]["accel"]["temp_bias"]).shape == (3, 2)
     assert "T_ref" in obj["formula"]["accel"]
+
+
+def test_report_has_thermal_figures(thermal_files):
+    d = thermal_files
+    _cli("report", d / "cal.h5", "--out", d / "rep")
+    md = (d / "rep" / "report.md").read_text()
+    assert "Thermal calibration" in md
+    for stem in ("thermal-accel", "thermal-gyro", "thermal-g-error"):
+        assert any(stem in p.name for p in (d / "rep").glob("*.png")), stem
