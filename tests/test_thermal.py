@@ -261,3 +261,57 @@ def test_report_has_thermal_figures(thermal_files):
     assert "Thermal calibration" in md
     for stem in ("thermal-accel", "thermal-gyro", "thermal-g-error"):
         assert any(stem in p.name for p in (d / "rep").glob("*.png")), stem
+
+
+@pytest.mark.skipif(shutil.which("gcc") is None or shutil.which("nm") is None,
+                    reason="no gcc/nm")
+def test_thermal_header_defines_only_documented_names(thermal_files):
+    from calib_cli.io.export import c_header_symbols
+
+    d = thermal_files
+    _cli("export", d / "cal.h5", "--format", "c-header", "--out", d / "cal.h")
+    (d / "use.c").write_text('#include "cal.h"\n')
+    subprocess.run(["gcc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-O0",
+                    "-fkeep-static-functions", "-fkeep-inline-functions", "-c", "use.c", "-o",
+                    "use.o"], cwd=d, check=True, capture_output=True)
+    out = subprocess.run(["nm", "use.o"], cwd=d, check=True, capture_output=True,
+                         text=True).stdout
+    names = {ln.split()[-1] for ln in out.splitlines() if len(ln.split()) == 3}
+    syms = c_header_symbols("calib", thermal=True)
+    assert names == set(syms["objects"]) | set(syms["functions"])
+
+    def macros(src):
+        out = subprocess.run(["gcc", "-std=c99", "-dM", "-E", "-x", "c", src], cwd=d, check=True,
+                             capture_output=True, text=True).stdout
+        return {ln.split()[1].split("(")[0] for ln in out.splitlines()}
+    (d / "empty.h").write_text("")
+    assert macros("cal.h") - macros("empty.h") == set(syms["macros"])
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
+def test_lag_header_filter_matches_catalogue(thermal_files):
+    """The header's lag filter is the catalogue's lag_temperature."""
+    from dataclasses import replace
+
+    from calib_cli.io.export import to_c_header
+    from calib_cli.io.h5 import read_calibration
+
+    d = thermal_files
+    c = read_calibration(d / "cal.h5")
+    c = replace(c, model=c.model + [{"name": "thermal_lag", "sensor": ""}],
+                params={**c.params, "thermal_lag_tau": np.array(150.0)})
+    (d / "lag.h").write_text(to_c_header(c, {}, "cal.h5"))
+    (d / "lag.c").write_text(
+        '#include <stdio.h>\n#include "lag.h"\nint main(void) {\n'
+        "    double s[2], T; int first = 1;\n"
+        '    while (scanf("%lf", &T) == 1) {\n'
+        "        if (first) { s[0] = s[1] = T; first = 0; printf(\"%.17g\\n\", T); continue; }\n"
+        '        printf("%.17g\\n", calib_lag_temp(s, T, 0.1));\n    }\n    return 0;\n}\n')
+    subprocess.run(["cc", "-std=c99", "-Wall", "-Werror", "-o", "lag", "lag.c", "-lm"], cwd=d,
+                   check=True)
+    t = np.arange(0, 600, 0.1)
+    T = 20 + 10 * np.sin(t / 60.0)
+    out = subprocess.run([str(d / "lag")], input="\n".join("%.17g" % x for x in T),
+                         capture_output=True, text=True, check=True).stdout
+    got = np.array([float(x) for x in out.split()])
+    assert np.max(np.abs(got - lag_temperature(t, T, 150.0))) < 1e-9
