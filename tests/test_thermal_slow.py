@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from calib_cli.sim import thermal_validate as V
@@ -30,7 +31,8 @@ def results():
 def test_pooled_rule(results, design):
     for k, g in results[design]["groups"].items():
         assert 0.8 <= g["rms"] <= 1.25, (k, g)
-        assert g["frac_below_3.3"] >= 0.99 or g["n"] < 100 and g["max"] < 3.3 + 0.5, (k, g)
+        # 99 % below 3.3: at most 1 % of the group above, rounded up (one in 60)
+        assert g["n_above_3.3"] <= int(np.ceil(0.01 * g["n"])), (k, g)
 
 
 @pytest.mark.parametrize("design", ["soak", "ramp"])
@@ -44,5 +46,7 @@ def test_holdout_g_error(results, design):
 def test_lag_hysteresis_and_tau(results):
     lag = results["lag"]
     assert lag["plain_min"] > 5, lag
-    assert lag["lag_frac_below_2"] >= 0.9, lag
+    # below 2 sigma with the lag modelled: per axis, as a normal variable would be
+    assert lag["axis_rms_lag"] <= 1.3, lag
+    assert lag["axis_frac_below_2"] >= 0.9, lag
     assert 0.7 <= lag["tau_rms_z"] <= 1.3, lag
