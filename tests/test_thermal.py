@@ -315,3 +315,12 @@ def test_lag_header_filter_matches_catalogue(thermal_files):
                          capture_output=True, text=True, check=True).stdout
     got = np.array([float(x) for x in out.split()])
     assert np.max(np.abs(got - lag_temperature(t, T, 150.0))) < 1e-9
+
+
+def test_one_temperature_is_exit_4(tmp_path, capsys):
+    tr = TC.thermal_truth(np.random.default_rng(3))
+    rec = simulate(TC.plan(TC.soak_plan_text(temps=(25,), soak_s=30, hold_s=10)), tr, seed=3)
+    write_raw(tmp_path / "one.h5", rec)
+    err = _fails(4, "fit", "thermal", tmp_path / "one.h5", "--out", tmp_path / "c.h5",
+                 capsys=capsys)
+    assert "degC" in err and not (tmp_path / "c.h5").exists()
