@@ -32,7 +32,7 @@ CHUNK = 262144  # samples per chunk: memory stays flat for long recordings
                    "has no temperature column.")
 @click.option("--extrapolate", is_flag=True,
               help="Correct data outside the calibrated temperature range (docs/thermal.md).")
-def apply_cmd(cal, raw, out, temp_c, extrapolate):
+def apply_cmd(cal, raw, out, temp_c=None, extrapolate=False):
     """Correct a recording with a calibration: f = K^-1 (A - b), w = G^-1 (W - d - D f).
 
     A redundant-unit (RIMU) calibration gives the corrected single-axis outputs
