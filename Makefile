@@ -20,14 +20,15 @@ demo: $(STAMP)
 test: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m pytest -q
 
+# make validate K=turntable: one method's part alone (pytest -k)
 validate: $(STAMP)
-	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m slow tests
+	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m slow tests $(if $(K),-k $(K))
 
 lint: $(STAMP)
 	$(BIN)/ruff check calib_cli tests
 
 # each benchmark prints its figures against a baseline measured in the same run
-BENCHES := calib_cli.bench calib_cli.bench_acquire calib_cli.bench_batch calib_cli.bench_turntable
+BENCHES := calib_cli.bench calib_cli.bench_acquire calib_cli.bench_batch calib_cli.bench_turntable benchmarks.bench_import
 
 bench: $(STAMP)
 	for b in $(BENCHES); do echo "== $$b"; MPLBACKEND=Agg $(BIN)/python -m $$b || exit 1; done

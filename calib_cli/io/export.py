@@ -514,3 +514,14 @@ def _c_thermal_body(cal, corr, th, single, P, p, T, units) -> list[str]:
                 f" + {P}_GYRO_GINV[i][2] * u[2];",
                 "}", ""]
     return out
+
+
+# Formats for other tools (Kalibr imu.yaml, PX4 and ArduPilot parameters) live in
+# io/export_autopilot.py; `calib export` dispatches on ALL_FORMATS.
+def _tool_formats() -> tuple[str, ...]:
+    from calib_cli.io.export_autopilot import AUTOPILOT_FORMATS
+
+    return AUTOPILOT_FORMATS
+
+
+ALL_FORMATS = FORMATS + _tool_formats()

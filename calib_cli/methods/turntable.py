@@ -45,6 +45,7 @@ from calib_cli.errors import EstimationError, InputError
 from calib_cli.model.effects import Layout
 from calib_cli.model.frames import attitude_to_rotation, skew
 from calib_cli.model.kinematics import rigid_body_accel
+from calib_cli.model.strapdown import mean_rotation, step_rotvec
 
 K_LOWER = [(0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2)]
 P_OFF = [(i, j) for i in range(3) for j in range(3) if i != j]
@@ -76,6 +77,24 @@ class TurntableOptions:
     accel_skip: float = 0.02  # rad/s^2: with tangential off, blocks accelerating faster are skipped
     history_every: float = 2.0
     noise: dict | None = None  # {"accel": (3,), "gyro": (3,)} per-sample sigma; else from data
+    grade: str = "mems"  # the prior widths of GRADES
+    priors: dict | None = None  # {contract key: 1-sigma, SI} overriding the grade's
+
+
+# A-priori 1-sigma of each parameter group (SI) per grade of unit: weakly informative
+# around a neutral unit. "mems" are the widths this fit always used (about ten times the
+# catalogue's typical MEMS sizes); "navigation" is the rough-stand paper's setting (gyro
+# drift 0.1 deg/h, accelerometer bias 6e-4 g, lever arms 0.1 m, proof-mass offsets 0.02 m).
+GRADES = {
+    "mems": {"accel_bias": 1.0, "accel_K": 0.05, "gyro_bias": 0.05, "gyro_K": 0.05,
+             "gyro_D": 2e-3, "lever_arm": 0.5, "proof_mass_offsets": 0.05},
+    "tactical": {"accel_bias": 0.02, "accel_K": 5e-3, "gyro_bias": float(np.radians(10 / 3600)),
+                 "gyro_K": 5e-3, "gyro_D": 2e-4, "lever_arm": 0.2, "proof_mass_offsets": 0.02},
+    "navigation": {"accel_bias": 6e-4 * 9.80665, "accel_K": 1e-3,
+                   "gyro_bias": float(np.radians(0.1 / 3600)), "gyro_K": 1e-3, "gyro_D": 2e-5,
+                   "lever_arm": 0.1, "proof_mass_offsets": 0.02},
+}
+PRIOR_KEYS = tuple(GRADES["mems"])
 
 
 @dataclass
@@ -200,10 +219,14 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
             f[:, i] -= rigid_body_accel(w0, dw0, pi)[:, i]
     w = (W - par["gb"] - f @ par["D"].T) @ Ginv.T
     dt = np.diff(t, append=t[-1] + (t[-1] - t[-2]))
-    # per-block scans over the samples of all blocks at once; the attitude is
-    # integrated with the mid-interval rate (trapezoidal), else it lags half a sample
-    wmid = np.concatenate([0.5 * (w[1:] + w[:-1]), w[-1:]])
-    fmid = np.concatenate([0.5 * (f[1:] + f[:-1]), f[-1:]])
+    # per-block scans over the samples of all blocks at once. Instant samples: the
+    # attitude steps with the mid-interval rate from one stamp to the next, and a block's
+    # accelerometer mean is the mean over its stamps. Interval means: step k is sample
+    # k's own period, and the block mean is the continuous mean over its periods
+    # (model/strapdown.py: step_rotvec, mean_rotation)
+    interval = rec.sample_kind == "interval-mean"
+    wmid = step_rotvec(w, np.ones(len(w)), rec.sample_kind)
+    fmid = step_rotvec(f, np.ones(len(f)), rec.sample_kind)
     wb = w[:n].reshape(nb, block_n, 3)
     wmb = wmid[:n].reshape(nb, block_n, 3)
     fb = fmid[:n].reshape(nb, block_n, 3)
@@ -219,15 +242,23 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
     wg = np.zeros((3, nb, 3, 21))
     ex = [skew(e) for e in np.eye(3)]
     for m in range(block_n):
-        r_sum += R
-        qbar += qc
-        for c in range(3):
-            wg[c] += np.swapaxes(R, 1, 2) @ (ex[c] @ qc)
+        step = wmb[:, m] * dtb[:, m, None]
         RG = (R * dtb[:, m, None, None]) @ Ginv
-        qc[:, :, 0:3] -= RG
-        qc[:, :, 3:12] -= (RG[:, :, :, None] * wmb[:, m, None, None, :]).reshape(nb, 3, 9)
-        qc[:, :, 12:21] -= (RG[:, :, :, None] * fb[:, m, None, None, :]).reshape(nb, 3, 9)
-        R = R @ Rotation.from_rotvec(wmb[:, m] * dtb[:, m, None]).as_matrix()
+        dq = np.zeros((nb, 3, 21))
+        dq[:, :, 0:3] = -RG
+        dq[:, :, 3:12] = -(RG[:, :, :, None] * wmb[:, m, None, None, :]).reshape(nb, 3, 9)
+        dq[:, :, 12:21] = -(RG[:, :, :, None] * fb[:, m, None, None, :]).reshape(nb, 3, 9)
+        if interval:  # the mean over the sample's own period
+            Rm = R @ mean_rotation(step)
+            qm = qc + 0.5 * dq
+        else:  # the value at the stamp
+            Rm, qm = R, qc
+        r_sum += Rm
+        qbar += qm
+        for c in range(3):
+            wg[c] += np.swapaxes(Rm, 1, 2) @ (ex[c] @ qm)
+        qc = qc + dq
+        R = R @ Rotation.from_rotvec(step).as_matrix()
     q = qc
     # mean centripetal operator [w x]^2 = w w^T - |w|^2 I
     ww = np.einsum("bmi,bmj->bij", wb, wb) / block_n
@@ -246,7 +277,13 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
 
 
 def _rot(phi):
-    return Rotation.from_rotvec(phi).as_matrix()
+    """Rotation matrix of one small rotation vector (Rodrigues; SciPy's per-call overhead
+    is most of the filter's time at one call per block)."""
+    a = float(np.sqrt(phi @ phi))
+    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    if a < 1e-8:
+        return np.eye(3) + K + 0.5 * (K @ K)
+    return np.eye(3) + (np.sin(a) / a) * K + ((1.0 - np.cos(a)) / a**2) * (K @ K)
 
 
 def _select(rec: Recording) -> list[_Cycle]:
@@ -349,6 +386,14 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             fast = np.linalg.norm(b.dw_raw, axis=1) > opt.accel_skip
             skip = fast | np.roll(fast, 1) | np.roll(fast, -1)
         sA = slice(0, 3)
+        # fixed index maps of the accelerometer rows of H
+        rows3, col_ab = np.arange(3), 3 + L.idx["ab"]
+        k_rows = np.array([i for i, _j in K_LOWER])
+        k_cols = np.array([j for _i, j in K_LOWER])
+        col_K = 3 + L.idx["K"]
+        p_rows = np.array([i for i, _j in P_OFF])
+        p_cols = np.array([j for _i, j in P_OFF])
+        col_p = 3 + L.idx["p"] if L.est_p else None
         for j in range(nb):
             # the first pass is an extended filter (Jacobians at the running estimate: the
             # neutral start can be far off); later passes linearise every block about the
@@ -367,27 +412,21 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             h = np.zeros(5)
             dfdphi = Rbar.T @ g_sk
             Kc = cur["K"]
-            U = np.zeros((3, 3))
-            for i in range(3):
-                r_i = s_c + cur["P"][i]
-                U[i] = gb_ + Cw @ r_i
+            # force at each proof mass, row i: gravity + (centripetal + tangential) at s + p_i
+            U = gb_[None, :] + (s_c[None, :] + cur["P"]) @ Cw.T
             gam = Rh.T @ g_n
             Wg = gam[0] * b.wg[0, j] + gam[1] * b.wg[1, j] + gam[2] * b.wg[2, j]  # (3, 21)
             KW = Kc @ Wg
-            for i in range(3):
-                h[i] = cur["ab"][i] + Kc[i] @ U[i] + KW[i] @ x[iG]
-                H[i, iG] = KW[i]
-                H[i, sA] = Kc[i] @ dfdphi
-                H[i, 3 + L.idx["ab"][i]] = 1.0
-                for q_, (ii, jj) in enumerate(K_LOWER):
-                    if ii == i:
-                        H[i, 3 + L.idx["K"][q_]] = U[i, jj]
-                if L.est_s:
-                    H[i, 3 + L.idx["s"][2 * c:2 * c + 2]] = Kc[i] @ Cw @ cy.basis
-                if L.est_p:
-                    for q_, (ii, jj) in enumerate(P_OFF):
-                        if ii == i:
-                            H[i, 3 + L.idx["p"][q_]] = Kc[i] @ Cw[:, jj]
+            KCw = Kc @ Cw
+            h[:3] = cur["ab"] + np.einsum("ij,ij->i", Kc, U) + KW @ x[iG]
+            H[:3, iG] = KW
+            H[:3, sA] = Kc @ dfdphi
+            H[rows3, col_ab] = 1.0
+            H[k_rows, col_K] = U[k_rows, k_cols]
+            if L.est_s:
+                H[:3, 3 + L.idx["s"][2 * c:2 * c + 2]] = KCw @ cy.basis
+            if L.est_p:
+                H[p_rows, col_p] = KCw[p_rows, p_cols]
             # table axis fixed in ENU: Rbar a_b = a_enu (two components)
             ra = Rbar @ a_b
             Hg = -Nperp @ skew(ra) @ Rh @ b.qbar[j]
@@ -413,13 +452,14 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             v = z - h
             PH = P @ H.T
             S = H @ PH + Rm
-            Kg = np.linalg.solve(S, PH.T).T
+            Si = np.linalg.inv(S)
+            Kg = PH @ Si
             x = x + Kg @ v
             P = P - Kg @ PH.T
             P = 0.5 * (P + P.T)
             if not skip[j] and j >= nb // 2:  # the second half of each cycle: converged state
                 innov.append(v[:3] * np.sqrt(b.m) / sig_a)
-            nis.append(float(v @ np.linalg.solve(S, v)))
+            nis.append(float(v @ Si @ v))
             if b.wabs[j] < np.radians(0.5):
                 fcorr = np.linalg.solve(Kc, b.a_mean[j] - cur["ab"])
                 lowrate.append((np.linalg.norm(b.a_mean[j]), np.linalg.norm(fcorr)))
@@ -429,7 +469,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             # propagate to the next block start
             B = Rh @ b.q[j]  # (3, 21)
             x[:3] = B @ x[iG]
-            Pg = P[np.ix_(iG, np.arange(ns))]  # (21, ns)
+            Pg = P[iG]  # (21, ns)
             BP = B @ Pg  # (3, ns)
             P[:3, :] += BP
             P[:, :3] += BP.T
@@ -484,18 +524,27 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     sd = np.zeros(L.size)
     mean[L.idx["K"][[0, 2, 5]]] = 1.0
     mean[L.idx["G"][[0, 4, 8]]] = 1.0
-    sd[L.idx["ab"]] = 1.0
-    sd[L.idx["K"]] = 0.05
-    sd[L.idx["gb"]] = 0.05
-    sd[L.idx["G"]] = 0.05
-    sd[L.idx["D"]] = 2e-3
+    if opt.grade not in GRADES:
+        raise InputError(f"grade must be one of {', '.join(GRADES)}, got {opt.grade!r}")
+    width = dict(GRADES[opt.grade])
+    for k, v in (opt.priors or {}).items():
+        if k not in width:
+            raise InputError(f"unknown prior key {k!r}; expected one of {', '.join(PRIOR_KEYS)}")
+        if not (np.isfinite(v) and v > 0):
+            raise InputError(f"prior {k} must be a positive number, got {v!r}")
+        width[k] = float(v)
+    sd[L.idx["ab"]] = width["accel_bias"]
+    sd[L.idx["K"]] = width["accel_K"]
+    sd[L.idx["gb"]] = width["gyro_bias"]
+    sd[L.idx["G"]] = width["gyro_K"]
+    sd[L.idx["D"]] = width["gyro_D"]
     if L.est_s:
         for c, cy in enumerate(cycles):
             if cy.s_plan is not None:
                 mean[L.idx["s"][2 * c:2 * c + 2]] = cy.basis.T @ cy.s_plan
-        sd[L.idx["s"]] = 0.5
+        sd[L.idx["s"]] = width["lever_arm"]
     if L.est_p:
-        sd[L.idx["p"]] = 0.05
+        sd[L.idx["p"]] = width["proof_mass_offsets"]
     sd[L.idx["u"]] = np.radians(3.0)
     sd[L.idx["t"]] = opt.table_tilt_sigma
     # a model that does not explain the data (e.g. lever arms ignored) leaves accelerometer
@@ -519,7 +568,7 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     if not np.all(np.isfinite(out.theta)):
         raise EstimationError("the turntable filter diverged")
     return _result(rec, cycles, L, out, opt, s_known, sig_a * inflation, sig_g, block_n,
-                   inflation, sd)
+                   inflation, sd, width)
 
 
 def _tilts(cycles, L, par, P, prior: float) -> list:
@@ -539,7 +588,7 @@ def _tilts(cycles, L, par, P, prior: float) -> list:
 
 
 def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, inflation,
-            prior_sd_vec):
+            prior_sd_vec, prior_widths):
     theta, P = out.theta, out.P
     par = _unpack(theta, L, cycles)
     nc = len(cycles)
@@ -615,7 +664,8 @@ def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, 
         "cycles": [rec.segments[cy.seg_index].label for cy in cycles],
         "lever_arm_mode": opt.lever_arm, "proof_mass_mode": opt.proof_mass,
         "tangential": bool(opt.tangential), "block_s": block_n / rec.sample_rate,
-        "passes": int(opt.passes),
+        "passes": int(opt.passes), "grade": opt.grade,
+        "prior_sigma": {k: float(v) for k, v in prior_widths.items()},
         "accel_noise_inflation": float(inflation),
         "noise_accel": [float(v) for v in sig_a], "noise_gyro": [float(v) for v in sig_g],
         "table_axis_body": [[float(v) for v in a] for a in a_b],
