@@ -10,7 +10,14 @@ from calib_cli.cli.common import info
 from calib_cli.cli.main import cli
 from calib_cli.errors import InputError
 from calib_cli.io.h5 import atomic_path, open_checked, read_calibration, write_provenance
-from calib_cli.methods.apply import apply_triad, check_units, corrected_channels
+from calib_cli.methods.apply import (
+    apply_triad,
+    check_temperature,
+    check_units,
+    corrected_channels,
+    effective_temperature,
+    is_thermal,
+)
 from calib_cli.methods.rimu import apply_rimu
 
 CHUNK = 262144  # samples per chunk: memory stays flat for long recordings
@@ -20,12 +27,19 @@ CHUNK = 262144  # samples per chunk: memory stays flat for long recordings
 @click.argument("cal", type=click.Path(dir_okay=False))
 @click.argument("raw", type=click.Path(dir_okay=False))
 @click.option("--out", required=True, type=click.Path(dir_okay=False))
-def apply_cmd(cal, raw, out):
+@click.option("--temp", "temp_c", type=float, default=None,
+              help="Constant temperature (degC) for a thermal calibration when the recording "
+                   "has no temperature column.")
+@click.option("--extrapolate", is_flag=True,
+              help="Correct data outside the calibrated temperature range (docs/thermal.md).")
+def apply_cmd(cal, raw, out, temp_c=None, extrapolate=False):
     """Correct a recording with a calibration: f = K^-1 (A - b), w = G^-1 (W - d - D f).
 
     A redundant-unit (RIMU) calibration gives the corrected single-axis outputs
     (m - b) / (1 + ks) and the body-frame estimates samples/accel_body and
-    samples/gyro_body, x = (H^T H)^-1 H^T c (docs/rimu.md)."""
+    samples/gyro_body, x = (H^T H)^-1 H^T c (docs/rimu.md). A thermal calibration
+    uses the temperature column (or --temp) and refuses data outside its
+    range by more than 5 degC unless --extrapolate (docs/thermal.md)."""
     c = read_calibration(cal)
     rimu = c.layout.redundant
     with open_checked(raw, ("raw",)) as src:
@@ -35,6 +49,17 @@ def apply_cmd(cal, raw, out):
         check_units(c, units, raw)
         chans = corrected_channels(c)
         n = smp["time"].shape[0]
+        temp_eff = None
+        if is_thermal(c):
+            if "temp" in smp:
+                temp_in = np.asarray(smp["temp"][...], dtype=float)
+            elif temp_c is not None:
+                temp_in = np.full(n, float(temp_c))
+            else:
+                raise InputError("the calibration has temperature terms but the recording has "
+                                 "no temperature column (give --temp DEGC)", raw)
+            check_temperature(c, temp_in, raw, extrapolate)
+            temp_eff = effective_temperature(c, smp["time"][...], temp_in)
         with atomic_path(out) as tmp, h5py.File(tmp, "w") as dst:
             write_provenance(dst, "corrected", [cal, raw], c.serial or (
                 src.attrs.get("unit_serial") or None),
@@ -69,7 +94,8 @@ def apply_cmd(cal, raw, out):
                     for s, ds in body.items():
                         ds[a:b] = res[f"{s}_body"]
                 else:
-                    f, w = apply_triad(c, smp["accel"][a:b], g_in, accel_si=units["accel"] != "count")
+                    f, w = apply_triad(c, smp["accel"][a:b], g_in, accel_si=units["accel"] != "count",
+                                       temp=None if temp_eff is None else temp_eff[a:b])
                 acc[a:b] = f
                 if gyr is not None:
                     gyr[a:b] = w

@@ -40,6 +40,7 @@ from calib_cli.model.kinematics import Kinematics
 
 FORMATS = ("json", "yaml", "c-header", "csv")
 LINEAR_EFFECTS = {"bias", "scale_misalignment", "misalignment", "g_sensitivity"}
+THERMAL_EFFECTS = {"temperature_drift", "thermal_lag"}  # evaluated first (docs/thermal.md)
 NOT_APPLIED = {"lever_arm", "proof_mass_offsets"}  # input-side terms, not part of the correction
 FORMULA = {"accel": "f = K^-1 (A - b)", "gyro": "w = G^-1 (W - d - D f)"}
 
@@ -57,7 +58,11 @@ def affine_correction(cal: CalibrationResult, path: str = "<calibration>") -> di
         raise InputError("a redundant-unit (RIMU) calibration has no triad K^-1; export it "
                          "as json, yaml or csv", path)
     names = {d.get("name") for d in cal.model}
-    bad = sorted(names - LINEAR_EFFECTS - NOT_APPLIED)
+    bad = sorted(names - LINEAR_EFFECTS - NOT_APPLIED - THERMAL_EFFECTS)
+    if "temperature_drift" in names and "misalignment" in names:
+        bad.append("misalignment with temperature_drift")
+    if any(d.get("name") == "temperature_drift" and d.get("order") is None for d in cal.model):
+        bad.append("temperature_drift of the previous form (scale on the nominal input)")
     if bad:
         raise InputError(f"the calibration's model includes {', '.join(bad)}, which the linear "
                          "correction f = K^-1 (A - b) cannot express; use `calib apply`", path)
@@ -95,9 +100,51 @@ def affine_correction(cal: CalibrationResult, path: str = "<calibration>") -> di
             out[sensor] = {"b": b, "K": K, "K_inv": np.linalg.inv(K)}
         else:
             out[sensor] = {"d": b, "G": K, "G_inv": np.linalg.inv(K), "D": D}
+        td = _thermal_of(cal, sensor)
+        if td is not None:
+            out[sensor].update(td)
     if not out:
         raise InputError("the calibration holds no accelerometer or gyroscope correction", path)
     return out
+
+
+def _thermal_of(cal: CalibrationResult, sensor: str) -> dict | None:
+    """The sensor's temperature polynomial as (3, N) arrays, zeros where null."""
+    d = next((d for d in cal.model if d.get("name") == "temperature_drift"
+              and d.get("sensor") == sensor), None)
+    if d is None:
+        return None
+    out = {}
+    for name in ("temp_bias", "temp_scale"):
+        v = np.asarray(cal.params.get(f"{sensor}_{name}", np.zeros(3)), dtype=float)
+        v = np.where(np.isfinite(v), v, 0.0)
+        out[name] = v[:, None] if v.ndim == 1 else v
+    out["temp_ref"] = float(d.get("temp_ref", 25.0))
+    return out
+
+
+def thermal_info(cal: CalibrationResult) -> dict | None:
+    """T_ref, order, calibrated range and lag of a thermal calibration (None otherwise)."""
+    ds = [d for d in cal.model if d.get("name") == "temperature_drift"]
+    if not ds:
+        return None
+    rng = cal.stats.get("temp_range_degC") or [None, None]
+    lag = any(d.get("name") == "thermal_lag" for d in cal.model)
+    return {"temp_ref_degC": float(ds[0].get("temp_ref", 25.0)),
+            "order": int(ds[0].get("order", 1)),
+            "temp_range_degC": [None if x is None else float(x) for x in rng],
+            "thermal_lag_tau_s": float(cal.params["thermal_lag_tau"]) if lag else None}
+
+
+THERMAL_FORMULA = {
+    "accel": "dT = T - T_ref; u_i = (A_i - b_i - sum_k bT_ik dT^(k+1)) / "
+             "(1 + sum_k sT_ik dT^(k+1)); f = K^-1 u",
+    "gyro": "dT = T - T_ref; u_i = (W_i - d_i - sum_k dT_ik dT^(k+1) - (D f)_i) / "
+            "(1 + sum_k gT_ik dT^(k+1)); w = G^-1 u",
+    "lag": "with thermal_lag: T is the recorded temperature through a first-order lag of "
+           "time constant tau (first-order hold): Tm_k = a Tm_(k-1) + c T_k + (1 - a - c) "
+           "T_(k-1), a = exp(-dt/tau), c = 1 - tau (1 - a) / dt, Tm_0 = T_0",
+}
 
 
 def _num(x) -> float | None:
@@ -140,8 +187,13 @@ def export_object(cal: CalibrationResult, prov: dict, source: str) -> dict:
     }
     if not cal.layout.redundant:
         corr = affine_correction(cal, source)
-        obj["formula"] = {s: FORMULA[s] for s in corr}
+        th = thermal_info(cal)
+        obj["formula"] = {s: (THERMAL_FORMULA[s] if th else FORMULA[s]) for s in corr}
+        if th and th["thermal_lag_tau_s"] is not None:
+            obj["formula"]["lag"] = THERMAL_FORMULA["lag"]
         obj["correction"] = {s: {k: _lists(v) for k, v in d.items()} for s, d in corr.items()}
+        if th:
+            obj["thermal"] = th
         not_applied = sorted({d.get("name") for d in cal.model} & NOT_APPLIED)
         if not_applied:
             obj["not_applied"] = not_applied
@@ -243,12 +295,23 @@ C_STRINGS = ("SOURCE_FILE", "SOURCE_SHA256", "SOURCE_CREATED_UTC", "SOURCE_COMMA
              "SOURCE_TOOL_VERSION", "METHOD", "UNIT_SERIAL")
 
 
-def c_header_symbols(prefix: str = "calib", accel: bool = True, gyro: bool = True) -> dict:
+def c_header_symbols(prefix: str = "calib", accel: bool = True, gyro: bool = True,
+                     thermal: bool = False, lag: bool = False) -> dict:
     """The names a c-header export defines (docs/export.md): {"macros",
     "types", "objects", "functions"}; the header defines nothing else."""
     P, p = prefix.upper(), prefix.lower()
     objects = [f"{P}_{n}" for n in C_STRINGS]
     macros, functions = [f"{P}_CORRECTION_H"], []
+    if thermal:
+        macros += [f"{P}_HAS_THERMAL", f"{P}_TEMP_ORDER"]
+        objects += [f"{P}_TEMP_REF", f"{P}_TEMP_MIN", f"{P}_TEMP_MAX"]
+        objects += [f"{P}_{s}_TEMP_{k}" for s, on in (("ACCEL", accel), ("GYRO", gyro)) if on
+                    for k in ("BIAS", "SCALE")]
+        functions.append(f"{p}_temp_poly")
+        if lag:
+            macros.append(f"{P}_HAS_THERMAL_LAG")
+            objects.append(f"{P}_THERMAL_LAG_TAU")
+            functions.append(f"{p}_lag_temp")
     if accel:
         macros.append(f"{P}_HAS_ACCEL")
         objects += [f"{P}_ACCEL_UNITS", f"{P}_ACCEL_BIAS", f"{P}_ACCEL_KINV"]
@@ -315,6 +378,10 @@ def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = 
         _c_str_const(f"{P}_UNIT_SERIAL", _text(cal.serial) or "unknown"),
         "",
     ]
+    th = thermal_info(cal)
+    if th is not None:
+        return "\n".join(head + _c_thermal_body(cal, corr, th, single, P, p, T, units)
+                         + [f"#endif /* {P}_CORRECTION_H */", ""])
     body = []
     if "accel" in corr:
         a = corr["accel"]
@@ -355,6 +422,98 @@ def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = 
                  f" + {P}_GYRO_GINV[i][2] * u[2];",
                  "}", ""]
     return "\n".join(head + body + [f"#endif /* {P}_CORRECTION_H */", ""])
+
+
+def _c_rows(name, m, single, T):
+    m = np.asarray(m, dtype=float)
+    rows = ",\n    ".join("{" + ", ".join(_c_lit(x, single) for x in r) + "}" for r in m)
+    return f"static const {T} {name}[3][{m.shape[1]}] = {{\n    {rows}\n}};"
+
+
+def _c_thermal_body(cal, corr, th, single, P, p, T, units) -> list[str]:
+    """The thermal header (docs/thermal.md): the firmware evaluates the
+    temperature polynomial, then the static correction, as calib apply."""
+    N = int(next(iter(corr.values()))["temp_bias"].shape[1])
+    lo, hi = th["temp_range_degC"]
+    out = [f"#define {P}_HAS_THERMAL 1",
+           f"#define {P}_TEMP_ORDER {N}",
+           "/* reference temperature T_ref and the calibrated range, degC */",
+           f"static const {T} {P}_TEMP_REF = {_c_lit(th['temp_ref_degC'], single)};",
+           f"static const {T} {P}_TEMP_MIN = {_c_lit(lo if lo is not None else -1e300, single)};",
+           f"static const {T} {P}_TEMP_MAX = {_c_lit(hi if hi is not None else 1e300, single)};",
+           "",
+           "/* sum_k c[k] dT^(k+1), k = 0 .. ORDER-1 (Horner) */",
+           f"static inline {T} {p}_temp_poly(const {T} c[{N}], {T} dT)",
+           "{",
+           f"    {T} s = 0;",
+           f"    for (int k = {N} - 1; k >= 0; --k) s = (s + c[k]) * dT;",
+           "    return s;",
+           "}", ""]
+    if th["thermal_lag_tau_s"] is not None:
+        out += ["#include <math.h>", f"#define {P}_HAS_THERMAL_LAG 1",
+                "/* thermal lag time constant tau, s */",
+                f"static const {T} {P}_THERMAL_LAG_TAU = "
+                f"{_c_lit(th['thermal_lag_tau_s'], single)};",
+                "/* the temperature the sensing elements see: first-order lag of the recorded",
+                " * temperature T, first-order hold; state[0] = lagged value, state[1] = the",
+                " * previous T; start both at the first T. dt: sample interval, s. */",
+                f"static inline {T} {p}_lag_temp({T} state[2], {T} T_now, {T} dt)",
+                "{",
+                f"    {T} a = exp(-dt / {P}_THERMAL_LAG_TAU);",
+                f"    {T} c = 1 - {P}_THERMAL_LAG_TAU * (1 - a) / dt;",
+                "    state[0] = a * state[0] + c * T_now + (1 - a - c) * state[1];",
+                "    state[1] = T_now;",
+                "    return state[0];",
+                "}", ""]
+    if "accel" in corr:
+        a = corr["accel"]
+        out += [f"#define {P}_HAS_ACCEL 1",
+                "/* units of the accelerometer output A */",
+                _c_str_const(f"{P}_ACCEL_UNITS", units.get("accel") or "m/s^2"),
+                "/* accelerometer bias b at T_ref */", _c_vec(f"{P}_ACCEL_BIAS", a["b"], single, T),
+                "/* K^-1 at T_ref */", _c_mat(f"{P}_ACCEL_KINV", a["K_inv"], single, T),
+                "/* bias polynomial bT[i][k], coefficient of dT^(k+1), m/s^2/degC^(k+1) */",
+                _c_rows(f"{P}_ACCEL_TEMP_BIAS", a["temp_bias"], single, T),
+                "/* scale polynomial sT[i][k] on row i of K f, 1/degC^(k+1) */",
+                _c_rows(f"{P}_ACCEL_TEMP_SCALE", a["temp_scale"], single, T), "",
+                "/* u_i = (A_i - b_i - bT_i(dT)) / (1 + sT_i(dT)), f = K^-1 u, dT = temp - T_ref */",
+                f"static inline void {p}_correct_accel(const {T} A[3], {T} temp, {T} f[3])",
+                "{",
+                f"    {T} u[3], dT = temp - {P}_TEMP_REF;",
+                "    for (int i = 0; i < 3; ++i)",
+                f"        u[i] = (A[i] - {P}_ACCEL_BIAS[i] - {p}_temp_poly({P}_ACCEL_TEMP_BIAS[i], dT))"
+                f" / (1 + {p}_temp_poly({P}_ACCEL_TEMP_SCALE[i], dT));",
+                "    for (int i = 0; i < 3; ++i)",
+                f"        f[i] = {P}_ACCEL_KINV[i][0] * u[0] + {P}_ACCEL_KINV[i][1] * u[1]"
+                f" + {P}_ACCEL_KINV[i][2] * u[2];",
+                "}", ""]
+    if "gyro" in corr:
+        g = corr["gyro"]
+        out += [f"#define {P}_HAS_GYRO 1",
+                "/* units of the gyro output W */",
+                _c_str_const(f"{P}_GYRO_UNITS", units.get("gyro") or "rad/s"),
+                "/* gyro bias d at T_ref */", _c_vec(f"{P}_GYRO_BIAS", g["d"], single, T),
+                "/* G^-1 at T_ref */", _c_mat(f"{P}_GYRO_GINV", g["G_inv"], single, T),
+                "/* D, g-sensitivity, (rad/s)/(m/s^2) (zero when not estimated) */",
+                _c_mat(f"{P}_GYRO_D", g["D"], single, T),
+                "/* bias polynomial, rad/s/degC^(k+1) */",
+                _c_rows(f"{P}_GYRO_TEMP_BIAS", g["temp_bias"], single, T),
+                "/* scale polynomial on row i of G w (zero where not observable) */",
+                _c_rows(f"{P}_GYRO_TEMP_SCALE", g["temp_scale"], single, T), "",
+                "/* u_i = (W_i - d_i - dT_i(dT) - (D f)_i) / (1 + gT_i(dT)), w = G^-1 u */",
+                f"static inline void {p}_correct_gyro(const {T} W[3], const {T} f[3], {T} temp,"
+                f" {T} w[3])",
+                "{",
+                f"    {T} u[3], dT = temp - {P}_TEMP_REF;",
+                "    for (int i = 0; i < 3; ++i)",
+                f"        u[i] = (W[i] - {P}_GYRO_BIAS[i] - {p}_temp_poly({P}_GYRO_TEMP_BIAS[i], dT)"
+                f" - ({P}_GYRO_D[i][0] * f[0] + {P}_GYRO_D[i][1] * f[1] + {P}_GYRO_D[i][2] * f[2]))"
+                f" / (1 + {p}_temp_poly({P}_GYRO_TEMP_SCALE[i], dT));",
+                "    for (int i = 0; i < 3; ++i)",
+                f"        w[i] = {P}_GYRO_GINV[i][0] * u[0] + {P}_GYRO_GINV[i][1] * u[1]"
+                f" + {P}_GYRO_GINV[i][2] * u[2];",
+                "}", ""]
+    return out
 
 
 # Formats for other tools (Kalibr imu.yaml, PX4 and ArduPilot parameters) live in

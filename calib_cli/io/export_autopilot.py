@@ -103,6 +103,11 @@ def _diag_model(cal: CalibrationResult, sensor: str, path: str):
     if bias is None:
         return None, None, dropped
     bias = np.asarray(bias, dtype=float).reshape(3)
+    for k in (f"{sensor}_temp_bias", f"{sensor}_temp_scale"):  # docs/thermal.md
+        v = np.nan_to_num(np.asarray(p.get(k, 0.0), dtype=float))
+        if np.any(v != 0):
+            dropped[f"{k}: temperature terms (the values at T_ref are written; largest "
+                    "coefficient)"] = float(np.abs(v).max())
     if K is None:
         return bias, np.ones(3), dropped
     K = np.asarray(K, dtype=float).reshape(3, 3)

@@ -29,18 +29,54 @@ def corrected_channels(cal: CalibrationResult) -> list[str]:
     return [s for s in ("accel", "gyro") if f"{s}_K" in cal.params or f"{s}_bias" in cal.params]
 
 
+TEMP_MARGIN_C = 5.0  # degC beyond the calibrated range that apply accepts (docs/thermal.md)
+
+
+def is_thermal(cal: CalibrationResult) -> bool:
+    return any(d.get("name") == "temperature_drift" for d in cal.model)
+
+
+def effective_temperature(cal: CalibrationResult, time: np.ndarray, temp: np.ndarray) -> np.ndarray:
+    """The temperature the calibration's temperature terms take: the recorded
+    one, lagged by the calibration's thermal_lag where it has one."""
+    from calib_cli.model.effects import lag_temperature
+
+    temp = np.asarray(temp, dtype=float)
+    if any(d.get("name") == "thermal_lag" for d in cal.model):
+        return lag_temperature(np.asarray(time, float), temp,
+                               float(cal.params.get("thermal_lag_tau", 0.0)))
+    return temp
+
+
+def check_temperature(cal: CalibrationResult, temp: np.ndarray, path: str,
+                      extrapolate: bool = False) -> None:
+    """Refuse data outside the calibrated range by more than TEMP_MARGIN_C."""
+    rng = cal.stats.get("temp_range_degC")
+    if extrapolate or not rng or not len(temp):
+        return
+    lo, hi = float(np.nanmin(temp)), float(np.nanmax(temp))
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        raise InputError("the temperature column holds no finite value", path)
+    if lo < rng[0] - TEMP_MARGIN_C or hi > rng[1] + TEMP_MARGIN_C:
+        raise InputError(f"temperature {lo:.1f}..{hi:.1f} degC is outside the calibrated range "
+                         f"{rng[0]:.1f}..{rng[1]:.1f} degC by more than {TEMP_MARGIN_C:g} degC "
+                         "(--extrapolate to correct anyway)", path)
+
+
 def apply_triad(cal: CalibrationResult, accel: np.ndarray, gyro: np.ndarray | None,
-                accel_si: bool = True):
+                accel_si: bool = True, temp: np.ndarray | None = None):
     """Corrected (accel, gyro) for a chunk: f = K^-1 (A - b), w = G^-1 (W - d - D f).
     Channels the calibration does not cover pass through unchanged. For a
     gyro-only calibration with g-sensitivity, f is the raw accelerometer
-    output when that is in SI (``accel_si``), else zero."""
+    output when that is in SI (``accel_si``), else zero. ``temp``: the
+    effective temperature per sample (``effective_temperature``) for a
+    thermal calibration."""
     model = model_of(cal)
     params = {k: np.asarray(v, dtype=float) for k, v in cal.params.items()}
     chans = corrected_channels(cal)
-    f = correct(model, params, "accel", accel) if "accel" in chans else accel
+    f = correct(model, params, "accel", accel, temp=temp) if "accel" in chans else accel
     w = gyro
     if gyro is not None and "gyro" in chans:
         other = f if "accel" in chans else (accel if accel_si else None)
-        w = correct(model, params, "gyro", gyro, other=other)
+        w = correct(model, params, "gyro", gyro, other=other, temp=temp)
     return f, w

@@ -22,13 +22,15 @@ def _transfer(model: ImuModel, params: dict, sensor: str) -> np.ndarray:
 
 
 def correct(model: ImuModel, params: dict, sensor: str, y: np.ndarray,
-            other: np.ndarray | None = None, iterations: int = 4) -> np.ndarray:
+            other: np.ndarray | None = None, iterations: int = 4,
+            temp: np.ndarray | None = None) -> np.ndarray:
     """Physical input (N, 3) that makes the model output ``y`` (N, 3), triad.
 
     sensor "accel": returns specific force; "gyro": angular rate, with
     ``other`` the corrected specific force (for g-sensitivity; zero if None).
     Rate-dependent input effects (lever arms) are not inverted here: the
     result is at the triad's reference point, as the contract's correction.
+    temp: (N,) degC for temperature-dependent effects (None: none apply).
     """
     y = np.asarray(y, dtype=float)
     n = len(y)
@@ -36,11 +38,11 @@ def correct(model: ImuModel, params: dict, sensor: str, y: np.ndarray,
     Tinv = np.linalg.inv(T)
     zeros = np.zeros((n, 3))
     x = (y - np.asarray(params.get(f"{sensor}_bias", 0.0))) @ Tinv.T
-    for _ in range(iterations):
+    for _ in range(iterations + (4 if temp is not None else 0)):
         if sensor == "accel":
-            kin = Kinematics(np.zeros(n), x, zeros, zeros)
+            kin = Kinematics(np.zeros(n), x, zeros, zeros, temp=temp)
         else:
-            kin = Kinematics(np.zeros(n), zeros if other is None else other, x, zeros)
+            kin = Kinematics(np.zeros(n), zeros if other is None else other, x, zeros, temp=temp)
         pred = model.predict(params, kin, sensors=(sensor,))[sensor]
         step = (y - pred) @ Tinv.T
         x = x + step

@@ -100,6 +100,7 @@ class _Ctx:
         self.F = np.repeat(src[:, None, :], n, axis=1)  # (N, n, 3) input vector of each channel
         self.f_ref = kin.f  # specific force at the unit's reference point
         self.u = None  # (N, n) input along each channel's sensitive axis
+        self.y_transfer = None  # (N, n) output of the transfer stage, (K f)_i
         self.y = None  # (N, n) output
 
 
@@ -280,28 +281,91 @@ class ScaleAsymmetry(Effect):
         ctx.y = ctx.y + p[self._key("scale_asymmetry")] * np.abs(ctx.u)
 
 
+def temp_poly(coef: np.ndarray, dT: np.ndarray) -> np.ndarray:
+    """sum_k c_ik dT^(k+1) for each sample and channel: (N, n).
+
+    coef: (n,) (order 1) or (n, N) with column k the coefficient of
+    dT^(k+1) (CONTRACT.md section 7); dT: (N,) temperature minus T_ref."""
+    c = np.asarray(coef, dtype=float)
+    if c.ndim == 1:
+        c = c[:, None]
+    powers = np.stack([dT ** (k + 1) for k in range(c.shape[1])], axis=1)  # (N, order)
+    return powers @ c.T
+
+
 @dataclass(frozen=True)
 class TemperatureDrift(Effect):
-    """Bias and scale linear in temperature about TEMP_REF_C:
-    y_i += bT_i (T - T0) + kT_i (T - T0) u_i."""
+    """Bias and scale polynomial in T - T_ref (CONTRACT.md section 7):
 
+        y_i = b_i + sum_k bT_ik dT^(k+1) + (1 + sum_k sT_ik dT^(k+1)) (K f)_i
+
+    ``order`` N: parameters of shape (n,) for N = 1, (n, N) otherwise,
+    column k the coefficient of dT^(k+1). ``temp_ref``: T_ref, degC.
+    The scale term multiplies the transfer stage's output (K f)_i. Files
+    written before this form (their model description has no ``order``)
+    held a scale term on the nominal input u_i; ``scale_on = "input"``
+    keeps reading them as they were fitted (docs/thermal.md).
+    """
+
+    order: int = 1
+    temp_ref: float = TEMP_REF_C
+    scale_on: str = "transfer"
     name: str = field(default="temperature_drift", init=False)
     stage: int = field(default=CORRECTION, init=False)
 
     def specs(self, layout):
         acc = self.sensor == "accel"
-        return [ParamSpec(self._key("temp_bias"), (layout.n,),
-                          "m/s^2/degC" if acc else "rad/s/degC", 1e-3 if acc else 1e-4,
+        shape = (layout.n,) if self.order == 1 else (layout.n, self.order)
+        return [ParamSpec(self._key("temp_bias"), shape,
+                          "m/s^2/degC^k" if acc else "rad/s/degC^k", 1e-3 if acc else 1e-4,
                           display=(1e3 / 9.80665, "mg/degC") if acc else (180 / np.pi * 3600,
                                                                           "deg/h/degC")),
-                ParamSpec(self._key("temp_scale"), (layout.n,), "1/degC", 1e-4,
+                ParamSpec(self._key("temp_scale"), shape, "1/degC^k", 1e-4,
                           display=(1e6, "ppm/degC"))]
 
     def apply(self, p, ctx):
         if ctx.kin.temp is None:
             return
-        dT = (ctx.kin.temp - TEMP_REF_C)[:, None]
-        ctx.y = ctx.y + dT * (p[self._key("temp_bias")] + p[self._key("temp_scale")] * ctx.u)
+        dT = np.asarray(ctx.kin.temp, dtype=float) - self.temp_ref
+        base = ctx.u if self.scale_on == "input" else ctx.y_transfer
+        ctx.y = ctx.y + temp_poly(p[self._key("temp_bias")], dT) + \
+            temp_poly(p[self._key("temp_scale")], dT) * base
+
+
+def lag_temperature(t: np.ndarray, temp: np.ndarray, tau: float) -> np.ndarray:
+    """The temperature of the sensing elements when they follow the unit's
+    temperature sensor with a first-order lag of time constant tau (s):
+    tau dTm/dt = T - Tm, Tm = T at the first sample; exact for T linear
+    between samples (first-order hold)."""
+    temp = np.asarray(temp, dtype=float)
+    tau = abs(float(tau))
+    if tau == 0.0 or len(temp) < 2:
+        return temp.copy()
+    dt = float(np.median(np.diff(t)))
+    if not dt > 0:
+        return temp.copy()
+    a = np.exp(-dt / tau)
+    c = 1.0 - tau * (1.0 - a) / dt
+    from scipy.signal import lfilter
+
+    # Tm_k = a Tm_{k-1} + (1 - a) T_{k-1} + c (T_k - T_{k-1}) = a Tm_{k-1} + c T_k + (1 - a - c) T_{k-1}
+    x = temp - temp[0]
+    y = lfilter([c, 1.0 - a - c], [1.0, -a], x)
+    return y + temp[0]
+
+
+@dataclass(frozen=True)
+class ThermalLag(Effect):
+    """The sensing elements follow the unit's temperature sensor with a
+    first-order lag, time constant ``thermal_lag_tau`` (s): every
+    temperature-dependent effect sees lag_temperature(t, temp, tau)."""
+
+    sensor: str = ""
+    name: str = field(default="thermal_lag", init=False)
+    stage: int = field(default=SHIFT, init=False)
+
+    def specs(self, layout):
+        return [ParamSpec("thermal_lag_tau", (), "s", 100.0, display=(1.0, "s"))]
 
 
 # ---------------------------------------------------------------------------
@@ -470,6 +534,7 @@ CATALOGUE = {
     "scale_asymmetry": ScaleAsymmetry,
     "temperature_drift": TemperatureDrift,
     "time_offset": TimeOffset,
+    "thermal_lag": ThermalLag,
     "bias_random_walk": BiasRandomWalk,
     "bias_instability": BiasInstability,
 }
@@ -481,6 +546,6 @@ def make_effect(name: str, sensor: str = "accel", **options) -> Effect:
         cls = CATALOGUE[name]
     except KeyError:
         raise ValueError(f"unknown effect {name!r}; known: {', '.join(CATALOGUE)}") from None
-    if cls in (GSensitivity, LeverArm, ProofMassOffsets, TimeOffset):
+    if cls in (GSensitivity, LeverArm, ProofMassOffsets, TimeOffset, ThermalLag):
         return cls(**options)
     return cls(sensor=sensor, **options)

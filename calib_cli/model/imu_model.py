@@ -18,6 +18,7 @@ from calib_cli.model.effects import (
     Layout,
     ParamSpec,
     _Ctx,
+    lag_temperature,
     make_effect,
     shift_kinematics,
 )
@@ -82,6 +83,8 @@ class ImuModel:
         p.update({k: np.asarray(v, dtype=float) for k, v in params.items()})
         if self.has("time_offset"):
             kin = shift_kinematics(kin, float(p["time_offset"]))
+        if self.has("thermal_lag") and kin.temp is not None:
+            kin = kin.with_(temp=lag_temperature(kin.t, kin.temp, float(p["thermal_lag_tau"])))
         # the lever arm also moves the point whose specific force the gyros' D sees
         acc_ctx = None
         out = {}
@@ -100,6 +103,7 @@ class ImuModel:
             ctx.y = ctx.u.copy()
             for e in transfer:
                 e.apply(p, ctx)
+            ctx.y_transfer = ctx.y.copy()
             for stage in (CORRECTION, ADDITIVE):
                 for e in mine:
                     if e.stage == stage:

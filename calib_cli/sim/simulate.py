@@ -22,6 +22,7 @@ continuously (transition samples have segment index -1). Per segment kind:
 
 Top-level simulation keys: ``sample_rate_hz`` (100), ``transition_s`` (4),
 ``temperature_c`` (constant) or ``temperature_profile = [[t_s, degC], ...]``,
+or a chamber setpoint per segment ``chamber_temp_degC`` (sim/chamber.py),
 ``sim_grade`` ("navigation" for plans of kind align, the default truth then
 being a random navigation-grade unit, docs/align.md; "mems" for the MEMS default).
 """
@@ -323,6 +324,11 @@ def _timeline(plan: Plan, fs: float, rng):
 
     kin = kn.Kinematics.concatenate(parts)
     kin = kin.with_(temp=_temperature(plan, kin.t))  # the forward model sees the temperature
+    from calib_cli.sim.chamber import chamber_temperature, has_chamber  # docs/thermal.md
+
+    if has_chamber(plan):
+        pidx = np.array([-1] + [sg.plan_index for sg in segments])[kin.segment + 1]
+        kin = kin.with_(temp=chamber_temperature(plan, kin.t, pidx)[1])
     rotating = any(s.kind == "rotating" for s in segments)
     return (kin, segments, true_att, np.concatenate(angle_parts) if rotating else None,
             np.concatenate(rate_parts) if rotating else None)

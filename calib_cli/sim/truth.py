@@ -49,7 +49,7 @@ class Truth:
 
 def describe_effect(e: Effect) -> dict:
     d = {"name": e.name, "sensor": e.sensor}
-    for opt in ("structure", "tangential"):
+    for opt in ("structure", "tangential", "order", "temp_ref", "scale_on"):
         if hasattr(e, opt):
             d[opt] = getattr(e, opt)
     return d
@@ -57,6 +57,10 @@ def describe_effect(e: Effect) -> dict:
 
 def effect_from_description(d: dict) -> Effect:
     opts = {k: v for k, v in d.items() if k not in ("name", "sensor")}
+    if d.get("name") == "temperature_drift" and "order" not in d:
+        # written before the contract's form (section 7): the scale term was on
+        # the nominal input; read the file as it was fitted (docs/thermal.md)
+        opts["scale_on"] = "input"
     return make_effect(d["name"], d.get("sensor") or "accel", **opts)
 
 
@@ -85,6 +89,23 @@ def truth_from_dict(raw: dict, layout: Layout, path: str = "<truth>") -> Truth:
     params_raw = raw.get("params", {})
     options = raw.get("options", {})
     owners = _key_owner(layout, options)
+    # temperature drift of order N: (n, N) arrays (CONTRACT.md section 7); one
+    # order per sensor, the lower-order key padded with zero columns
+    orders = {}
+    for key, value in params_raw.items():
+        base = split_suffix(key)[0]
+        for sensor in ("accel", "gyro"):
+            if base in (f"{sensor}_temp_bias", f"{sensor}_temp_scale"):
+                try:
+                    a = np.asarray(value, dtype=float)
+                except (TypeError, ValueError):
+                    raise InputError(f"{key}: not numeric", path) from None
+                orders[sensor] = max(orders.get(sensor, 1), a.shape[1] if a.ndim == 2 else 1)
+    temp_ref = float(options.get("temp_ref_degC", 25.0))
+    for sensor, order in orders.items():
+        eff = make_effect("temperature_drift", sensor, order=order, temp_ref=temp_ref)
+        for sp in eff.specs(layout):
+            owners[sp.key] = eff
     params, effects = {}, []
     for key, value in params_raw.items():
         base, factor = split_suffix(key)
@@ -95,6 +116,11 @@ def truth_from_dict(raw: dict, layout: Layout, path: str = "<truth>") -> Truth:
         try:
             arr = np.asarray(value, dtype=float) * factor
             arr = np.broadcast_to(arr, spec.shape).copy() if arr.ndim == 0 else arr
+            if len(spec.shape) == 2 and arr.ndim == 1 and arr.shape[0] == spec.shape[0]:
+                arr = np.column_stack([arr, np.zeros((arr.shape[0], spec.shape[1] - 1))])
+            elif len(spec.shape) == 2 and arr.ndim == 2 and arr.shape[1] < spec.shape[1]:
+                arr = np.column_stack([arr, np.zeros((arr.shape[0],
+                                                      spec.shape[1] - arr.shape[1]))])
         except (TypeError, ValueError):
             raise InputError(f"{key}: not numeric", path) from None
         if arr.shape != spec.shape:
