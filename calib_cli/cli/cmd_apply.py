@@ -17,6 +17,7 @@ from calib_cli.methods.apply import (
     corrected_channels,
     effective_temperature,
     is_thermal,
+    proof_mass_offsets,
 )
 from calib_cli.methods.rimu import apply_rimu
 
@@ -85,10 +86,18 @@ def apply_cmd(cal, raw, out, temp_c=None, extrapolate=False):
                     if s in smp:
                         body[s] = out_s.create_dataset(f"{s}_body", shape=(n, 3), dtype="f8",
                                                        chunks=True)
+            size = proof_mass_offsets(c) is not None and gyr is not None and not rimu
             for a in range(0, n, CHUNK):
                 b = min(n, a + CHUNK)
                 g_in = smp["gyro"][a:b] if gyr is not None else None
-                if rimu:
+                if size:  # one sample of context each side for the rate derivative
+                    a0, b0 = max(0, a - 1), min(n, b + 1)
+                    f, w = apply_triad(c, smp["accel"][a0:b0], smp["gyro"][a0:b0],
+                                       accel_si=units["accel"] != "count",
+                                       temp=None if temp_eff is None else temp_eff[a0:b0],
+                                       time=smp["time"][a0:b0])
+                    f, w = f[a - a0:a - a0 + b - a], w[a - a0:a - a0 + b - a]
+                elif rimu:
                     res = apply_rimu(c, smp["accel"][a:b], g_in)
                     f, w = res["accel"], res["gyro"]
                     for s, ds in body.items():

@@ -63,10 +63,35 @@ def check_temperature(cal: CalibrationResult, temp: np.ndarray, path: str,
                          "(--extrapolate to correct anyway)", path)
 
 
+def proof_mass_offsets(cal: CalibrationResult) -> np.ndarray | None:
+    """The calibration's proof-mass offsets p (3, 3), m, entries without a sigma (not
+    determined) taken as 0; None when it has none."""
+    p = cal.params.get("proof_mass_offsets")
+    if p is None:
+        return None
+    p = np.asarray(p, dtype=float)
+    s = np.asarray(cal.sigma.get("proof_mass_offsets", np.zeros((3, 3))), dtype=float)
+    p = np.where(np.isfinite(s) & (s > 0), p, 0.0)
+    return p if np.any(p) else None
+
+
+def size_effect(p: np.ndarray, w: np.ndarray, dw: np.ndarray) -> np.ndarray:
+    """(N, 3): component i of w x (w x p_i) + dw/dt x p_i, what accelerometer i reads more
+    than the specific force at the triad's reference point (CONTRACT.md section 2; the
+    rough-stand paper's size effect). w rad/s, dw rad/s^2 (N, 3), p (3, 3) m."""
+    from calib_cli.model.kinematics import rigid_body_accel
+
+    return np.column_stack([rigid_body_accel(w, dw, p[i])[:, i] for i in range(3)])
+
+
 def apply_triad(cal: CalibrationResult, accel: np.ndarray, gyro: np.ndarray | None,
-                accel_si: bool = True, temp: np.ndarray | None = None):
+                accel_si: bool = True, temp: np.ndarray | None = None,
+                time: np.ndarray | None = None):
     """Corrected (accel, gyro) for a chunk: f = K^-1 (A - b), w = G^-1 (W - d - D f).
-    Channels the calibration does not cover pass through unchanged. For a
+    With proof-mass offsets and ``time`` (s), each accelerometer is brought to the
+    triad's reference point: f_i -= (w x (w x p_i) + dw/dt x p_i)_i, dw/dt from the
+    corrected rates (central differences; give the chunk one sample of context on
+    each side). Channels the calibration does not cover pass through unchanged. For a
     gyro-only calibration with g-sensitivity, f is the raw accelerometer
     output when that is in SI (``accel_si``), else zero. ``temp``: the
     effective temperature per sample (``effective_temperature``) for a
@@ -79,4 +104,10 @@ def apply_triad(cal: CalibrationResult, accel: np.ndarray, gyro: np.ndarray | No
     if gyro is not None and "gyro" in chans:
         other = f if "accel" in chans else (accel if accel_si else None)
         w = correct(model, params, "gyro", gyro, other=other, temp=temp)
+        p = proof_mass_offsets(cal) if "accel" in chans else None
+        if p is not None and time is not None and len(time) > 2:
+            # the size effect: each accelerometer to the triad's reference point, with the
+            # corrected rates and their derivative; the gyros' D then sees that point's force
+            f = f - size_effect(p, w, np.gradient(w, time, axis=0))
+            w = correct(model, params, "gyro", gyro, other=f, temp=temp)
     return f, w
