@@ -166,6 +166,48 @@ def _perp_basis(a: np.ndarray) -> np.ndarray:
     return np.column_stack([b1, b2])
 
 
+def _initial_lever_arm(rec: Recording, cy: "_Cycle") -> np.ndarray | None:
+    """A coarse lever arm (3,), body axes, from the holds of one cycle: over whole
+    revolutions at a constant rate the rotating gravity averages out and the
+    accelerometers' mean is b - omega^2 s_perp (K ~ I), so regressing the hold means on
+    omega^2 gives s. The first filter pass starts there: a lever arm of tens of cm
+    unknown to the start would drag that pass's attitude far off. None without two
+    distinct hold rates."""
+    fs = rec.sample_rate
+    W = rec.gyro[cy.sl]
+    A = rec.accel[cy.sl]
+    om = W @ cy.a_nom
+    m = max(1, int(round(fs)))
+    nw = len(om) // m
+    if nw < 4:
+        return None
+    wm = om[: nw * m].reshape(nw, m)
+    mean, sd = wm.mean(axis=1), wm.std(axis=1)
+    hold = (np.abs(mean) > 0.5) & (sd < 0.01 * np.abs(mean) + 2e-3)
+    rows, rates = [], []
+    k = 0
+    while k < nw:
+        if not hold[k]:
+            k += 1
+            continue
+        e = k
+        while e + 1 < nw and hold[e + 1] and abs(mean[e + 1] - mean[k]) < 0.02 * abs(mean[k]):
+            e += 1
+        rate = float(np.mean(mean[k:e + 1]))
+        n_rev = int(abs(rate) * (e + 1 - k) / (2 * np.pi))
+        if n_rev >= 1:
+            n = int(round(n_rev * 2 * np.pi / abs(rate) * fs))
+            rows.append(A[k * m:k * m + n].mean(axis=0))
+            rates.append(rate**2)
+        k = e + 1
+    if len(rates) < 2 or np.ptp(rates) < 0.5:
+        return None
+    X = np.column_stack([np.ones(len(rates)), rates])
+    coef = np.linalg.lstsq(X, np.array(rows), rcond=None)[0]
+    s = -coef[1]
+    return s - cy.a_nom * (s @ cy.a_nom)
+
+
 def _third_diff_sigma(x: np.ndarray) -> np.ndarray:
     """Per-column white-noise sigma from third differences (robust: MAD)."""
     d = np.diff(x, 3, axis=0)
@@ -444,14 +486,13 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
     w_e = rec.site.earth_rate_enu
     iG = 3 + L.gyro
     x = np.zeros(ns)
-    # The prior keeps its original mean in every pass. A later pass starts its running
-    # estimate at theta_lin (the previous pass's solution) rather than at the prior mean:
-    # the attitude is propagated with the running estimate, and a cycle whose scale
-    # factor is tied to cross-axis terms seen only in later cycles would otherwise be
-    # integrated with the neutral unit's values. For the linearised problem the start
-    # mean enters the final estimate as P_f P_0^-1 (m - theta_lin), added at the end.
-    if first:
-        x[3:] = prior_mean - theta_lin
+    # The prior keeps its original mean in every pass, but the running estimate starts at
+    # theta_lin (the first pass: the neutral unit with coarse lever arms from the holds;
+    # later passes: the previous pass's solution): the attitude is propagated with the
+    # running estimate, and a cycle whose scale factor is tied to cross-axis terms seen
+    # only in later cycles would otherwise be integrated with the neutral unit's values.
+    # For the linearised problem the start mean enters the final estimate as
+    # P_f P_0^-1 (m - theta_lin), added at the end.
     P = np.zeros((ns, ns))
     P[3:, 3:] = np.diag(prior_sd**2)
     innov, nis, hist_t, hist_s, lowrate, enc_innov = [], [], [], [], [], []
@@ -616,8 +657,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 hist_t.append(b.t[j])
                 hist_s.append(np.sqrt(np.diag(P)[hist_idx]))
                 next_hist = b.t[j] + opt.history_every
-    if not first:
-        x[3:] += P[3:, 3:] @ ((prior_mean - theta_lin) / prior_sd**2)
+    x[3:] += P[3:, 3:] @ ((prior_mean - theta_lin) / prior_sd**2)
     return _PassOut(theta_lin + x[3:], P[3:, 3:], innov, nis, hist_t, hist_s, lowrate,
                     enc_innov)
 
@@ -693,10 +733,19 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     # residuals far above the noise and can drag the attitude off; the fit then restarts with
     # the measurement noise widened to the residual level (stats.accel_noise_inflation), so
     # the covariance says how little such a fit is worth
+    # where the first pass starts (its running estimate; the prior keeps its mean): the
+    # neutral unit with coarse lever arms from the holds (a housing measurement in the
+    # plan stays the prior mean)
+    start = mean.copy()
+    if L.est_s:
+        for c, cy in enumerate(cycles):
+            s0 = _initial_lever_arm(rec, cy)
+            if s0 is not None:
+                start[L.idx["s"][2 * c:2 * c + 2]] = cy.basis.T @ s0
     inflation = 1.0
     enc_inflation = 1.0
     for _attempt in range(6):
-        theta = mean.copy()
+        theta = start.copy()
         for k in range(max(1, opt.passes)):
             out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation, sig_g,
                                block_n, s_known, record_history=True, first=k == 0,
