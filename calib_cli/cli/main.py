@@ -43,6 +43,10 @@ def _register() -> None:
 
 _register()
 
+from calib_cli.cli.guard import guard_all  # noqa: E402
+
+guard_all(cli)
+
 
 def main(argv=None) -> None:
     """Entry point: run the command, map failures to the contract's exit codes."""
@@ -60,6 +64,13 @@ def main(argv=None) -> None:
     except KeyboardInterrupt:
         err_console.print("calib: interrupted", markup=False)
         sys.exit(130)
+    except click.BadParameter as exc:
+        msg = exc.format_message()
+        if "is a directory" in msg:  # a directory where a file is expected: bad input
+            err_console.print(f"calib: error: {msg}", markup=False, soft_wrap=True)
+            sys.exit(3)
+        exc.show()
+        sys.exit(exc.exit_code)
     except click.ClickException as exc:
         exc.show()
         sys.exit(exc.exit_code)
@@ -69,6 +80,18 @@ def main(argv=None) -> None:
         raise
     except BrokenPipeError:
         sys.exit(0)
+    except (OSError, MemoryError, RecursionError) as exc:  # an input the OS or numpy refused
+        if Ctx.debug:
+            traceback.print_exc()
+        where = getattr(exc, "filename", None)
+        what = getattr(exc, "strerror", None) or type(exc).__name__
+        if isinstance(exc, MemoryError):
+            what = "input too large for memory"
+        elif isinstance(exc, RecursionError):
+            what = "input nested too deeply"
+        err_console.print(f"calib: error: {where + ': ' if where else ''}{what}", markup=False,
+                          soft_wrap=True)
+        sys.exit(3)
     except Exception as exc:  # a bug: one line, traceback only with --debug
         if Ctx.debug or "--debug" in (argv or sys.argv):
             traceback.print_exc()

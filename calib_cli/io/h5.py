@@ -10,9 +10,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-import os
 import sys
-import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -61,20 +59,12 @@ def write_provenance(h5: h5py.File, kind: str, inputs=(), serial: str | None = N
 @contextlib.contextmanager
 def atomic_path(path):
     """Yield a temporary path beside ``path``; rename onto it on success,
-    delete it on any failure, so a failed command leaves nothing behind."""
-    path = Path(path)
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise InputError("output directory does not exist", str(path))
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent)
-    os.close(fd)
-    try:
+    delete it on any failure, so a failed command leaves nothing behind
+    (calib_cli/io/outpath.py: umask, stale temp files, OS errors -> exit 2)."""
+    from calib_cli.io.outpath import atomic_file
+
+    with atomic_file(path) as tmp:
         yield tmp
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
 
 
 def open_checked(path, kinds) -> h5py.File:

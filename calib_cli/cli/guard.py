@@ -1,0 +1,60 @@
+"""Output-path guard for every command (issue 15, CONTRACT.md section 7).
+
+Each command's callback is wrapped once at start-up: the path-typed
+parameters that name outputs are checked against every path-typed input of
+the same command (same file, symlink, hard link: exit 2), for being writable
+(exit 2) and for being a directory where a file is expected (exit 3), before
+the command runs, so nothing is written. calib_cli/io/outpath.py does the
+checks.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import click
+
+# parameter names (click's python names) that name something a command writes
+OUTPUT_PARAMS = {"out", "out_dir", "plot", "plot_path", "truth_out", "log_path", "report_dir"}
+# per command: further outputs (record's journal is written, recover's is read)
+COMMAND_OUTPUTS = {"record": {"journal_path"}}
+
+
+def _flat(v):
+    if v is None:
+        return []
+    if isinstance(v, (list, tuple)):
+        return [x for y in v for x in _flat(y)]
+    return [v]
+
+
+def _wrap(cmd: click.Command) -> None:
+    cb = cmd.callback
+    if cb is None or getattr(cb, "_calib_guarded", False):
+        return
+    path_params = {p.name: p for p in cmd.params if isinstance(p.type, click.Path)}
+    outs = (OUTPUT_PARAMS | COMMAND_OUTPUTS.get(cmd.name, set())) & set(path_params)
+    if not outs:
+        return
+
+    @functools.wraps(cb)
+    def guarded(*args, **kwargs):
+        from calib_cli.io.outpath import check_output
+
+        inputs = [x for n in path_params if n not in outs for x in _flat(kwargs.get(n))]
+        for n in sorted(outs):
+            for v in _flat(kwargs.get(n)):
+                directory = not path_params[n].type.file_okay
+                check_output(v, inputs, directory=directory)
+        return cb(*args, **kwargs)
+
+    guarded._calib_guarded = True
+    cmd.callback = guarded
+
+
+def guard_all(group: click.Group) -> None:
+    for cmd in group.commands.values():
+        if isinstance(cmd, click.Group):
+            guard_all(cmd)
+        else:
+            _wrap(cmd)
