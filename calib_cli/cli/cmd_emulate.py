@@ -27,7 +27,8 @@ from calib_cli.cli.main import cli
 @click.option("--attitude-deg", nargs=3, type=float, default=(0.0, 0.0, 0.0),
               help="Initial attitude: roll pitch yaw.")
 @click.option("--speed-dps", type=float, help="Slew speed of the virtual table.")
-@click.option("--corrupt", default=0.0, type=click.FloatRange(0, 1), help="Fraction of frames with a bad byte.")
+@click.option("--corrupt", default=0.0, type=click.FloatRange(0, 1),
+              help="Fraction of frames with a bad byte.")
 @click.option("--corrupt-where", type=click.Choice(["payload", "anywhere"]), default="payload",
               show_default=True, help="payload: payload/checksum bytes; anywhere: any byte.")
 @click.option("--drop", default=0.0, type=click.FloatRange(0, 1), help="Fraction of frames dropped.")
