@@ -93,3 +93,232 @@ def test_emulate_link_dir_created_and_ranges(run_cli, tmp_path):
     code, _, err = run_cli("emulate", "--imu", "generic-binary", "--corrupt", "2",
                            "--duration", "0.1")
     assert code == 2, err
+
+
+# ---------------------------------------------------------------------------
+# item 2: HDF5 content validated before use
+
+
+def _copy(src, dst):
+    Path(dst).write_bytes(Path(src).read_bytes())
+    return dst
+
+
+def _edit(path, fn):
+    import h5py
+
+    with h5py.File(path, "r+") as h5:
+        fn(h5)
+    return path
+
+
+def _replace(h5, name, data):
+    del h5[name]
+    h5.create_dataset(name, data=data)
+
+
+def _raw_mutants(raw, d):
+    import h5py
+    import numpy as np
+
+    out = {}
+
+    def mut(name, fn):
+        out[name] = _edit(_copy(raw, d / f"{name}.h5"), fn)
+
+    mut("reversed_time", lambda h: _replace(h, "samples/time", h["samples/time"][()][::-1]))
+    mut("short_time", lambda h: _replace(h, "samples/time", h["samples/time"][()][:-10]))
+
+    def nan(h):
+        a = h["samples/accel"][()]
+        a[100, 1] = np.nan
+        _replace(h, "samples/accel", a)
+
+    def inf(h):
+        a = h["samples/gyro"][()]
+        a[50, 0] = np.inf
+        _replace(h, "samples/gyro", a)
+
+    mut("nan_accel", nan)
+    mut("inf_gyro", inf)
+    mut("no_accel", lambda h: h["samples"].__delitem__("accel"))
+    mut("version_abc", lambda h: h.attrs.__setitem__("format_version", "abc"))
+    mut("version_future", lambda h: h.attrs.__setitem__("format_version", 99))
+    mut("segments_ragged", lambda h: _replace(h, "segments/start", h["segments/start"][()][:-1]))
+    # flipped bytes inside the (checksummed) accel data
+    p = _copy(raw, d / "flipped.h5")
+    with h5py.File(p, "r") as h5:
+        info = h5["samples/accel"].id.get_chunk_info(0)
+    b = bytearray(Path(p).read_bytes())
+    for i in range(info.byte_offset + 1000, info.byte_offset + 1000 + 4096):
+        b[i] ^= 0xFF
+    Path(p).write_bytes(bytes(b))
+    out["flipped"] = p
+    # 17 KB declaring 1e11 samples
+    p = d / "huge.h5"
+    with h5py.File(raw, "r") as src, h5py.File(p, "w") as h5:
+        for k, v in src.attrs.items():
+            h5.attrs[k] = v
+        s = h5.create_group("samples")
+        s.create_dataset("time", shape=(10**11,), dtype="f8", chunks=(65536,))
+        s.create_dataset("accel", shape=(10**11, 3), dtype="f8", chunks=(65536, 3))
+        s.create_dataset("gyro", shape=(10**11, 3), dtype="f8", chunks=(65536, 3))
+        src.copy("segments", h5)
+        src.copy("site", h5)
+    out["huge"] = p
+    return out
+
+
+def test_corrupt_raw_files_are_exit_3(files, run_cli, tmp_path):
+    import time
+
+    muts = _raw_mutants(files / "raw.h5", tmp_path)
+    cal = files / "cal.h5"
+    for name, p in muts.items():
+        for args in (["fit", "accel", p, "--out", tmp_path / "o.h5"],
+                     ["apply", cal, p, "--out", tmp_path / "o.h5"],
+                     ["show", p]):
+            t0 = time.monotonic()
+            code, _, err = run_cli(*args)
+            if name == "segments_ragged" and args[0] == "show":
+                continue  # show does not read the segments
+            assert code == 3, (name, args, err)
+            assert str(p) in err and err.count("\n") == 1 and "Traceback" not in err, err
+            assert not (tmp_path / "o.h5").exists()
+            if name == "huge":
+                assert time.monotonic() - t0 < 1.0
+    assert "checksum" in run_cli("fit", "accel", muts["flipped"], "--out", tmp_path / "o.h5")[2]
+    assert sorted(x.name for x in tmp_path.iterdir() if x.name.startswith(".")) == []
+
+
+def test_bad_calibration_parameters(files, run_cli, tmp_path):
+    import numpy as np
+
+    cal, raw = files / "cal.h5", files / "raw.h5"
+
+    def setp(key, val):
+        return lambda h: _replace(h, f"params/{key}", val)
+
+    cases = {"K_nan": setp("accel_K", np.full((3, 3), np.nan)),
+             "b_inf": setp("accel_bias", np.array([np.inf, 0, 0])),
+             "K_singular": setp("accel_K", np.zeros((3, 3))),
+             "K_shape": setp("accel_K", np.eye(2)),
+             "empty": lambda h: [h["params"].__delitem__(k) for k in list(h["params"])],
+             "no_cov": lambda h: h.__delitem__("covariance")}
+    for name, fn in cases.items():
+        p = _edit(_copy(cal, tmp_path / f"{name}.h5"), fn)
+        for args in (["apply", p, raw, "--out", tmp_path / "o.h5"],
+                     ["export", p, "--format", "json"]):
+            code, _, err = run_cli(*args)
+            assert code == 3, (name, args, err)
+            assert str(p) in err and err.count("\n") == 1
+        assert not (tmp_path / "o.h5").exists()
+
+
+def test_calibration_where_recording_expected_and_back(files, run_cli, tmp_path):
+    code, _, err = run_cli("fit", "accel", files / "cal.h5", "--out", tmp_path / "o.h5")
+    assert code == 3 and "calibration" in err
+    code, _, err = run_cli("apply", files / "raw.h5", files / "raw.h5", "--out", tmp_path / "o.h5")
+    assert code == 3 and "raw" in err
+
+
+# ---------------------------------------------------------------------------
+# item 3: schemas from one key registry
+
+
+def _plan(tmp_path, extra_seg="", extra_top="", site="latitude_deg = 50.0"):
+    text = (f"name = 't'\nkind = 'static'\n{extra_top}\n[site]\n{site}\n"
+            + "".join(f"[[segment]]\nlabel = 'p{i}'\nattitude_deg = {a}\nduration_s = 2.0\n"
+                      for i, a in enumerate(([0, 0, 0], [0, 180, 0], [0, 90, 0]))))
+    text += "[[segment]]\nlabel = 'last'\nduration_s = 2.0\n" + extra_seg
+    p = tmp_path / "plan.toml"
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize("key,known", [("atitude_deg", "attitude_deg"),
+                                       ("durration_s", "duration_s"),
+                                       ("Attitude_Deg", "attitude_deg"),
+                                       ("lable", "label"), ("tabel_rate_dps", "table_rate_dps")])
+def test_plan_typo_is_exit_3(run_cli, tmp_path, key, known):
+    p = _plan(tmp_path, f"{key} = 1.0\n")
+    code, _, err = run_cli("simulate", p, "--out", tmp_path / "r.h5")
+    assert code == 3, err
+    assert f"did you mean {known}?" in err and str(p) in err and key in err
+    assert not (tmp_path / "r.h5").exists()
+
+
+def test_plan_unknown_keys_one_warning(run_cli, tmp_path):
+    p = _plan(tmp_path, "operator_note = 'x'\nx_atitude_deg = 1\n", "my_project = 'y'")
+    code, _, err = run_cli("simulate", p, "--out", tmp_path / "r.h5")
+    assert code == 0, err
+    warn = [ln for ln in err.splitlines() if "warning" in ln]
+    assert len(warn) == 1 and "operator_note" in warn[0] and "my_project" in warn[0]
+    assert "x_atitude" not in err
+
+
+@pytest.mark.parametrize("top,site,seg", [
+    ("sample_rate_hz = 0", "latitude_deg = 1", ""),
+    ("sample_rate_hz = -5", "latitude_deg = 1", ""),
+    ("", "g = -9.8", ""), ("", "g = 1e6", ""),
+    ("", "latitude_deg = 1", "duration_s = 1e12\n"),
+    ("", "latitude_deg = 1", "attitude_deg = [true, false, true]\n"),
+    ("", "latitude_deg = 1", "attitude_sigma_deg = -1.0\n"),
+    ("transition_s = -1", "latitude_deg = 1", "")])
+def test_plan_ranges(run_cli, tmp_path, top, site, seg):
+    p = _plan(tmp_path, seg.replace("duration_s", "x_d") if "duration" in seg else seg, top, site)
+    if "duration_s = 1e12" in seg:
+        p.write_text(p.read_text().replace("duration_s = 2.0", "duration_s = 1e12", 1))
+    code, _, err = run_cli("simulate", p, "--out", tmp_path / "r.h5")
+    assert code == 3, err
+    assert err.count("\n") == 1 and str(p) in err
+
+
+def test_deeply_nested_toml(run_cli, tmp_path):
+    p = tmp_path / "deep.toml"
+    p.write_text("a = " + "[" * 5000 + "]" * 5000 + "\n")
+    code, _, err = run_cli("simulate", p, "--out", tmp_path / "r.h5")
+    assert code == 3 and str(p) in err
+
+
+def test_tolerance_and_pipeline_strict(run_cli, tmp_path, files):
+    tol = tmp_path / "tol.toml"
+    tol.write_text("[param.accel_biass]\nmax_mg = 20\n")
+    pipe = tmp_path / "pipe.toml"
+    pipe.write_text("[[step]]\nstep = 'fit'\nmethod = 'accel'\n")
+    code, _, err = run_cli("batch", pipe, files / "raw.h5", "--out", tmp_path / "o",
+                           "--tolerances", tol)
+    assert code == 3 and "did you mean accel_bias?" in err and str(tol) in err
+    tol.write_text("[param.accel_bias]\nmin_mg = 20\nmax_mg = -20\n")
+    code, _, err = run_cli("batch", pipe, files / "raw.h5", "--out", tmp_path / "o",
+                           "--tolerances", tol)
+    assert code == 3 and "min is above max" in err
+    pipe.write_text("[[step]]\nstep = 'fit'\nmethod = 'accel'\noptions = 5\n")
+    code, _, err = run_cli("batch", pipe, files / "raw.h5", "--out", tmp_path / "o")
+    assert code == 3 and str(pipe) in err
+    pipe.write_text("[[stepp]]\nstep = 'fit'\n")
+    code, _, err = run_cli("batch", pipe, files / "raw.h5", "--out", tmp_path / "o")
+    assert code == 3 and "did you mean step?" in err
+
+
+@pytest.mark.parametrize("edit,word", [
+    (("bits = 16", "bits = 0"), "sequence.bits"),
+    (("baudrate = 921600", 'baudrate = "fast"'), "baudrate"),
+    (('parity = "N"', 'parity = "X"'), "parity"),
+    (("rate_hz", "rate_hzz = 1\nrate_hz"), "did you mean rate_hz?")])
+def test_imu_profile_strict(run_cli, tmp_path, edit, word):
+    src = (Path(__file__).resolve().parent.parent / "profiles/imu/generic-bin6.toml").read_text()
+    assert edit[0] in src
+    p = tmp_path / "imu.toml"
+    p.write_text(src.replace(edit[0], edit[1], 1))
+    code, _, err = run_cli("emulate", "--imu", p, "--duration", "0.1")
+    assert code == 3 and word in err and str(p) in err, err
+
+
+def test_table_template_unknown_field(run_cli, tmp_path):
+    src = (Path(__file__).resolve().parent.parent / "profiles/turntable/generic-3axis.toml")
+    text = src.read_text()
+    p = tmp_path / "t.toml"
+    p.write_text(text.replace("{roll_deg", "{rol_deg", 1))
+    code, _, err = run_cli("emulate", "--imu", "generic-bin6", "--table", p, "--duration", "0.1")
+    assert code == 3 and "did you mean roll_deg?" in err, err

@@ -27,6 +27,9 @@ def export_cmd(cal, fmt, out, single, prefix):
     if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", prefix):
         raise click.BadParameter("must be a C identifier", param_hint="--prefix")
     c = read_calibration(cal)
+    from calib_cli.io.validate import check_calibration
+
+    check_calibration(c, cal)
     prov = provenance(cal)
     prov["sha256"] = sha256_file(cal)
     source = Path(cal).name

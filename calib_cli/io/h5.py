@@ -20,6 +20,7 @@ import numpy as np
 from calib_cli import __version__
 from calib_cli.data import CalibrationResult, Recording, Segment
 from calib_cli.errors import InputError
+from calib_cli.io import validate
 from calib_cli.model.earth import Site
 from calib_cli.model.effects import Layout
 
@@ -83,11 +84,12 @@ def open_checked(path, kinds) -> h5py.File:
         h5.close()
         what = f"a {kind!r} file" if kind else "not a calib file (no 'kind' attribute)"
         raise InputError(f"{what}; expected {' or '.join(repr(k) for k in kinds)}", p)
-    ver = h5.attrs.get("format_version")
-    if ver is None or int(ver) > FORMAT_VERSION or int(ver) < 1:
+    try:  # calib_cli/io/validate.py: version parsed, declared sizes plausible
+        validate.format_version(h5, p, FORMAT_VERSION)
+        validate.check_declared_sizes(h5, p)
+    except BaseException:
         h5.close()
-        raise InputError(f"unsupported format version {ver!r} (this calib reads "
-                         f"version {FORMAT_VERSION})", p)
+        raise
     return h5
 
 
@@ -180,11 +182,12 @@ def read_segments(h5, path) -> tuple[Segment, ...]:
 def _write_params_group(h5, name, params: dict) -> None:
     g = h5.create_group(name)
     for k, v in params.items():
-        g[k] = np.asarray(v, dtype=float)
+        v = np.asarray(v, dtype=float)
+        g.create_dataset(k, data=v, fletcher32=bool(v.ndim and v.size))
 
 
 def _read_params_group(g) -> dict:
-    return {k: np.asarray(g[k][()], dtype=float) for k in g}
+    return {k: np.asarray(validate.load(g[k], g.file.filename), dtype=float) for k in g}
 
 
 def write_site_layout(h5, site: Site, layout: Layout) -> None:
@@ -221,16 +224,17 @@ def write_raw(path, rec: Recording, inputs=(), kind: str = "raw") -> None:
         write_provenance(h5, kind, inputs, rec.serial, {"plan_kind": rec.plan_kind})
         smp = h5.create_group("samples")
         chunks = (min(len(rec.time), 65536),) if len(rec.time) else None
-        smp.create_dataset("time", data=rec.time, chunks=chunks)
+        ck = chunks is not None  # Fletcher-32 checksums on every chunked dataset
+        smp.create_dataset("time", data=rec.time, chunks=chunks, fletcher32=ck)
         for name in ("accel", "gyro"):
             arr = getattr(rec, name)
             if arr is not None:
                 smp.create_dataset(name, data=arr, chunks=(chunks[0], arr.shape[1])
-                                   if chunks else None)
+                                   if chunks else None, fletcher32=ck)
         for name in SAMPLE_FIELDS:
             arr = getattr(rec, name)
             if arr is not None:
-                smp.create_dataset(name, data=arr, chunks=chunks)
+                smp.create_dataset(name, data=arr, chunks=chunks, fletcher32=ck)
         smp.attrs["accel_units"] = rec.units.get("accel", "m/s^2")
         smp.attrs["gyro_units"] = rec.units.get("gyro", "rad/s")
         write_segments(h5, rec.segments)
@@ -256,10 +260,13 @@ def read_raw(path, kinds=("raw", "corrected")) -> Recording:
     with open_checked(p, kinds) as h5:
         try:
             smp = _need(h5, "samples", p)
-            time = np.asarray(_need(smp, "time", p)[()], dtype=float)
-            accel = np.asarray(_need(smp, "accel", p)[()], dtype=float)
-            gyro = np.asarray(smp["gyro"][()], dtype=float) if "gyro" in smp else None
-            opt = {k: np.asarray(smp[k][()], dtype=float) if k in smp else None
+            n = validate.check_samples_layout(smp, p)
+            validate.check_segments_layout(h5, p, n)
+            time = np.asarray(validate.load(smp["time"], p), dtype=float)
+            accel = np.asarray(validate.load(smp["accel"], p), dtype=float)
+            gyro = (np.asarray(validate.load(smp["gyro"], p), dtype=float) if "gyro" in smp
+                    else None)
+            opt = {k: np.asarray(validate.load(smp[k], p), dtype=float) if k in smp else None
                    for k in SAMPLE_FIELDS}
             units = {"accel": _attr_str(smp, "accel_units", "m/s^2"),
                      "gyro": _attr_str(smp, "gyro_units", "rad/s")}
@@ -276,7 +283,7 @@ def read_raw(path, kinds=("raw", "corrected")) -> Recording:
                                    if k.startswith("noise_")},
                          "attitudes": t["attitudes"][()] if "attitudes" in t else None,
                          "effects": json.loads(_attr_str(t, "effects", "[]"))}
-        except (KeyError, ValueError, TypeError) as exc:
+        except (KeyError, ValueError, TypeError, IndexError, OverflowError) as exc:
             raise InputError(f"malformed raw file: {exc}", p) from None
         n = len(time)
         if accel.ndim != 2 or accel.shape[0] != n or (gyro is not None and gyro.shape[0] != n):
@@ -284,10 +291,12 @@ def read_raw(path, kinds=("raw", "corrected")) -> Recording:
         for s in segments:
             if not (0 <= s.start <= s.stop <= n):
                 raise InputError(f"segment {s.label!r} points outside the samples", p)
-        return Recording(time=time, accel=accel, gyro=gyro, segments=segments, site=site,
+        rec = Recording(time=time, accel=accel, gyro=gyro, segments=segments, site=site,
                          plan_kind=_attr_str(h5, "plan_kind", "static"), plan_text=plan_text,
                          serial=_attr_str(h5, "unit_serial") or None, units=units,
                          layout=layout, truth=truth, counters=counters, **opt)
+    validate.check_recording(rec, p)
+    return rec
 
 
 # ---------------------------------------------------------------------------
@@ -347,10 +356,11 @@ def read_calibration(path) -> CalibrationResult:
             _, layout = read_site_layout(h5, p) if "site" in h5 else (None, Layout())
             raw_units = json.loads(_attr_str(h5, "raw_units", "{}")) or {
                 "accel": "m/s^2", "gyro": "rad/s"}
-        except (KeyError, ValueError, TypeError) as exc:
+            cov = validate.load(_need(c, "matrix", p), p)
+        except (KeyError, ValueError, TypeError, IndexError, OverflowError) as exc:
             raise InputError(f"malformed calibration file: {exc}", p) from None
         return CalibrationResult(method=_attr_str(h5, "method"), params=params, sigma=sigma,
-                                 units=units, covariance=c["matrix"][()], cov_order=order,
+                                 units=units, covariance=cov, cov_order=order,
                                  stats=stats, residuals=residuals, tables=tables, model=model,
                                  raw_units=raw_units, layout=layout,
                                  serial=_attr_str(h5, "unit_serial") or None)
