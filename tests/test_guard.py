@@ -322,3 +322,69 @@ def test_table_template_unknown_field(run_cli, tmp_path):
     p.write_text(text.replace("{roll_deg", "{rol_deg", 1))
     code, _, err = run_cli("emulate", "--imu", "generic-bin6", "--table", p, "--duration", "0.1")
     assert code == 3 and "did you mean roll_deg?" in err, err
+
+
+# ---------------------------------------------------------------------------
+# item 4: gross errors are named (exit 4), impossible calibrations refused
+
+
+def _sample_plan_variant(tmp_path, name, fn):
+    p = tmp_path / f"{name}.toml"
+    p.write_text(fn((SAMPLE / "twelve_position.toml").read_text()))
+    return p
+
+
+def test_misplaced_position_named(run_cli, tmp_path):
+    # the unit sat x-up where the plan says x-down
+    mis = _sample_plan_variant(tmp_path, "mis", lambda s: s.replace(
+        "attitude_deg = [0, 90, 0]", "attitude_deg = [0, -90, 0]", 1))
+    raw = tmp_path / "mis.h5"
+    assert run_cli("-q", "import", "csv", SAMPLE / "twelve_position.csv", "--plan", mis,
+                   "--out", raw)[0] == 0
+    code, _, err = run_cli("fit", "accel", raw, "--out", tmp_path / "c.h5")
+    assert code == 4 and "gross error at position 2 ('x-down')" in err, err
+    assert "179 deg" in err or "180 deg" in err
+    assert not (tmp_path / "c.h5").exists()
+    code, _, err = run_cli("fit", "gyro", raw, "--out", tmp_path / "c.h5")
+    assert code == 4 and "x-down" in err
+
+
+def test_swapped_positions_exit_4(run_cli, tmp_path):
+    def swap(s):
+        return (s.replace("attitude_deg = [0, -90, 0]", "TMP", 1)
+                .replace("attitude_deg = [0, 90, 0]", "attitude_deg = [0, -90, 0]", 1)
+                .replace("TMP", "attitude_deg = [0, 90, 0]"))
+
+    raw = tmp_path / "sw.h5"
+    assert run_cli("-q", "import", "csv", SAMPLE / "twelve_position.csv", "--plan",
+                   _sample_plan_variant(tmp_path, "sw", swap), "--out", raw)[0] == 0
+    code, _, err = run_cli("fit", "accel", raw, "--out", tmp_path / "c.h5")
+    assert code == 4 and "x-up" in err and "x-down" in err, err
+
+
+def test_rimu_misplaced_position_named(run_cli, tmp_path):
+    p = tmp_path / "r.toml"
+    p.write_text((SAMPLE / "rimu_six_position.toml").read_text().replace(
+        "attitude_deg = [90, 0, 0]", "attitude_deg = [90, 0, 0]\nsim_attitude_deg = [-90, 0, 0]", 1))
+    assert run_cli("-q", "simulate", p, "--out", tmp_path / "r.h5", "--seed", "1")[0] == 0
+    code, _, err = run_cli("fit", "rimu", tmp_path / "r.h5", "--out", tmp_path / "c.h5")
+    assert code == 4 and "gross error at position 3 ('y-up')" in err, err
+
+
+def test_impossible_calibration_refused(files, run_cli, tmp_path):
+    from calib_cli.errors import EstimationError
+    from calib_cli.io.h5 import read_calibration
+    from calib_cli.methods.gross import check_result
+
+    c = read_calibration(files / "cal.h5")
+    check_result(c)  # the good one passes
+    import dataclasses
+
+    import numpy as np
+
+    for params, stats in (({"accel_K": np.diag([-1e-5, 1, 1])}, {}),
+                          ({"accel_bias": np.array([200.0, 0, 0])}, {}),
+                          ({}, {"g_error_rms_after": 6.0})):
+        bad = dataclasses.replace(c, params={**c.params, **params}, stats={**c.stats, **stats})
+        with pytest.raises(EstimationError):
+            check_result(bad)

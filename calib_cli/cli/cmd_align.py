@@ -56,4 +56,4 @@ def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_
         info(f"[yellow]earth rate not used:[/] {res.stats.get('grade_check')}; heading not "
              "estimated, accelerometer biases and tilt only")
     info(res.stats.get("observability", ""))
-    save(res, raw, out)
+    save(res, raw, out, rec=rec)

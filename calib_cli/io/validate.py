@@ -13,11 +13,13 @@ Policy:
   plus 1 MiB; compressed: 1000 times) is refused before anything is read or
   allocated.
 - raw/corrected recordings: ``samples/time`` one-dimensional, finite and
-  strictly increasing; ``accel``/``gyro`` two-dimensional with one row per
-  time and all values finite (every command: a NaN would silently spread into
-  every estimate); ``temp``/``table_angle``/``table_rate`` one value per time,
-  NaN allowed there (not measured) but not +-inf; the segment arrays all of
-  one length, start <= stop within the samples.
+  increasing (never going back; repeated values are allowed because a
+  host-clock recorder stamps a batch of frames with one time);
+  ``accel``/``gyro`` two-dimensional with one row per time and all values
+  finite (every command: a NaN would silently spread into every estimate);
+  ``temp``/``table_angle``/``table_rate`` one value per time, NaN allowed
+  there (not measured) but not +-inf; the segment arrays all of one length,
+  start <= stop within the samples.
 - calibrations: a non-empty ``params`` group, finite values, the shapes of the
   method's model (3 / 3x3 for a triad, n for a redundant unit), every K
   invertible (condition number below 1e10), a square covariance matrix.
@@ -116,10 +118,13 @@ def check_time(time, path: str, name: str = "/samples/time") -> None:
         raise InputError(f"{name} holds a non-finite value at sample {i}", path)
     if t.size > 1:
         d = np.diff(t)
-        if not np.all(d > 0):
-            i = int(np.flatnonzero(d <= 0)[0])
-            raise InputError(f"{name} is not strictly increasing (sample {i + 1}: "
+        if not np.all(d >= 0):
+            i = int(np.flatnonzero(d < 0)[0])
+            raise InputError(f"{name} goes back in time (sample {i + 1}: "
                              f"{float(t[i + 1]):g} s after {float(t[i]):g} s)", path)
+        if t[-1] <= t[0]:
+            raise InputError(f"{name} does not advance (every sample at {float(t[0]):g} s)",
+                             path)
 
 
 def check_finite(arr, path: str, name: str, offset: int = 0) -> None:

@@ -94,8 +94,10 @@ def _finish(method, model, packing, fit, base, rec, st, resid, extra_stats) -> C
 # vector method
 
 
-def fit_vector(rec: Recording) -> CalibrationResult:
-    st = static_stats(rec, "accel")
+def fit_vector(rec: Recording, segments=None, screen: bool = True) -> CalibrationResult:
+    """``segments``: a subset of the static segments (the gross-error screen's
+    leave-one-out refits); ``screen``: run that screen (methods/gross.py)."""
+    st = static_stats(rec, "accel", segments)
     m = len(st.segments)
     missing = [s.label for s in st.segments if s.attitude is None]
     if missing:
@@ -149,8 +151,47 @@ def fit_vector(rec: Recording) -> CalibrationResult:
             f"one plane)")
     p = packing.unpack(fit.theta, base)
     resid = st.means - model.predict(p, kin, sensors=("accel",))["accel"]
+    if screen:
+        _screen_vector(rec, st, kin, np.linalg.norm(np.einsum("kij,kj->ki", W, resid), axis=1),
+                       np.linalg.norm(resid, axis=1))
     return _finish("vector", model, packing, fit, base, rec, st, resid,
                    {"attitude_sigma_used": bool(sig_att.any())})
+
+
+def _screen_vector(rec, st, kin, z, rnorm) -> None:
+    """Gross-error screen of the vector fit (methods/gross.py): leave-one-out
+    refits where at least one residual degree of freedom remains (12
+    unknowns, 3 equations per position: >= 5 positions after leaving one out)."""
+    from calib_cli.methods import gross
+
+    segs = list(st.segments)
+    unit = _unit_scale(st, rec.site.gravity)  # 1 for SI data, counts per m/s^2 otherwise
+    big_thr = gross.BIG_G * rec.site.gravity * unit
+
+    def without(k):
+        rest = segs[:k] + segs[k + 1:]
+        if 3 * len(rest) <= 12:
+            return None
+        st2 = static_stats(rec, "accel", rest)
+        rots = attitude_to_rotation(np.array([s.attitude for s in rest]))
+        kin2 = from_attitude(np.zeros(len(rest)), rots, rec.site)
+        try:
+            r2 = fit_vector(rec, rest, screen=False)
+        except EstimationError:
+            return None
+        model = accel_model("full")
+        resid = st2.means - model.predict(r2.params, kin2, sensors=("accel",))["accel"]
+        L = np.linalg.cholesky(st2.mean_cov())
+        zr = np.linalg.norm(np.linalg.solve(L, resid[..., None])[..., 0], axis=1)
+        return zr, np.linalg.norm(resid, axis=1) > big_thr
+
+    def describe(k):
+        a, f = st.means[k], kin.f[k]
+        c = float(np.dot(a, f) / (np.linalg.norm(a) * np.linalg.norm(f) or 1.0))
+        return (f"the gravity direction it measured is {np.degrees(np.arccos(np.clip(c, -1, 1))):.0f}"
+                " deg from the one its attitude_deg states")
+
+    gross.screen(z, rnorm > big_thr, st.labels, without, "position", describe)
 
 
 # ---------------------------------------------------------------------------
