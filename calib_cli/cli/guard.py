@@ -28,6 +28,22 @@ def _flat(v):
     return [v]
 
 
+def _regular_or_dir(path) -> None:
+    """A device or a pipe (/dev/zero, a FIFO) is no input file: it would be read
+    forever. Exit 3 naming it."""
+    import os
+    import stat
+
+    from calib_cli.errors import InputError
+
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, TypeError, ValueError):
+        return  # missing: the command says so
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise InputError("not a regular file (a device or a pipe); give a file", str(path))
+
+
 def _wrap(cmd: click.Command) -> None:
     cb = cmd.callback
     if cb is None or getattr(cb, "_calib_guarded", False):
@@ -42,6 +58,8 @@ def _wrap(cmd: click.Command) -> None:
         from calib_cli.io.outpath import check_output
 
         inputs = [x for n in path_params if n not in outs for x in _flat(kwargs.get(n))]
+        for x in inputs:
+            _regular_or_dir(x)
         for n in sorted(outs):
             for v in _flat(kwargs.get(n)):
                 directory = not path_params[n].type.file_okay

@@ -50,6 +50,12 @@ guard_all(cli)
 
 def main(argv=None) -> None:
     """Entry point: run the command, map failures to the contract's exit codes."""
+    import warnings
+
+    if not (Ctx.debug or "--debug" in (argv or sys.argv)):
+        # numpy's RuntimeWarning text (with source lines) is not for users: a bad
+        # value is reported as an error naming the file (issue 15)
+        warnings.simplefilter("ignore", RuntimeWarning)
     try:
         rv = cli.main(args=argv, prog_name="calib", standalone_mode=False)
         sys.exit(rv if isinstance(rv, int) else 0)
@@ -64,12 +70,15 @@ def main(argv=None) -> None:
     except KeyboardInterrupt:
         err_console.print("calib: interrupted", markup=False)
         sys.exit(130)
-    except click.BadParameter as exc:
+    except click.UsageError as exc:  # one line, with where to look for help
         msg = exc.format_message()
-        if "is a directory" in msg:  # a directory where a file is expected: bad input
+        if isinstance(exc, click.BadParameter) and "is a directory" in msg:
+            # a directory where a file is expected: bad input (exit 3)
             err_console.print(f"calib: error: {msg}", markup=False, soft_wrap=True)
             sys.exit(3)
-        exc.show()
+        where = exc.ctx.command_path if exc.ctx is not None else "calib"
+        err_console.print(f"calib: error: {msg} (see {where} --help)", markup=False,
+                          soft_wrap=True)
         sys.exit(exc.exit_code)
     except click.ClickException as exc:
         exc.show()

@@ -78,7 +78,11 @@ def open_checked(path, kinds) -> h5py.File:
     try:
         h5 = h5py.File(p, "r")
     except OSError:
-        raise InputError("not an HDF5 file (or damaged)", p) from None
+        hint = ""
+        if Path(p).suffix.lower() in (".csv", ".txt", ".log", ".dat", ".tsv"):
+            hint = ("; a text log is imported first: calib import csv FILE --plan PLAN.toml "
+                    "--out raw.h5 (or calib import text, docs/import.md)")
+        raise InputError(f"not an HDF5 file (or damaged){hint}", p) from None
     kind = _attr_str(h5, "kind")
     if kind not in kinds:
         h5.close()
@@ -219,7 +223,10 @@ def read_site_layout(h5, path) -> tuple[Site, Layout]:
 
 
 def write_raw(path, rec: Recording, inputs=(), kind: str = "raw") -> None:
-    """Write a recording atomically (kind "raw", or "corrected" for apply's output)."""
+    """Write a recording atomically (kind "raw", or "corrected" for apply's output).
+    Its content is validated first (io/validate.py): a NaN, a time going back
+    is an error naming the input it came from."""
+    validate.check_recording(rec, str(inputs[0]) if inputs else str(path))
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
         write_provenance(h5, kind, inputs, rec.serial, {"plan_kind": rec.plan_kind})
         smp = h5.create_group("samples")

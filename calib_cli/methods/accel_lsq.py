@@ -310,11 +310,11 @@ def fit_scalar(rec: Recording, start: str = "ellipsoid") -> CalibrationResult:
 def fit_accel(rec: Recording, method: str = "auto") -> CalibrationResult:
     """The contract's ``fit accel``: auto = vector when every static segment
     has an attitude, else scalar."""
+    if rec.layout.redundant:
+        raise EstimationError("this is a redundant-unit recording: use `calib fit rimu`")
     statics = rec.static_segments()
     if not statics:
         raise EstimationError("the recording has no static segments to fit")
-    if rec.layout.redundant:
-        raise EstimationError("this is a redundant-unit recording: use `calib fit rimu`")
     if method == "auto":
         method = "vector" if all(s.attitude is not None for s in statics) else "scalar"
     if method == "vector":
