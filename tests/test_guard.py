@@ -388,3 +388,24 @@ def test_impossible_calibration_refused(files, run_cli, tmp_path):
         bad = dataclasses.replace(c, params={**c.params, **params}, stats={**c.stats, **stats})
         with pytest.raises(EstimationError):
             check_result(bad)
+
+
+def test_float_options_finite_and_positive(run_cli, tmp_path):
+    for v in ("nan", "inf", "-1", "0"):
+        code, _, err = run_cli("import", "csv", SAMPLE / "twelve_position.csv", "--plan",
+                               SAMPLE / "twelve_position.toml", "--out", tmp_path / "r.h5",
+                               "--window", v)
+        assert code == 2 and "--window" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "r.h5").exists()
+
+
+def test_device_as_input_is_exit_3(run_cli, tmp_path):
+    code, _, err = run_cli("import", "csv", "/dev/zero", "--plan",
+                           SAMPLE / "twelve_position.toml", "--out", tmp_path / "r.h5")
+    assert code == 3 and "/dev/zero" in err
+
+
+def test_csv_given_to_fit_says_import(run_cli, tmp_path):
+    code, _, err = run_cli("fit", "accel", SAMPLE / "twelve_position.csv", "--out",
+                           tmp_path / "c.h5")
+    assert code == 3 and "calib import csv" in err

@@ -44,18 +44,40 @@ def _regular_or_dir(path) -> None:
         raise InputError("not a regular file (a device or a pipe); give a file", str(path))
 
 
+# float options that must be > 0 (durations, windows, rates, multipliers)
+POSITIVE_PARAMS = {"window_s", "multiplier", "min_static_s", "settle_window", "settle_timeout",
+                   "segment_duration", "reconnect_timeout", "duration", "rate", "block",
+                   "speed_dps"}
+
+
+def _check_numbers(cmd: click.Command, kwargs: dict) -> None:
+    """Float options: finite (no nan/inf), and > 0 where the physics says so (exit 2)."""
+    import math
+
+    for p in cmd.params:
+        if not isinstance(p.type, (click.types.FloatParamType, click.FloatRange)):
+            continue
+        for v in _flat(kwargs.get(p.name)):
+            if not isinstance(v, float):
+                continue
+            if not math.isfinite(v):
+                raise click.BadParameter(f"must be a finite number, got {v}", param=p)
+            if p.name in POSITIVE_PARAMS and v <= 0:
+                raise click.BadParameter(f"must be > 0, got {v:g}", param=p)
+
+
 def _wrap(cmd: click.Command) -> None:
     cb = cmd.callback
     if cb is None or getattr(cb, "_calib_guarded", False):
         return
     path_params = {p.name: p for p in cmd.params if isinstance(p.type, click.Path)}
     outs = (OUTPUT_PARAMS | COMMAND_OUTPUTS.get(cmd.name, set())) & set(path_params)
-    if not outs:
-        return
 
     @functools.wraps(cb)
     def guarded(*args, **kwargs):
         from calib_cli.io.outpath import check_output
+
+        _check_numbers(cmd, kwargs)
 
         inputs = [x for n in path_params if n not in outs for x in _flat(kwargs.get(n))]
         for x in inputs:
