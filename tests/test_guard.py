@@ -409,3 +409,19 @@ def test_csv_given_to_fit_says_import(run_cli, tmp_path):
     code, _, err = run_cli("fit", "accel", SAMPLE / "twelve_position.csv", "--out",
                            tmp_path / "c.h5")
     assert code == 3 and "calib import csv" in err
+
+
+def test_damaged_calibration_under_out_does_not_fail_tolerances(files, run_cli, tmp_path):
+    tol = tmp_path / "tol.toml"
+    tol.write_text("[param.accel_bias]\nmin_mg = -500\nmax_mg = 500\n")
+    pipe = tmp_path / "pipe.toml"
+    pipe.write_text("[[step]]\nstep = 'fit'\nmethod = 'accel'\n")
+    out = tmp_path / "out"
+    code, _, err = run_cli("batch", pipe, files / "raw.h5", "--out", out, "--tolerances", tol)
+    assert code == 0, err
+    bad = out / "old" / "cal.h5"
+    bad.parent.mkdir()
+    _edit(_copy(files / "cal.h5", bad), lambda h: h.__delitem__("params"))
+    code, _, err = run_cli("batch", pipe, files / "raw.h5", "--out", out, "--tolerances", tol)
+    assert code == 0, err
+    assert "skipped" in err and "cal.h5" in err
