@@ -425,3 +425,9 @@ def test_damaged_calibration_under_out_does_not_fail_tolerances(files, run_cli, 
     code, _, err = run_cli("batch", pipe, files / "raw.h5", "--out", out, "--tolerances", tol)
     assert code == 0, err
     assert "skipped" in err and "cal.h5" in err
+
+
+def test_unknown_profile_name_lists_shipped(run_cli, tmp_path):
+    code, _, err = run_cli("record", "--imu", "nosuch", "--port", tmp_path / "p", "--duration",
+                           "1", "--out", tmp_path / "r.h5")
+    assert code == 3 and "generic-bin6" in err and "nosuch" in err

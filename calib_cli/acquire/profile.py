@@ -382,9 +382,22 @@ def resolve_profile(name: str, kind: str) -> str:
     return str(PROFILE_DIR / kind / f"{name}.toml")
 
 
+def _read_named(name: str, p: str, kind: str) -> str:
+    """The profile text; an unknown shipped name lists the shipped profiles."""
+    try:
+        return _read(p)
+    except InputError as exc:
+        if exc.message == "no such file" and str(p) != str(name):
+            shipped = sorted(x.stem for x in (PROFILE_DIR / kind).glob("*.toml"))
+            raise InputError(f"no {kind} profile named {name!r}; shipped: "
+                             f"{', '.join(shipped) or 'none'} (or give a .toml path)",
+                             name) from None
+        raise
+
+
 def load_imu_profile(path) -> ImuProfile:
     p = resolve_profile(str(path), "imu")
-    return parse_imu_profile(_read(p), p)
+    return parse_imu_profile(_read_named(str(path), p, "imu"), p)
 
 
 # ---------------------------------------------------------------------------
@@ -482,4 +495,4 @@ def load_table_profile(path) -> TableProfile:
     if str(path) == "manual":
         return TableProfile(name="manual", path="manual", kind="manual")
     p = resolve_profile(str(path), "turntable")
-    return parse_table_profile(_read(p), p)
+    return parse_table_profile(_read_named(str(path), p, "turntable"), p)
