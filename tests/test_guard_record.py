@@ -188,3 +188,35 @@ def test_misplaced_position_is_refused_and_asked_again(tmp_path):
     assert len(prompts) == 3 and "180 deg away" in prompts[1], prompts
     rec = journal_to_recording(str(tmp_path / "j.journal"))
     assert rec.accel[rec.segments[0].slice].mean(0)[0] > 9.0  # x-up, as planned
+
+
+def test_settle_timeout_says_measured_std_and_option(tmp_path):
+    import pytest
+
+    from calib_cli.errors import InputError
+
+    prof = load_imu_profile("generic-bin6")
+    plan = parse_plan('name = "m"\nkind = "static"\n'
+                      '[[segment]]\nlabel = "z-up"\nattitude_deg = [0, 0, 0]\nduration_s = 0.3\n')
+    em = Emulator(prof, rate=1000, link_dir=str(tmp_path)).start()
+    try:
+        s = Session(prof, SerialTransport(em.paths["imu"], prof.transport), plan,
+                    str(tmp_path / "j.journal"),
+                    settle=SettleConfig(window_s=0.1, timeout_s=1.0, accel_std=1e-9,
+                                        gyro_std=1e-9))
+        s.start()
+        with pytest.raises(InputError) as e:
+            s.run_plan()
+        s.close()
+    finally:
+        em.stop()
+    msg = str(e.value)
+    assert "measured std accel" in msg and "--accel-still" in msg and "--gyro-still" in msg
+
+
+def test_profile_noise_sets_stillness_limits():
+    import tomllib
+
+    text = load_imu_profile("rimu18").raw_text
+    noise = tomllib.loads(text)["noise"]
+    assert 5 * noise["gyro_std"] > 0.05  # above the unit's own noise, unlike 0.01 rad/s
