@@ -431,3 +431,17 @@ def test_unknown_profile_name_lists_shipped(run_cli, tmp_path):
     code, _, err = run_cli("record", "--imu", "nosuch", "--port", tmp_path / "p", "--duration",
                            "1", "--out", tmp_path / "r.h5")
     assert code == 3 and "generic-bin6" in err and "nosuch" in err
+
+
+def test_disk_full_leaves_nothing_and_says_so(files, run_cli, tmp_path, monkeypatch):
+    import errno
+
+    import calib_cli.io.h5 as h5mod
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(h5mod, "write_provenance", full)
+    code, _, err = run_cli("fit", "accel", files / "raw.h5", "--out", tmp_path / "c.h5")
+    assert code == 2 and "disk full" in err and err.count("\n") == 1
+    assert list(tmp_path.iterdir()) == []
