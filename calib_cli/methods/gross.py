@@ -131,9 +131,12 @@ def check_result(res, rec=None) -> None:
                 problems.append(f"{s}_bias[{i}] = {float(b[i]) * f:.6g} {unit} (beyond the "
                                 f"device range +-{lim * f:.6g} {unit})")
     before, after = st.get("g_error_rms_before"), st.get("g_error_rms_after")
-    floor = st.get("g_error_floor") or 0.0
+    floor = st.get("g_error_floor")
+    # without a stated noise floor (e.g. fit align): worse by half and by more than 1 mg
+    margin = 3 * floor if isinstance(floor, (int, float)) and np.isfinite(floor) else \
+        max(0.5 * (before or 0.0), 1e-3 * G0)
     if isinstance(before, (int, float)) and isinstance(after, (int, float)) \
-            and np.isfinite(before) and (not np.isfinite(after) or after > before + 3 * floor):
+            and np.isfinite(before) and (not np.isfinite(after) or after > before + margin):
         problems.append(f"the correction makes |g| worse (RMS error {before * 1e3 / G0:.4g} mg "
                         f"before, {after * 1e3 / G0:.4g} mg after)")
     if problems:
