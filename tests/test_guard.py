@@ -445,3 +445,23 @@ def test_disk_full_leaves_nothing_and_says_so(files, run_cli, tmp_path, monkeypa
     code, _, err = run_cli("fit", "accel", files / "raw.h5", "--out", tmp_path / "c.h5")
     assert code == 2 and "disk full" in err and err.count("\n") == 1
     assert list(tmp_path.iterdir()) == []
+
+
+def test_files_without_checksums_still_read(files, run_cli, tmp_path):
+    """A file of the previous writer (no Fletcher-32 filter) is read as before."""
+    p = _copy(files / "raw.h5", tmp_path / "old.h5")
+
+    def plain(h):
+        for k in list(h["samples"]):
+            _replace(h, f"samples/{k}", h[f"samples/{k}"][()])
+        assert not h["samples/accel"].fletcher32
+
+    _edit(p, plain)
+    code, _, err = run_cli("fit", "accel", p, "--out", tmp_path / "c.h5")
+    assert code == 0, err
+    import h5py
+
+    with h5py.File(tmp_path / "c.h5") as h5:
+        assert h5["params/accel_K"].fletcher32
+    with h5py.File(files / "raw.h5") as h5:
+        assert h5["samples/accel"].fletcher32 and h5["samples/time"].fletcher32
