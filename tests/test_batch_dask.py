@@ -104,3 +104,15 @@ def test_unreachable_scheduler_is_one_line(tmp_path, monkeypatch):
                            "--scheduler", "tcp://127.0.0.1:9")
     assert code == 3 and "cannot reach the Dask scheduler" in se
     assert "Traceback" not in se
+
+
+def test_tls_scheduler_without_certificates_is_one_line(tmp_path, monkeypatch):
+    """tls:// with no TLS configuration: exit 3, one line (was an internal error)."""
+    from calib_cli.batch import runner
+
+    monkeypatch.setattr(runner, "DASK_CONNECT_TIMEOUT", "2s")
+    a = make_archive(tmp_path, n=1, n_broken=0)
+    code, so, se = run_cli("batch", a["pipeline"], a["archive"], "--out", tmp_path / "o",
+                           "--scheduler", "tls://127.0.0.1:9")
+    assert code == 3 and "Dask" in se, se
+    assert len(se.strip().splitlines()) == 1 and "Traceback" not in se

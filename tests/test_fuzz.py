@@ -22,7 +22,7 @@ import pytest
 from click.testing import CliRunner
 
 ROOT = Path(__file__).resolve().parents[1]
-SEED = 20261124
+SEED = int(os.environ.get("FUZZ_SEED", "20261124"))
 
 PLAN = """name = "small"
 kind = "static"

@@ -287,6 +287,9 @@ def _run_dask(tasks, scheduler):
         client = Client(scheduler, timeout=DASK_CONNECT_TIMEOUT)
     except (OSError, TimeoutError) as exc:
         raise InputError(f"cannot reach the Dask scheduler: {exc}", scheduler) from None
+    except (TypeError, ValueError) as exc:  # e.g. tls:// without certificates configured
+        raise InputError(f"cannot connect to the Dask scheduler ({exc}); for tls:// set the "
+                         "Dask TLS configuration (docs/batch.md)", scheduler) from None
     try:
         run_id = uuid.uuid4().hex[:12]  # keys unique per run: runs may share a cluster
         futs = client.map(run_chain, tasks, pure=False,

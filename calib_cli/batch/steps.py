@@ -58,15 +58,19 @@ def fit_gyro_step(rec, g_sensitivity: str = "auto"):
     return fit_gyro(rec, None, g_sensitivity)
 
 
-def fit_turntable_step(rec, lever_arm: str = "estimate", proof_mass: str = "off",
-                       tangential: str = "on", block_s: float = 0.2, axis_sigma_mrad: float = 1.0):
+def fit_turntable_step(rec, lever_arm: str = "estimate", proof_mass: str = "auto",
+                       tangential: str = "on", block_s: float = 0.2, axis_sigma_mrad: float = 1.0,
+                       table_tilt_deg: float = 0.05):
     """`calib fit turntable` with the command's options (same names)."""
+    import numpy as np
+
     from calib_cli.methods.turntable import TurntableOptions, fit_turntable
 
     return fit_turntable(rec, TurntableOptions(lever_arm=lever_arm, proof_mass=proof_mass,
                                                tangential=tangential in ("on", True),
                                                block_s=float(block_s),
-                                               axis_sigma=float(axis_sigma_mrad) * 1e-3))
+                                               axis_sigma=float(axis_sigma_mrad) * 1e-3,
+                                               table_tilt_sigma=float(np.radians(table_tilt_deg))))
 
 
 # plan kind -> the fit method `method = "auto"` runs for it
@@ -124,8 +128,10 @@ register_fit("align", "calib_cli.batch.steps:fit_align_step",
 register_fit("gyro", "calib_cli.batch.steps:fit_gyro_step", options=("g_sensitivity",))
 register_fit("rimu", "calib_cli.methods.rimu:fit_rimu")
 register_fit("turntable", "calib_cli.batch.steps:fit_turntable_step",
-             options=("lever_arm", "proof_mass", "tangential", "block_s", "axis_sigma_mrad"))
+             options=("lever_arm", "proof_mass", "tangential", "block_s", "axis_sigma_mrad",
+                      "table_tilt_deg"))
 # any option name is passed on: the chosen fit checks it
 register_fit("auto", "calib_cli.batch.steps:fit_auto_step",
              options=("method", "rotation", "gyro", "gyro_k_ppm", "turn_sigma_deg", "g_sensitivity",
-                      "lever_arm", "proof_mass", "tangential", "block_s", "axis_sigma_mrad"))
+                      "lever_arm", "proof_mass", "tangential", "block_s", "axis_sigma_mrad",
+                      "table_tilt_deg"))

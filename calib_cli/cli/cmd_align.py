@@ -12,10 +12,12 @@ from calib_cli.io.h5 import read_raw
 @fit_group.command("align")
 @click.argument("raw", type=click.Path(dir_okay=False))
 @click.option("--out", required=True, type=click.Path(dir_okay=False))
-@click.option("--method", type=click.Choice(["two-position", "classic"]), default="two-position",
-              show_default=True,
+@click.option("--method", type=click.Choice(["two-position", "classic", "static"]),
+              default="two-position", show_default=True,
               help="two-position: any rotation between the positions; classic: the 2- or "
-                   "4-position baseline (turns of 180 or 90 deg about the vertical body z).")
+                   "4-position baseline (turns of 180 or 90 deg about the vertical body z); "
+                   "static: static data only, the turn neither recorded nor stated (both "
+                   "attitudes and the biases from the twelve static equations).")
 @click.option("--rotation", type=click.Choice(["auto", "gyro", "plan"]), default="auto",
               show_default=True,
               help="Rotation between positions: gyros integrated through the recorded "
@@ -46,6 +48,13 @@ def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_
         from calib_cli.methods.align_classic import fit_classic
 
         res = fit_classic(rec, rotation=rotation)
+    elif method == "static":
+        from calib_cli.methods.align_static import fit_align_static
+
+        res = fit_align_static(rec)
+        if res.stats.get("degeneracy"):
+            info(f"[yellow]degenerate positions:[/] {res.stats['degeneracy']}; not observable: "
+                 + ", ".join(res.stats["unobservable"]))
     else:
         from calib_cli.methods.align import fit_align
 
@@ -55,5 +64,6 @@ def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_
     if not res.stats.get("earth_rate_used", True):
         info(f"[yellow]earth rate not used:[/] {res.stats.get('grade_check')}; heading not "
              "estimated, accelerometer biases and tilt only")
-    info(res.stats.get("observability", ""))
+    if res.stats.get("observability"):
+        info(res.stats["observability"])
     save(res, raw, out, rec=rec)

@@ -22,6 +22,8 @@ DEFAULT_TARGET = {"m/s^2": 1e-4, "rad/s": 1e-5}  # ~10 ug, ~2 deg/h
 # terminal display: term -> unit -> (factor, shown unit)
 _DPS = 180 / np.pi
 DISPLAY = {
+    ("quantization", "rad/s"): (_DPS * 3600, "arcsec"),
+    ("quantization", "m/s^2"): (1e3, "mm/s"),
     ("random_walk", "rad/s"): (_DPS * 60, "deg/sqrt(h)"),
     ("bias_instability", "rad/s"): (_DPS * 3600, "deg/h"),
     ("rate_random_walk", "rad/s"): (_DPS * 3600 * 60, "deg/h/sqrt(h)"),
@@ -139,7 +141,8 @@ def allan_json(res: A.AllanResult) -> dict:
                     **{k: {f: res.terms[k][f][i] for f in ("value", "lo", "hi", "tau")}
                        for k in res.terms},
                     "tau_min": res.tau_min[i], "averaging_target": res.target[i],
-                    "averaging_time": res.averaging_time[i]}
+                    "averaging_time": res.averaging_time[i],
+                    "min_averaging_time": res.min_avg()[i]}
     return {"kind": "allan", "segment": res.meta.get("segment"), "tau0": res.tau0,
             "samples": res.n_samples, "duration_s": res.duration,
             "confidence": A.CONFIDENCE, "term_units": {u: A.term_units(u) for u in
@@ -159,8 +162,8 @@ def _fmt(term, unit, v, lo, hi):
 def render_allan(res: A.AllanResult, title: str) -> None:
     t = Table(title=f"{title}: {res.n_samples} samples, {res.duration:.6g} s "
               f"(tau0 {res.tau0:.3g} s); values [{A.CONFIDENCE:.0%} interval]")
-    for col in ("channel", "random walk N", "bias instability B", "rate random walk K",
-                "tau at minimum", "averaging time"):
+    for col in ("channel", "quantization Q", "random walk N", "bias instability B",
+                "rate random walk K", "tau at minimum", "averaging time", "min. averaging (Q)"):
         t.add_column(col)
     for i, c in enumerate(res.channels):
         u = res.units[i]
@@ -172,7 +175,9 @@ def render_allan(res: A.AllanResult, title: str) -> None:
         else:
             avg = (f"{at:.3g} s" if np.isfinite(at) else "target not reached") + \
                 f" (target {res.target[i]:.3g} {u})"
-        t.add_row(c, *row, f"{res.tau_min[i]:.3g} s", avg)
+        tq = res.min_avg()[i]
+        t.add_row(c, *row, f"{res.tau_min[i]:.3g} s", avg,
+                  f"{tq:.3g} s" if np.isfinite(tq) else "-")
     out_console.print(t)
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import re
 import sys
 from pathlib import Path
 
@@ -10,8 +9,18 @@ import click
 
 from calib_cli.cli.common import info
 from calib_cli.cli.main import cli
+from calib_cli.io import escape
 from calib_cli.io.export import FORMATS, export_object, to_c_header, to_csv, to_json, to_yaml
 from calib_cli.io.h5 import atomic_path, provenance, read_calibration, sha256_file
+
+
+class PrefixError(click.ClickException):
+    """A bad --prefix: usage error (exit 2), one line on stderr."""
+
+    exit_code = 2
+
+    def show(self, file=None):
+        click.echo(f"calib: error: {self.format_message()}", err=True)
 
 
 @cli.command("export")
@@ -21,11 +30,14 @@ from calib_cli.io.h5 import atomic_path, provenance, read_calibration, sha256_fi
 @click.option("--out", type=click.Path(dir_okay=False), help="Output file (default: stdout).")
 @click.option("--float", "single", is_flag=True, help="c-header: float instead of double.")
 @click.option("--prefix", default="calib", show_default=True,
-              help="c-header: prefix of the names (CALIB_ACCEL_KINV, calib_correct_accel).")
+              help="c-header: prefix of the names (CALIB_ACCEL_KINV, calib_correct_accel); "
+                   "a C identifier: a letter, then letters, digits or '_', at most 32.")
 def export_cmd(cal, fmt, out, single, prefix):
     """Export the correction (K^-1, biases, D) for firmware and other tools."""
-    if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", prefix):
-        raise click.BadParameter("must be a C identifier", param_hint="--prefix")
+    try:
+        escape.c_identifier(prefix, "--prefix")
+    except ValueError as exc:
+        raise PrefixError(str(exc)) from None
     c = read_calibration(cal)
     from calib_cli.io.validate import check_calibration
 

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import click
 import numpy as np
-from rich.markup import escape
 from rich.table import Table
 
 from calib_cli.cli.common import out_console, print_json
 from calib_cli.cli.main import cli
 from calib_cli.cli.render import display_of
 from calib_cli.errors import InputError
+from calib_cli.io.escape import mpl_text, term_text
 
 
 def _keys(entries) -> list[str]:
@@ -47,12 +47,15 @@ def _plot(entries, keys, path) -> None:
             if np.all(s[:, j] == 0):
                 continue  # fixed by convention
             ax.errorbar(x[have], (v[:, j] - v[0, j]) * factor, yerr=s[:, j] * factor, marker="o",
-                        ms=3, capsize=2, label=name)
-        ax.set_ylabel(f"{key}\nchange [{unit}]")
+                        ms=3, capsize=2, label=mpl_text(name))
+        ax.set_ylabel(mpl_text(f"{key}") + f"\nchange [{mpl_text(unit)}]")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=6, ncol=3, loc="best")
-    axes[-1, 0].set_xticks(x, [e.rel for e in entries], rotation=60, ha="right", fontsize=6)
-    fig.suptitle(f"unit {entries[0].serial}: change since its first calibration (1 sigma bars)")
+    # file names and the serial come from the archive: shown through the escapers
+    axes[-1, 0].set_xticks(x, [mpl_text(e.rel) for e in entries], rotation=60, ha="right",
+                           fontsize=6)
+    fig.suptitle(f"unit {mpl_text(entries[0].serial)}: change since its first calibration "
+                 "(1 sigma bars)")
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)
@@ -81,16 +84,17 @@ def history_cmd(directory, serial, plot_path, as_json):
              "created_utc": e.created_utc, "params": e.params, "sigma": e.sigma,
              "units": e.units} for e in entries]})
         return 0
-    legend = Table(title=f"unit {serial}: {len(entries)} calibrations, in order")
+    legend = Table(title=term_text(f"unit {serial}: {len(entries)} calibrations, in order"))
     for col in ("#", "file", "method", "recorded (UTC)"):
         legend.add_column(col)
     for i, e in enumerate(entries):
-        legend.add_row(str(i + 1), e.rel, e.method, e.recorded_utc or "-")
+        legend.add_row(str(i + 1), term_text(e.rel), term_text(e.method),
+                       term_text(e.recorded_utc or "-"))
     out_console.print(legend)
     for key in keys:
         first = next(e for e in entries if key in e.params)
         factor, unit = display_of(key, first.units.get(key, ""))
-        t = Table(title=escape(f"{key} [{unit or '-'}], value ±1 sigma"))
+        t = Table(title=term_text(f"{key} [{unit or '-'}], value ±1 sigma"))
         t.add_column("entry")
         have = [(i, e) for i, e in enumerate(entries) if key in e.params]
         for i, _ in have:
@@ -107,7 +111,7 @@ def history_cmd(directory, serial, plot_path, as_json):
                 sig = ("±?" if not np.isfinite(s[j]) else "" if s[j] == 0
                        else f"±{s[j] * factor:.2g}")
                 cells.append(f"{v[j] * factor:.7g}{sig}")
-            t.add_row(n, *cells)
+            t.add_row(term_text(n), *cells)
         out_console.print(t)
     if plot_path:
         out_console.print(f"-> {plot_path}")

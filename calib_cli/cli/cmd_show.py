@@ -9,7 +9,9 @@ from rich.table import Table
 from calib_cli.cli.common import Ctx, out_console, print_json
 from calib_cli.cli.main import cli
 from calib_cli.cli.render import params_table
+from calib_cli.io.escape import term_text
 from calib_cli.io.h5 import file_kind, provenance, read_calibration, read_raw
+from calib_cli.units import g_figures_line
 
 
 def calibration_json(path, covariance: bool = False) -> dict:
@@ -39,10 +41,10 @@ SHOWERS: dict = {}
 
 def _render_provenance(path):
     prov = provenance(path)
-    t = Table(title=f"{path}", show_header=False)
+    t = Table(title=term_text(path), show_header=False)
     for k in ("kind", "format_version", "tool_version", "created_utc", "unit_serial", "command"):
         if k in prov:
-            t.add_row(k, str(prov[k]))
+            t.add_row(k, term_text(prov[k]))
     out_console.print(t)
 
 
@@ -53,7 +55,7 @@ def _render_calibration(path, covariance):
     for k, v in c.stats.items():
         if isinstance(v, float):
             v = f"{v:.6g}"
-        st.add_row(k, str(v))
+        st.add_row(term_text(k), term_text(v))
     out_console.print(st)
     if "g_table" in c.tables:
         gt = Table(title="|g| per position (m/s^2)")
@@ -61,24 +63,29 @@ def _render_calibration(path, covariance):
             gt.add_column(col)
         labels = c.tables.get("segment_labels", [])
         for lab, row in zip(labels, np.asarray(c.tables["g_table"])):
-            gt.add_row(lab, f"{row[0]:.0f}", "-" if np.isnan(row[1]) else f"{row[1]:.6f}",
+            gt.add_row(term_text(lab), f"{row[0]:.0f}", "-" if np.isnan(row[1]) else f"{row[1]:.6f}",
                        f"{row[2]:.6f}", f"{row[3]:+.2e}")
         out_console.print(gt)
+        line = g_figures_line(c.stats)
+        if line:
+            out_console.print(line)
     if covariance:
         out_console.print(f"covariance: {c.covariance.shape[0]} free entries (use --json)")
 
 
 def _render_raw(path):
     r = read_raw(path)
-    t = Table(title=f"{len(r)} samples at {r.sample_rate:.4g} Hz, units {r.units}")
+    t = Table(title=term_text(f"{len(r)} samples at {r.sample_rate:.4g} Hz, units {r.units}"))
     for col in ("segment", "kind", "samples", "duration s", "attitude deg"):
         t.add_column(col)
     for s in r.segments:
         att = "unknown" if s.attitude is None else ", ".join(f"{x:.4g}" for x in np.degrees(s.attitude))
-        t.add_row(s.label, s.kind, str(s.n), f"{s.n / max(r.sample_rate, 1e-9):.1f}", att)
+        t.add_row(term_text(s.label), term_text(s.kind), str(s.n),
+                  f"{s.n / max(r.sample_rate, 1e-9):.1f}", att)
     out_console.print(t)
     if r.counters:  # acquisition counts (calib record)
-        out_console.print("counters: " + ", ".join(f"{k} {v}" for k, v in r.counters.items()))
+        out_console.print(term_text("counters: " + ", ".join(f"{k} {v}"
+                                                             for k, v in r.counters.items())))
 
 
 @cli.command("show")

@@ -16,9 +16,11 @@ from calib_cli.io.h5 import read_raw
               default="estimate", show_default=True,
               help="off: no centripetal terms; known: each cycle's lever_arm_m from the plan; "
                    "estimate: two components per cycle (the axial one is unobservable).")
-@click.option("--proof-mass", "proof_mass", type=click.Choice(["off", "estimate"]), default="off",
-              show_default=True,
-              help="Proof-mass offsets p_ij: best with tilted cycles (docs/turntable.md).")
+@click.option("--proof-mass", "proof_mass", type=click.Choice(["auto", "off", "estimate"]),
+              default="auto", show_default=True,
+              help="Proof-mass offsets p_ij (best with tilted cycles, docs/turntable.md). auto: "
+                   "estimated, entries the record cannot determine reported with sigma null; "
+                   "off: held at 0.")
 @click.option("--tangential", type=click.Choice(["on", "off"]), default="on", show_default=True,
               help="dw/dt x r term from the differentiated gyros (off: blocks in which the table "
                    "accelerates are left out of the accelerometer measurements).")

@@ -6,6 +6,7 @@ import numpy as np
 from rich.table import Table
 
 from calib_cli.cli.common import Ctx, err_console
+from calib_cli.units import g_figures_line
 
 # key -> (factor, unit) for the terminal; values stay SI in files and JSON
 DISPLAY = {
@@ -44,7 +45,10 @@ def fmt_value(v: float, s: float | None, factor: float, matrix_key: bool) -> str
 
 
 def params_table(params: dict, sigma: dict, units: dict, title: str = "parameters") -> Table:
-    tab = Table(title=title, show_lines=False)
+    """Names, units and title come from files: shown through escape.term_text."""
+    from calib_cli.io.escape import term_text
+
+    tab = Table(title=term_text(title), show_lines=False)
     tab.add_column("parameter")
     tab.add_column("value +- 1 sigma")
     tab.add_column("unit")
@@ -54,12 +58,13 @@ def params_table(params: dict, sigma: dict, units: dict, title: str = "parameter
         factor, unit = display_of(key, units.get(key, ""))
         matrix_key = key.endswith("_K") and "count" not in units.get(key, "")
         if val.ndim == 0:
-            tab.add_row(key, fmt_value(float(val), float(sig), factor, False), unit)
+            tab.add_row(term_text(key), fmt_value(float(val), float(sig), factor, False),
+                        term_text(unit))
             continue
         for idx in np.ndindex(val.shape):
             name = f"{key}[{','.join(map(str, idx))}]"
-            tab.add_row(name, fmt_value(val[idx], sig[idx], factor, matrix_key),
-                        unit if not matrix_key else "-")
+            tab.add_row(term_text(name), fmt_value(val[idx], sig[idx], factor, matrix_key),
+                        term_text(unit) if not matrix_key else "-")
     return tab
 
 
@@ -77,6 +82,8 @@ def render_summary(res) -> None:
         floor = "" if floor is None else f" (noise floor {floor * 1e3 / 9.80665:.4f} mg)"
         err_console.print(f"|g| error RMS: before {b}, after "
                           f"{st['g_error_rms_after'] * 1e3 / 9.80665:.4f} mg{floor}")
+        if g_figures_line(st):
+            err_console.print(g_figures_line(st))
     if st.get("unobservable"):
         err_console.print(f"[yellow]unobservable:[/] {', '.join(st['unobservable'])}")
     if st.get("sigma_inflation", 1.0) != 1.0:

@@ -11,7 +11,8 @@
     /curve/clusters      (n_tau,) independent clusters
     /terms/<name>/value, lo, hi, tau, clusters   (n_ch,) for name in
                          random_walk, bias_instability, rate_random_walk
-    /averaging/target, time, tau_min   (n_ch,)
+    /averaging/target, time, tau_min, min_time   (n_ch,)  (min_time: from the
+                         quantisation term; absent in files of older versions)
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ def write_allan(path, res: AllanResult, inputs=(), serial=None) -> None:
                 g[k] = np.asarray(v)
         a = h5.create_group("averaging")
         a["target"], a["time"], a["tau_min"] = res.target, res.averaging_time, res.tau_min
+        a["min_time"] = res.min_avg()
 
 
 def _strs(d):
@@ -69,6 +71,7 @@ def read_allan(path) -> AllanResult:
                 tau=c["tau"][()], adev=c["adev"][()], clusters=c["clusters"][()],
                 adev_lo=c["adev_lo"][()], adev_hi=c["adev_hi"][()], terms=terms,
                 tau_min=a["tau_min"][()], averaging_time=a["time"][()], target=a["target"][()],
-                stride_div=int(h5.attrs.get("stride_div", 16)), meta=meta)
+                stride_div=int(h5.attrs.get("stride_div", 16)), meta=meta,
+                min_averaging_time=a["min_time"][()] if "min_time" in a else None)
         except (KeyError, ValueError, TypeError) as exc:
             raise InputError(f"malformed allan file: missing or bad field {exc}", p) from None

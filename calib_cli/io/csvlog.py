@@ -17,6 +17,7 @@ import numpy as np
 from calib_cli.data import Recording, Segment
 from calib_cli.errors import InputError
 from calib_cli.io.plan import Plan, PlanSegment
+from calib_cli.methods.cycle_detect import CycleDetection, detect_cycles, trim_intervals
 from calib_cli.methods.static_detect import DetectionReport, detect_static
 from calib_cli.model.effects import Layout
 
@@ -131,26 +132,38 @@ def segments_from_column(seg: np.ndarray, plan: Plan, path: str) -> list[Segment
             continue
         ps = plan.segments[k]
         counts[k] = counts.get(k, 0) + 1
-        label = ps.label
-        if ps.repeat_auto:
-            label = f"{ps.label}#{counts[k]}"
-        elif counts[k] > 1:
-            label = f"{ps.label}#{counts[k]}"
+        label = plan.visit_labels[k]
+        if ps.repeat_auto or counts[k] > 1:
+            label = f"{label}#{counts[k]}"
         out.append(_raw_segment(ps, k, a, b, label))
     return out
 
 
-def segments_from_detection(report: DetectionReport, plan: Plan, n: int, path: str) -> list[Segment]:
+def segments_from_detection(report: DetectionReport, plan: Plan, n: int, path: str,
+                            cycles: CycleDetection | None = None) -> list[Segment]:
     """Match detected static intervals to the plan's static segments in order;
     a repeat = "auto" segment absorbs any number; turn segments are the spans
-    between the intervals around them."""
-    if any(s.kind == "rotating" for s in plan.segments):
-        raise InputError("the plan has rotating segments, which cannot be found by static "
-                         "detection: the CSV needs a 'segment' column", path)
+    between the intervals around them. Rotating segments take the detected
+    rotation cycles (``cycles``, methods/cycle_detect.py) in order; holds inside
+    a cycle are not static positions."""
+    rotating = [(i, s) for i, s in enumerate(plan.segments) if s.kind == "rotating"]
+    intervals = list(report.intervals)
+    by_plan: dict[int, list[Segment]] = {}
+    if rotating:
+        if cycles is None or len(cycles.cycles) != len(rotating):
+            found = 0 if cycles is None else len(cycles.cycles)
+            why = "" if cycles is None else f": {cycles.explain(len(rotating))}"
+            raise InputError(f"the plan has {len(rotating)} rotating segments but the data show "
+                             f"{found}{why}", path)
+        for (i, s), (a, b) in zip(rotating, cycles.cycles):
+            by_plan[i] = [_raw_segment(s, i, a, b, plan.visit_labels[i])]
+        intervals = trim_intervals(intervals, cycles.cycles, 1)
     statics = [(i, s) for i, s in enumerate(plan.segments) if s.kind == "static"]
     fixed = sum(1 for _, s in statics if not s.repeat_auto)
     auto = any(s.repeat_auto for _, s in statics)
-    found = len(report.intervals)
+    if rotating and not statics:
+        intervals = []  # quiet spans between cycles (remounts) are no plan positions
+    found = len(intervals)
     if (found != fixed and not auto) or (auto and found < fixed):
         expect = f"{fixed}" + (" or more" if auto else "")
         raise InputError(f"detected {found} static intervals but the plan has {expect} static "
@@ -162,10 +175,9 @@ def segments_from_detection(report: DetectionReport, plan: Plan, n: int, path: s
         if s.repeat_auto:
             assigned += [(i, s, f"{s.label}#{k + 1}") for k in range(n_auto)]
         else:
-            assigned.append((i, s, s.label))
+            assigned.append((i, s, plan.visit_labels[i]))
     out: list[Segment] = []
-    by_plan = {}
-    for (i, s, label), (a, b) in zip(assigned, report.intervals):
+    for (i, s, label), (a, b) in zip(assigned, intervals):
         seg = _raw_segment(s, i, a, b, label)
         by_plan.setdefault(i, []).append(seg)
     # walk the plan; turn segments take the span between neighbouring intervals
@@ -182,14 +194,23 @@ def segments_from_detection(report: DetectionReport, plan: Plan, n: int, path: s
         segs = by_plan.get(i, [])
         if pending_turn is not None:
             start = segs[0].start if segs else n
-            out.append(_raw_segment(pending_turn[1], pending_turn[0], prev_stop, start))
+            out.append(_raw_segment(pending_turn[1], pending_turn[0], prev_stop, start,
+                                    plan.visit_labels[pending_turn[0]]))
             pending_turn = None
         out += segs
         if segs:
             prev_stop = segs[-1].stop
     if pending_turn is not None:
-        out.append(_raw_segment(pending_turn[1], pending_turn[0], prev_stop, n))
+        out.append(_raw_segment(pending_turn[1], pending_turn[0], prev_stop, n,
+                                plan.visit_labels[pending_turn[0]]))
     return out
+
+
+def plan_cycles(plan: Plan, t, gyro, table_rate=None) -> CycleDetection | None:
+    """The rotation cycles of the data where the plan has rotating segments."""
+    if gyro is None or not any(s.kind == "rotating" for s in plan.segments):
+        return None
+    return detect_cycles(t, gyro, table_rate)
 
 
 def import_csv(path, plan: Plan, window_s: float = 1.0, multiplier: float = 3.0,
@@ -204,7 +225,8 @@ def import_csv(path, plan: Plan, window_s: float = 1.0, multiplier: float = 3.0,
         segments = segments_from_column(seg, plan, path)
     else:
         report = detect_static(t, accel, gyro, window_s, multiplier, min_static_s)
-        segments = segments_from_detection(report, plan, len(t), path)
+        cycles = plan_cycles(plan, t, gyro, opt.get("table_rate"))
+        segments = segments_from_detection(report, plan, len(t), path, cycles)
     if not segments:
         raise InputError("no segments found in the data", path)
     n_cycles = sum(1 for s in segments if s.kind == "rotating")

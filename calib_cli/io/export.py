@@ -18,18 +18,23 @@ not invert them either) and are listed but not applied.
 Formats: json, yaml (written here, no dependency), csv (long format, one row
 per entry), c-header (K^-1, b, G^-1, d, D as literals with full precision,
 %.17g for double, %.9g for float).
+
+Text from the calibration file (serial, method, command line, units,
+parameter names) is untrusted: it reaches each format only through that
+format's escaper in ``calib_cli.io.escape`` (docs/security.md). The C header
+carries it only inside string constants, never in a comment or in code.
 """
 
 from __future__ import annotations
 
-import json
 import math
-import re
 
 import numpy as np
 
+from calib_cli import __version__
 from calib_cli.data import CalibrationResult
 from calib_cli.errors import InputError
+from calib_cli.io import escape
 from calib_cli.methods.apply import model_of
 from calib_cli.model.kinematics import Kinematics
 
@@ -107,15 +112,31 @@ def _lists(a):
     return [_lists(v) for v in a]
 
 
+def _text(v) -> str | None:
+    """A provenance value as text (None stays None): what a file holds in an
+    attribute may be any type; the export writes strings."""
+    if v is None:
+        return None
+    if isinstance(v, bytes):
+        return v.decode("utf-8", "backslashreplace")
+    return str(v)
+
+
+def _raw_units(cal: CalibrationResult) -> dict:
+    ru = cal.raw_units if isinstance(cal.raw_units, dict) else {}
+    return {str(k): _text(v) for k, v in ru.items()}
+
+
 def export_object(cal: CalibrationResult, prov: dict, source: str) -> dict:
     """The JSON/YAML object: provenance, formula, correction, all parameters."""
     obj = {
         "format": "calib-correction", "format_version": 1,
-        "source": {"file": source, "sha256": prov.get("sha256"),
-                   "created_utc": prov.get("created_utc"), "command": prov.get("command"),
-                   "tool_version": prov.get("tool_version")},
-        "method": cal.method, "unit": {"serial": cal.serial},
-        "raw_units": cal.raw_units,
+        "source": {"file": _text(source), "sha256": _text(prov.get("sha256")),
+                   "created_utc": _text(prov.get("created_utc")),
+                   "command": _text(prov.get("command")),
+                   "tool_version": _text(prov.get("tool_version"))},
+        "method": _text(cal.method), "unit": {"serial": _text(cal.serial)},
+        "raw_units": _raw_units(cal),
     }
     if not cal.layout.redundant:
         corr = affine_correction(cal, source)
@@ -126,40 +147,33 @@ def export_object(cal: CalibrationResult, prov: dict, source: str) -> dict:
             obj["not_applied"] = not_applied
     obj["params"] = {k: _lists(v) for k, v in cal.params.items()}
     obj["sigma"] = {k: _lists(v) for k, v in cal.sigma.items()}
-    obj["units"] = dict(cal.units)
+    obj["units"] = {str(k): _text(v) for k, v in cal.units.items()}
     return obj
 
 
 def to_json(obj) -> str:
-    return json.dumps(obj, indent=2) + "\n"
+    return escape.json_text(obj, indent=2) + "\n"
 
 
 # ---------------------------------------------------------------------------
-# YAML, by hand: block mappings, flow sequences, JSON-style quoted strings
-# (a JSON double-quoted string is a valid YAML double-quoted scalar)
-
-
-def _yaml_scalar(v) -> str:
-    if v is None:
-        return "null"
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(float(v)) if isinstance(v, float) else str(v)
-    return json.dumps(str(v))
+# YAML, by hand: block mappings, flow sequences, double-quoted strings with
+# every character outside printable ASCII escaped (escape.yaml_*)
 
 
 def _yaml_flow(v) -> str:
-    if isinstance(v, list):
+    if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_yaml_flow(x) for x in v) + "]"
-    return _yaml_scalar(v)
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{escape.yaml_key(k)}: {_yaml_flow(x)}"
+                               for k, x in v.items()) + "}"
+    return escape.yaml_scalar(v)
 
 
 def to_yaml(obj, indent: int = 0) -> str:
     lines = ["# calib correction export (docs/export.md)"] if indent == 0 else []
     pad = "  " * indent
     for k, v in obj.items():
-        key = str(k) if re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", str(k)) else json.dumps(str(k))
+        key = escape.yaml_key(k)
         if isinstance(v, dict):
             if not v:
                 lines.append(f"{pad}{key}: {{}}")
@@ -172,11 +186,11 @@ def to_yaml(obj, indent: int = 0) -> str:
 
 
 # ---------------------------------------------------------------------------
-# CSV, long format
+# CSV, long format (the csv module; text cells through escape.csv_cell)
 
 
 def to_csv(cal: CalibrationResult, obj: dict) -> str:
-    rows = ["parameter,index,value,sigma,unit"]
+    rows = [["parameter", "index", "value", "sigma", "unit"]]
 
     def fmt(x):
         return "" if x is None or not math.isfinite(float(x)) else repr(float(x))
@@ -184,18 +198,20 @@ def to_csv(cal: CalibrationResult, obj: dict) -> str:
     for k, v in cal.params.items():
         v = np.asarray(v, dtype=float)
         s = np.asarray(cal.sigma.get(k, np.full(v.shape, np.nan)), dtype=float)
+        if s.shape != v.shape:
+            s = np.full(v.shape, np.nan)
         for idx in np.ndindex(v.shape):
-            rows.append(f"{k},{' '.join(map(str, idx))},{fmt(v[idx])},{fmt(s[idx])},"
-                        f"{cal.units.get(k, '')}")
+            rows.append([escape.csv_cell(k), " ".join(map(str, idx)), fmt(v[idx]), fmt(s[idx]),
+                         escape.csv_cell(_text(cal.units.get(k, "")))])
     for sensor, d in obj.get("correction", {}).items():
         for name in ("K_inv", "G_inv"):
             if name not in d:
                 continue
             m = np.asarray(d[name], dtype=float)
             for idx in np.ndindex(m.shape):
-                rows.append(f"{sensor}_{name},{' '.join(map(str, idx))},{fmt(m[idx])},,"
-                            "derived")
-    return "\n".join(rows) + "\n"
+                rows.append([f"{sensor}_{name}", " ".join(map(str, idx)), fmt(m[idx]), "",
+                             "derived"])
+    return escape.csv_text(rows)
 
 
 # ---------------------------------------------------------------------------
@@ -222,32 +238,63 @@ def _c_mat(name, m, single, T):
     return f"static const {T} {name}[3][3] = {{\n    {rows}\n}};"
 
 
-def _c_comment(text: str) -> str:
-    return text.replace("*/", "* /")
+# the string constants of the header: name suffix -> what it holds
+C_STRINGS = ("SOURCE_FILE", "SOURCE_SHA256", "SOURCE_CREATED_UTC", "SOURCE_COMMAND",
+             "SOURCE_TOOL_VERSION", "METHOD", "UNIT_SERIAL")
+
+
+def c_header_symbols(prefix: str = "calib", accel: bool = True, gyro: bool = True) -> dict:
+    """The names a c-header export defines (docs/export.md): {"macros",
+    "types", "objects", "functions"}; the header defines nothing else."""
+    P, p = prefix.upper(), prefix.lower()
+    objects = [f"{P}_{n}" for n in C_STRINGS]
+    macros, functions = [f"{P}_CORRECTION_H"], []
+    if accel:
+        macros.append(f"{P}_HAS_ACCEL")
+        objects += [f"{P}_ACCEL_UNITS", f"{P}_ACCEL_BIAS", f"{P}_ACCEL_KINV"]
+        functions.append(f"{p}_correct_accel")
+    if gyro:
+        macros.append(f"{P}_HAS_GYRO")
+        objects += [f"{P}_GYRO_UNITS", f"{P}_GYRO_BIAS", f"{P}_GYRO_GINV", f"{P}_GYRO_D"]
+        functions.append(f"{p}_correct_gyro")
+    return {"macros": macros, "types": [f"{p}_real_t"], "objects": objects,
+            "functions": functions}
+
+
+def _c_str_const(name: str, text) -> str:
+    return f"static const char {name}[] = {escape.c_string('' if text is None else text)};"
 
 
 def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = False,
                 prefix: str = "calib") -> str:
+    """The C99 header. Names come from ``prefix`` (a checked C identifier);
+    text from the file appears only inside string constants (escape.c_string);
+    comments hold only the tool's own text."""
+    escape.c_identifier(prefix, "--prefix")
     corr = affine_correction(cal, source)
     P, p = prefix.upper(), prefix.lower()
     T = f"{p}_real_t"
-    units = cal.raw_units or {}
+    units = _raw_units(cal)
+
+    def unit_note(sensor, default):
+        u = units.get(sensor) or default
+        word = escape.c_comment_word(u)
+        return word if word is not None else f"see {P}_{sensor.upper()}_UNITS"
+
     head = [
         "/*",
-        f" * Calibration correction exported by calib {prov.get('tool_version', '')}.",
-        f" * Source: {_c_comment(source)}",
-        f" *   sha256 {prov.get('sha256', '')}",
-        f" *   created {prov.get('created_utc', '')}",
-        f" *   by: {_c_comment(str(prov.get('command', '')))}",
-        f" *   method {cal.method}, unit serial {cal.serial or 'unknown'}",
+        f" * Calibration correction exported by calib {__version__} (docs/export.md).",
+        " * Provenance (source file, its sha256, creation time, command, method, unit",
+        f" * serial) is in the {P}_SOURCE_*, {P}_METHOD and {P}_UNIT_SERIAL string",
+        " * constants below: text from the calibration file never appears in a comment.",
         " *",
         " * Correction (calib contract, section 2):",
     ]
     if "accel" in corr:
         head.append(f" *   f = K^-1 (A - b)          A: accelerometer output "
-                    f"({units.get('accel', 'm/s^2')}), f: specific force (m/s^2)")
+                    f"({unit_note('accel', 'm/s^2')}), f: specific force (m/s^2)")
     if "gyro" in corr:
-        head.append(f" *   w = G^-1 (W - d - D f)    W: gyro output ({units.get('gyro', 'rad/s')}),"
+        head.append(f" *   w = G^-1 (W - d - D f)    W: gyro output ({unit_note('gyro', 'rad/s')}),"
                     " w: angular rate (rad/s), f: the corrected specific force")
     head += [
         " * Matrices are row-major: M[i][j] is row i, column j. Axes x, y, z = 0, 1, 2.",
@@ -258,11 +305,22 @@ def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = 
         "",
         f"typedef {'float' if single else 'double'} {T};",
         "",
+        "/* provenance: the calibration file this header was exported from */",
+        _c_str_const(f"{P}_SOURCE_FILE", _text(source)),
+        _c_str_const(f"{P}_SOURCE_SHA256", _text(prov.get("sha256"))),
+        _c_str_const(f"{P}_SOURCE_CREATED_UTC", _text(prov.get("created_utc"))),
+        _c_str_const(f"{P}_SOURCE_COMMAND", _text(prov.get("command"))),
+        _c_str_const(f"{P}_SOURCE_TOOL_VERSION", _text(prov.get("tool_version"))),
+        _c_str_const(f"{P}_METHOD", _text(cal.method)),
+        _c_str_const(f"{P}_UNIT_SERIAL", _text(cal.serial) or "unknown"),
+        "",
     ]
     body = []
     if "accel" in corr:
         a = corr["accel"]
         body += [f"#define {P}_HAS_ACCEL 1",
+                 "/* units of the accelerometer output A */",
+                 _c_str_const(f"{P}_ACCEL_UNITS", units.get("accel") or "m/s^2"),
                  "/* accelerometer bias b */", _c_vec(f"{P}_ACCEL_BIAS", a["b"], single, T),
                  "/* K^-1, the inverse of the accelerometer scale/misalignment matrix K */",
                  _c_mat(f"{P}_ACCEL_KINV", a["K_inv"], single, T), "",
@@ -278,6 +336,8 @@ def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = 
     if "gyro" in corr:
         g = corr["gyro"]
         body += [f"#define {P}_HAS_GYRO 1",
+                 "/* units of the gyro output W */",
+                 _c_str_const(f"{P}_GYRO_UNITS", units.get("gyro") or "rad/s"),
                  "/* gyro bias d */", _c_vec(f"{P}_GYRO_BIAS", g["d"], single, T),
                  "/* G^-1, the inverse of the gyro scale/misalignment matrix G */",
                  _c_mat(f"{P}_GYRO_GINV", g["G_inv"], single, T),

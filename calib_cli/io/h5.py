@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import os
 import sys
 from datetime import datetime, timezone
 from pathlib import Path
@@ -21,6 +22,7 @@ from calib_cli import __version__
 from calib_cli.data import CalibrationResult, Recording, Segment
 from calib_cli.errors import InputError
 from calib_cli.io import validate
+from calib_cli.io.escape import line_text
 from calib_cli.model.earth import Site
 from calib_cli.model.effects import Layout
 
@@ -88,13 +90,113 @@ def open_checked(path, kinds) -> h5py.File:
         h5.close()
         what = f"a {kind!r} file" if kind else "not a calib file (no 'kind' attribute)"
         raise InputError(f"{what}; expected {' or '.join(repr(k) for k in kinds)}", p)
-    try:  # calib_cli/io/validate.py: version parsed, declared sizes plausible
+    try:
+        check_untrusted_h5(h5, p)
+        # calib_cli/io/validate.py (issue 15): version parsed, each dataset's declared size
         validate.format_version(h5, p, FORMAT_VERSION)
         validate.check_declared_sizes(h5, p)
+    except (KeyError, RuntimeError, OSError, ValueError, TypeError) as exc:
+        h5.close()  # HDF5 refuses its own damaged metadata this way: bad input, not a bug
+        raise InputError(f"damaged HDF5 structure ({str(exc).split('(')[0].strip()})",
+                         p) from None
     except BaseException:
         h5.close()
         raise
     return h5
+
+
+# ---------------------------------------------------------------------------
+# trust boundary: what one HDF5 input may reach and cost (docs/security.md)
+
+# the data an input declares (sum over its datasets of elements x item size)
+# may exceed its size on disk by this factor, or reach MIN_BUDGET, no more:
+# calib writes uncompressed files (factor ~1); noisy sensor data does not
+# compress 100x; a file of unallocated chunks or a compression bomb does.
+MAX_EXPANSION = 100
+MIN_BUDGET = 64 << 20
+
+
+def _human(n: float) -> str:
+    for unit, f in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= f:
+            return f"{n / f:.3g} {unit}"
+    return f"{int(n)} B"
+
+
+def _has_reference(dt) -> bool:
+    if h5py.check_dtype(ref=dt) is not None:
+        return True
+    if dt.names:
+        return any(_has_reference(dt.fields[n][0]) for n in dt.names)
+    if dt.subdtype is not None:
+        return _has_reference(dt.subdtype[0])
+    base = h5py.check_dtype(vlen=dt)
+    return base is not None and not isinstance(base, type) and _has_reference(np.dtype(base))
+
+
+def _ref_attrs(obj, where: str, p: str) -> None:
+    for name in obj.attrs:
+        if _has_reference(obj.attrs.get_id(name).dtype):
+            raise InputError(f"attribute {name!r} of {line_text(where)} holds HDF5 object or region "
+                             "references; calib does not follow references (docs/security.md)", p)
+
+
+def check_untrusted_h5(h5: h5py.File, path: str) -> None:
+    """Refuse what would make reading an input reach outside it or cost more
+    than it is worth, before anything is read (exit 3 naming the object):
+
+    - external links, and user-defined links (another file through a link);
+    - virtual datasets and datasets with external raw storage (data in other
+      files: they would be read and not hashed into the provenance);
+    - object and region references, in datasets and attributes;
+    - declared data (all datasets, and any one chunk) beyond
+      max(MIN_BUDGET, MAX_EXPANSION x the file's size on disk).
+    """
+    budget = max(MIN_BUDGET, MAX_EXPANSION * os.path.getsize(path))
+    groups, datasets = [h5], []
+
+    def visit(name, obj):
+        (groups if isinstance(obj, h5py.Group) else datasets).append(obj)
+
+    h5.visititems(visit)  # objects reached by hard links, each once
+    for g in groups:
+        _ref_attrs(g, g.name, path)
+        for name in g:
+            link = g.get(name, getlink=True)
+            full = line_text(f"{g.name.rstrip('/')}/{name}")
+            if isinstance(link, h5py.ExternalLink):
+                raise InputError(f"{full} is an external link to "
+                                 f"{line_text(link.filename)}:{line_text(link.path)}; "
+                                 "calib does not follow links out of a file (docs/security.md)",
+                                 path)
+            if not isinstance(link, (h5py.HardLink, h5py.SoftLink)):
+                raise InputError(f"{full} is a user-defined link; refused (docs/security.md)",
+                                 path)
+    declared = 0
+    for ds in datasets:
+        if not isinstance(ds, h5py.Dataset):
+            continue  # a committed datatype
+        _ref_attrs(ds, ds.name, path)
+        if ds.is_virtual:
+            files = sorted({line_text(m.file_name) for m in ds.virtual_sources()})
+            raise InputError(f"{line_text(ds.name)} is a virtual dataset (mapped from {', '.join(files)}); "
+                             "calib does not read data from other files (docs/security.md)", path)
+        if ds.id.get_create_plist().get_external_count() > 0:
+            raise InputError(f"{line_text(ds.name)} keeps its data in an external file; calib does not read "
+                             "data from other files (docs/security.md)", path)
+        if _has_reference(ds.dtype):
+            raise InputError(f"{line_text(ds.name)} holds HDF5 object or region references; calib does not "
+                             "follow references (docs/security.md)", path)
+        item = ds.dtype.itemsize
+        size = int(np.prod(ds.shape, dtype=object)) * item if ds.shape else item
+        chunk = int(np.prod(ds.chunks, dtype=object)) * item if ds.chunks else 0
+        declared += size
+        if declared > budget or chunk > budget:
+            raise InputError(f"{line_text(ds.name)} declares {_human(size)} of data (chunks of "
+                             f"{_human(chunk)}) in a file of {_human(os.path.getsize(path))}; "
+                             f"one input may declare at most {_human(budget)} "
+                             f"(max({MIN_BUDGET >> 20} MiB, {MAX_EXPANSION}x its size on disk), "
+                             "docs/security.md)", path)
 
 
 def file_kind(path) -> str:

@@ -7,7 +7,9 @@ edge; everything after this module is SI (rad, rad/s, m, s).
 from __future__ import annotations
 
 import tomllib
+from collections import Counter
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -38,11 +40,15 @@ class PlanSegment:
 
     @property
     def kind(self) -> str:
-        """"turn" (known-angle turn), "rotating" (table turning), or "static"."""
+        """"turn" (known-angle turn), "rotating" (table turning), or "static".
+
+        CONTRACT.md section 3: a segment with ``table_axis_enu`` is a rotating
+        segment whatever its rate keys (a recorded log carries the motion in its
+        own columns); ``table_rate_dps = 0`` marks a segment on the table that
+        does not turn."""
         if self.rotation_angle is not None:
             return "turn"
-        if self.table_axis_enu is not None and (self.table_rate not in (None, 0.0)
-                                                or "rate_profile" in self.extra):
+        if self.table_axis_enu is not None and self.table_rate != 0.0:
             return "rotating"
         return "static"
 
@@ -60,6 +66,19 @@ class Plan:
     rimu_az0: np.ndarray | None = None  # rad
     extra: dict = field(default_factory=dict)
     path: str = "<plan>"
+
+    @cached_property
+    def visit_labels(self) -> tuple[str, ...]:
+        """Each segment's label, with ``#k`` (the k-th visit) where the plan repeats
+        a label, so that raw segments, stats and reports keep the visits apart."""
+        labels = [s.label for s in self.segments]
+        total = Counter(labels)
+        seen: Counter = Counter()
+        out = []
+        for lab in labels:
+            seen[lab] += 1
+            out.append(f"{lab}#{seen[lab]}" if total[lab] > 1 else lab)
+        return tuple(out)
 
     @property
     def sample_rate(self) -> float:
@@ -162,10 +181,7 @@ def parse_plan(text: str, path: str = "<plan>") -> Plan:
     if not isinstance(segs_raw, list) or not segs_raw:
         raise InputError("plan has no [[segment]] entries", path)
     segments = tuple(_segment(i, s, path) for i, s in enumerate(segs_raw))
-    labels = [s.label for s in segments]
-    dup = {x for x in labels if labels.count(x) > 1}
-    if dup:
-        raise InputError(f"duplicate segment labels: {', '.join(sorted(dup))}", path)
+    # labels may repeat (a plan may revisit a position): segments are told apart by index
     if sum(s.repeat_auto for s in segments) > 1:
         raise InputError("at most one segment may have repeat = \"auto\"", path)
     el0 = az0 = None

@@ -18,7 +18,7 @@ import numpy as np
 
 from calib_cli.data import Recording
 from calib_cli.errors import InputError
-from calib_cli.io.csvlog import segments_from_column, segments_from_detection
+from calib_cli.io.csvlog import plan_cycles, segments_from_column, segments_from_detection
 from calib_cli.io.plan import Plan
 from calib_cli.methods.static_detect import detect_static
 from calib_cli.model.effects import Layout
@@ -317,7 +317,8 @@ def import_text(acc_path, plan: Plan, gyro_path=None, columns: str | None = None
                                         acc_path)
     else:
         report = detect_static(t, accel, gyro, window_s, multiplier, min_static_s)
-        segments = segments_from_detection(report, plan, n, acc_path)
+        cycles = plan_cycles(plan, t, gyro, None)
+        segments = segments_from_detection(report, plan, n, acc_path, cycles)
     if not segments:
         raise InputError("no segments found in the data", acc_path)
     return Recording(time=t, accel=accel, gyro=gyro, segments=tuple(segments), site=plan.site,

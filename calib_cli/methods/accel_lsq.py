@@ -51,6 +51,24 @@ def _scales(packing: Packing, unit: float) -> np.ndarray:
     return np.concatenate(out)
 
 
+def g_figures(before, after, g: float) -> dict:
+    """Avrutov et al.'s two figures of merit of an accelerometer triad, from
+    |f| per static position (m/s^2) raw (``before``, None for counts) and
+    corrected (``after``): the standard deviation of |f| over the positions
+    (``g_norm_std_*``, population std, ddof 0) and the offset of its mean
+    from the reference g (``g_mean_error_*`` = |mean |f| - g|). They split
+    the RMS: g_error_rms^2 = g_norm_std^2 + g_mean_error^2."""
+    out = {}
+    for tag, v in (("before", before), ("after", after)):
+        if v is None:
+            out[f"g_norm_std_{tag}"] = out[f"g_mean_error_{tag}"] = None
+        else:
+            v = np.asarray(v, float)
+            out[f"g_norm_std_{tag}"] = float(np.std(v))
+            out[f"g_mean_error_{tag}"] = float(abs(np.mean(v) - g))
+    return out
+
+
 def _g_stats(model, params, st: StaticStats, g: float, counts: bool):
     """|g| per position before/after correction, and the noise floor of the
     corrected |g| (what the sample noise and averaging time allow)."""
@@ -65,6 +83,7 @@ def _g_stats(model, params, st: StaticStats, g: float, counts: bool):
         "g_reference": g,
         "g_error_rms_before": None if before is None else float(np.sqrt(np.mean((before - g) ** 2))),
         "g_error_rms_after": float(np.sqrt(np.mean((after - g) ** 2))),
+        **g_figures(before, after, g),
         "g_error_floor": float(np.sqrt(np.mean(var))),
         "n_positions": int(len(st.means)),
     }

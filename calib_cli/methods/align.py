@@ -544,8 +544,12 @@ def _result(rec, inp, prob, fit, use_gyro, why, sK, fixed) -> CalibrationResult:
 
 
 def g_error_stats(f: np.ndarray, nabla: np.ndarray, g: float) -> dict:
-    """RMS over the positions of |mean f| - g, raw and bias-corrected (m/s^2)."""
-    return {"g_reference": g,
+    """RMS over the positions of |mean f| - g, raw and bias-corrected (m/s^2),
+    and the two figures of accel_lsq.g_figures."""
+    from calib_cli.methods.accel_lsq import g_figures
+
+    return {"g_reference": g, **g_figures(np.linalg.norm(f, axis=1),
+                                          np.linalg.norm(f - nabla, axis=1), g),
             "g_error_rms_before": float(np.sqrt(np.mean((np.linalg.norm(f, axis=1) - g) ** 2))),
             "g_error_rms_after": float(np.sqrt(np.mean((np.linalg.norm(f - nabla, axis=1) - g)
                                                        ** 2)))}

@@ -42,6 +42,7 @@ SLOPE_BAND = 0.2  # a point is on a +-1/2 line when its local slope is within th
 # variance the other terms add at the reading point: real (and simulated)
 # flicker noise rises above its floor at short tau, so once is not enough.
 OTHER_TERMS_MARGIN = 2.0
+Q_MIN_SHARE = 0.1  # quantisation visible: >= 10 % of the Allan variance at the shortest tau
 FLOOR_CLUSTERS = 10  # the minimum is looked for where the record is >= 10 x tau
 
 
@@ -202,6 +203,65 @@ def floor_index(adev: np.ndarray, clusters: np.ndarray) -> int:
     return int(ok[np.argmin(np.asarray(adev)[ok])])
 
 
+def quantization_fit(tau, adev, clusters, imin: int) -> dict | None:
+    """Fit of the Allan variance left of the minimum (taus with >=
+    FLOOR_CLUSTERS clusters) with a tau^-2 + b tau^-1 + c (quantisation,
+    white noise, floor): non-negative least squares weighted by the
+    chi-square error of each point (relative 1-sigma sqrt(2 / (C - 1))).
+    Returns a, its 1-sigma sa (covariance scaled by chi2/dof when above 1),
+    b, c, the first tau used and its clusters; None with fewer than 4 points."""
+    from scipy.optimize import nnls
+
+    idx = [i for i in range(min(imin, len(tau) - 1) + 1) if clusters[i] >= FLOOR_CLUSTERS]
+    if len(idx) < 4:
+        return None
+    t, av = np.asarray(tau)[idx], np.asarray(adev)[idx] ** 2
+    nu = np.maximum(np.asarray(clusters)[idx] - 1.0, 1.0)
+    w = 1.0 / (av * np.sqrt(2.0 / nu))
+    X = np.column_stack([t**-2.0, t**-1.0, np.ones_like(t)])
+    cs = X[0].copy()  # columns scaled to unit size at the first point
+    Xw = X / cs * w[:, None]
+    coef, _ = nnls(Xw, av * w)
+    act = coef > 0
+    sa = np.inf
+    if act[0]:
+        J = Xw[:, act]
+        r = Xw @ coef - av * w
+        dof = max(len(t) - int(act.sum()), 1)
+        cov = np.linalg.pinv(J.T @ J) * max(1.0, float(r @ r) / dof)
+        sa = np.sqrt(cov[0, 0]) / cs[0]
+    a, b, c = coef / cs
+    return {"a": float(a), "sa": float(sa), "b": float(b), "c": float(c), "tau": float(t[0]),
+            "clusters": int(np.asarray(clusters)[idx[0]])}
+
+
+def quantization_term(tau, adev, clusters, imin: int) -> Term:
+    """Quantisation noise Q (IEEE Std 952: AVAR = 3 Q^2 / tau^2, slope -1).
+
+    Quantised increments with the remainder carried give a white phase error,
+    but it only looks white when the signal moves the phase by a fair part of
+    a quantum per sample, and that motion is itself white rate noise of
+    comparable size at tau0 (docs/allan.md): the curve rarely shows a whole
+    octave of slope -1. So Q is not read off a slope line but from
+    quantization_fit: Q = sqrt(a / 3), with the fit's CONFIDENCE interval
+    of a; NaN (not visible) when a is not 2 sigma above zero. Read at: the
+    first tau used. Also NaN when the quantisation makes less than Q_MIN_SHARE
+    of the Allan variance at the shortest tau: below that, the fit cannot
+    tell it from the shape of the other terms there (flicker noise is not
+    flat at short tau)."""
+    from scipy.stats import norm
+
+    fit = quantization_fit(tau, adev, clusters, imin)
+    if fit is None or not np.isfinite(fit["sa"]) or fit["a"] < 2.0 * fit["sa"]:
+        return Term.none()
+    if fit["a"] / fit["tau"] ** 2 < Q_MIN_SHARE * float(np.asarray(adev)[0]) ** 2:
+        return Term.none()  # too small to tell from the other terms' shape at short tau
+    a, sa = fit["a"], fit["sa"]
+    z = norm.ppf(0.5 + CONFIDENCE / 2.0)
+    return Term(float(np.sqrt(a / 3.0)), float(np.sqrt(max(a - z * sa, 0.0) / 3.0)),
+                float(np.sqrt((a + z * sa) / 3.0)), fit["tau"], fit["clusters"])
+
+
 def channel_terms(tau: np.ndarray, adev: np.ndarray, clusters: np.ndarray) -> dict[str, Term]:
     """IEEE 952 readings for one channel's curve.
 
@@ -210,6 +270,9 @@ def channel_terms(tau: np.ndarray, adev: np.ndarray, clusters: np.ndarray) -> di
         of the -1/2 region with the most clusters (its left end).
     bias_instability B (unit): the flat minimum over 0.664 (the minimum over
         the taus with >= FLOOR_CLUSTERS clusters).
+    quantization Q (unit * s: rad for gyros, m/s for accelerometers): the
+        slope -1 line sqrt(3) Q / tau, from quantization_term (a fit of the
+        short-tau part of the curve). NaN when not significant.
     rate_random_walk K (unit / sqrt(s)): the +1/2 slope line at tau = 3 s,
         adev * sqrt(3 / tau), read at the first point right of the minimum
         where the curve rises and has reached twice the minimum (else the
@@ -228,6 +291,8 @@ def channel_terms(tau: np.ndarray, adev: np.ndarray, clusters: np.ndarray) -> di
     # slope there is noisy (few clusters), so only its sign is required
     risen = np.flatnonzero(right & (adev >= 2.0 * adev[imin]) & (slope > 0.5 - 2 * SLOPE_BAND))
     iN = int(wn[0]) if len(wn) else None
+    q_term = quantization_term(tau, adev, clusters, imin)
+    Q = q_term.value if np.isfinite(q_term.value) else 0.0
     iK = int(risen[0]) if len(risen) else (int(rk[-1]) if len(rk) else None)
     N = adev[iN] * np.sqrt(tau[iN] / ARW_TAU) if iN is not None else 0.0
     K = adev[iK] * np.sqrt(RRW_TAU / tau[iK]) if iK is not None else 0.0
@@ -243,20 +308,38 @@ def channel_terms(tau: np.ndarray, adev: np.ndarray, clusters: np.ndarray) -> di
     def var_n(t):
         return N**2 * ARW_TAU / t
 
+    def var_q(t):
+        return 3.0 * Q**2 / t**2
+
     def var_k(t):
         return K**2 * t / RRW_TAU
 
     out = {}
     out["random_walk"] = (_term(lambda s, t: s * np.sqrt(t / ARW_TAU), tau, adev, clusters, iN,
-                                (F**2 if flat else 0.0) + var_k(tau[iN]))
+                                (F**2 if flat else 0.0) + var_k(tau[iN]) + var_q(tau[iN]))
                           if iN is not None else Term.none())
+    out["quantization"] = q_term
     out["bias_instability"] = (_term(lambda s, t: s / BI_FACTOR, tau, adev, clusters, imin,
-                                     var_n(tau[imin]) + var_k(tau[imin]))
+                                     var_n(tau[imin]) + var_k(tau[imin]) + var_q(tau[imin]))
                                if flat else Term.none())
     out["rate_random_walk"] = (_term(lambda s, t: s * np.sqrt(RRW_TAU / t), tau, adev,
-                                     clusters, iK, F**2 + var_n(tau[iK]))
+                                     clusters, iK, F**2 + var_n(tau[iK]) + var_q(tau[iK]))
                                if iK is not None else Term.none())
     return out
+
+
+def min_averaging_time(Q: float, N: float, F: float) -> float:
+    """Recommended minimum averaging time per static position, s: where the
+    quantisation line sqrt(3) Q / tau meets the rest of the noise of a mean,
+    sqrt(N^2 / tau + F^2) (white noise N and floor F, the b and c of
+    quantization_fit; NaN counts as 0). Shorter averages are dominated by the
+    quantisation (their noise falls as 1/tau); NaN without a visible
+    quantisation term. Closed form in u = 1 / tau: 3 Q^2 u^2 - N^2 u - F^2 = 0."""
+    Q, N, F = (0.0 if not np.isfinite(v) else float(v) for v in (Q, N, F))
+    if Q <= 0 or (N <= 0 and F <= 0):
+        return float("nan")
+    u = (N**2 + np.sqrt(N**4 + 12.0 * Q**2 * F**2)) / (6.0 * Q**2)
+    return float(1.0 / u)
 
 
 def averaging_time(tau: np.ndarray, adev: np.ndarray, target: float) -> float:
@@ -278,12 +361,13 @@ def averaging_time(tau: np.ndarray, adev: np.ndarray, target: float) -> float:
 # whole analysis
 
 
-TERM_NAMES = ("random_walk", "bias_instability", "rate_random_walk")
+TERM_NAMES = ("quantization", "random_walk", "bias_instability", "rate_random_walk")
 
 
 def term_units(unit: str) -> dict[str, str]:
     """Units of the three terms for a channel in ``unit`` (m/s^2, rad/s, count)."""
-    return {"random_walk": f"{unit}*sqrt(s)", "bias_instability": unit,
+    return {"quantization": f"{unit}*s", "random_walk": f"{unit}*sqrt(s)",
+            "bias_instability": unit,
             "rate_random_walk": f"{unit}/sqrt(s)"}
 
 
@@ -295,7 +379,9 @@ class AllanResult:
     clusters; adev_lo/adev_hi: CONFIDENCE interval; terms[name] -> dict of
     arrays value/lo/hi/tau/clusters (n_ch,); tau_min (n_ch,) s at the minimum;
     averaging_time (n_ch,) s (NaN where the target is not reached);
-    target (n_ch,) the target used, same unit as the channel.
+    target (n_ch,) the target used, same unit as the channel;
+    min_averaging_time (n_ch,) s, from the quantisation term
+    (``min_averaging_time()``; NaN where no quantisation is visible).
     """
 
     channels: list
@@ -313,6 +399,13 @@ class AllanResult:
     target: np.ndarray
     stride_div: int = STRIDE_DIV
     meta: dict = field(default_factory=dict)
+    min_averaging_time: np.ndarray | None = None
+
+    def min_avg(self) -> np.ndarray:
+        """min_averaging_time, NaN per channel when not computed (older files)."""
+        if self.min_averaging_time is None:
+            return np.full(len(self.channels), np.nan)
+        return np.asarray(self.min_averaging_time, float)
 
     @property
     def duration(self) -> float:
@@ -338,12 +431,18 @@ def analyse(tau: np.ndarray, adev: np.ndarray, tau0: float, n_samples: int, chan
         t_min.append(tau[floor_index(adev[:, c], clusters)])
         t_avg.append(averaging_time(tau, adev[:, c], targets[c]))
     terms = {k: {f: np.asarray(v) for f, v in d.items()} for k, d in terms.items()}
+    t_q = []
+    for c in range(adev.shape[1]):
+        fit = quantization_fit(tau, adev[:, c], clusters, floor_index(adev[:, c], clusters))
+        Q = terms["quantization"]["value"][c]
+        t_q.append(min_averaging_time(Q, np.sqrt(fit["b"]), np.sqrt(fit["c"]))
+                   if fit is not None and np.isfinite(Q) else float("nan"))
     return AllanResult(channels=list(channels), units=list(units), tau0=float(tau0),
                        n_samples=int(n_samples), tau=tau, adev=adev, clusters=clusters,
                        adev_lo=adev * lo_f[:, None], adev_hi=adev * hi_f[:, None], terms=terms,
                        tau_min=np.asarray(t_min), averaging_time=np.asarray(t_avg),
                        target=np.asarray(targets, dtype=float), stride_div=stride_div,
-                       meta=dict(meta or {}))
+                       meta=dict(meta or {}), min_averaging_time=np.asarray(t_q, float))
 
 
 def allan_of_chunks(chunks, n_samples: int, tau0: float, channels, units, targets,

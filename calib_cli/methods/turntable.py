@@ -53,14 +53,17 @@ P_OFF = [(i, j) for i in range(3) for j in range(3) if i != j]
 @dataclass(frozen=True)
 class TurntableOptions:
     """lever_arm: "off" (no lever-arm terms), "known" (each cycle's plan
-    ``lever_arm_m``), "estimate". proof_mass: "off" | "estimate".
+    ``lever_arm_m``), "estimate". proof_mass: "auto" (estimated; entries the
+    record cannot determine are reported with sigma null and listed in
+    stats.unobservable), "estimate" (the same), "off" (held at 0, reported
+    with sigma null).
     tangential: include dw/dt x r. block_s: measurement block (s).
     passes: filter passes (>= 2 recommended). axis_sigma: how well the table
     axis stays fixed (rad, 1-sigma per block). history_every: sigma history
     sample interval (s)."""
 
     lever_arm: str = "estimate"
-    proof_mass: str = "off"
+    proof_mass: str = "auto"
     tangential: bool = True
     block_s: float = 0.2
     passes: int = 2
@@ -293,6 +296,7 @@ class _PassOut:
 def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: TurntableOptions,
                  sig_a, sig_g, block_n, s_known, record_history: bool, first: bool) -> _PassOut:
     par = _unpack(theta_lin, L, cycles)
+    par_lin = _unpack(theta_lin, L, cycles)
     if s_known is not None:
         par["s"] = s_known
     n = L.size
@@ -302,6 +306,12 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
     w_e = rec.site.earth_rate_enu
     iG = 3 + L.gyro
     x = np.zeros(ns)
+    # The prior keeps its original mean in every pass. A later pass starts its running
+    # estimate at theta_lin (the previous pass's solution) rather than at the prior mean:
+    # the attitude is propagated with the running estimate, and a cycle whose scale
+    # factor is tied to cross-axis terms seen only in later cycles would otherwise be
+    # integrated with the neutral unit's values. For the linearised problem the start
+    # mean enters the final estimate as P_f P_0^-1 (m - theta_lin), added at the end.
     if first:
         x[3:] = prior_mean - theta_lin
     P = np.zeros((ns, ns))
@@ -340,7 +350,13 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             skip = fast | np.roll(fast, 1) | np.roll(fast, -1)
         sA = slice(0, 3)
         for j in range(nb):
-            cur = _unpack(theta_lin + x[3:], L, cycles)
+            # the first pass is an extended filter (Jacobians at the running estimate: the
+            # neutral start can be far off); later passes linearise every block about the
+            # previous pass's estimate, h(theta_lin) + H (theta - theta_lin), so that a pass
+            # is one Gauss-Newton step of the whole record (an extended filter re-evaluated
+            # from the prior at every pass keeps the bias of its early, poor linearisation,
+            # which bilinear terms such as K (w x w x p) turn into tens of sigma)
+            cur = _unpack(theta_lin + x[3:], L, cycles) if first else par_lin
             s_c = s_known[c] if s_known is not None else cur["s"][c]
             a_b = cy.a_nom + cy.basis @ cur["u"][c]
             a_b /= np.linalg.norm(a_b)
@@ -383,6 +399,8 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             H[3:, iG] = Hg
             H[3:, sA] = -Nperp @ skew(ra)
             H[3:, 3 + L.idx["u"][2 * c:2 * c + 2]] = Nperp @ Rbar @ cy.basis
+            if not first:  # the prediction linear in the parameter error about theta_lin
+                h = h - H[:, iG] @ x[iG] + H[:, 3:] @ x[3:]
             z = np.concatenate([b.a_mean[j], Nperp @ cy.a_enu])
             r_extra = (2 * b.wabs[j] * np.linalg.norm(s_c)) ** 2 * (sig_g**2).mean() / b.m
             if opt.tangential:
@@ -423,6 +441,8 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 hist_t.append(b.t[j])
                 hist_s.append(np.sqrt(np.diag(P)[hist_idx]))
                 next_hist = b.t[j] + opt.history_every
+    if not first:
+        x[3:] += P[3:, 3:] @ ((prior_mean - theta_lin) / prior_sd**2)
     return _PassOut(theta_lin + x[3:], P[3:, 3:], innov, nis, hist_t, hist_s, lowrate)
 
 
@@ -431,10 +451,11 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     opt = options
     if opt.lever_arm not in ("off", "known", "estimate"):
         raise InputError(f"lever_arm must be off, known or estimate, got {opt.lever_arm!r}")
-    if opt.proof_mass not in ("off", "estimate"):
-        raise InputError(f"proof_mass must be off or estimate, got {opt.proof_mass!r}")
+    if opt.proof_mass not in ("auto", "off", "estimate"):
+        raise InputError(f"proof_mass must be auto, off or estimate, got {opt.proof_mass!r}")
     if opt.proof_mass == "estimate" and opt.lever_arm == "off":
         raise InputError("proof-mass offsets need the lever-arm terms (--lever-arm known|estimate)")
+    est_p = opt.proof_mass == "estimate" or (opt.proof_mass == "auto" and opt.lever_arm != "off")
     cycles = _select(rec)
     nc = len(cycles)
     s_known = None
@@ -447,7 +468,7 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     elif opt.lever_arm == "off":
         s_known = np.zeros((nc, 3))
     n_axes = 1 + max(cy.axis_group for cy in cycles) if opt.table_tilt_sigma > 0 else 0
-    L = _Layout(nc, opt.lever_arm == "estimate", opt.proof_mass == "estimate", n_axes)
+    L = _Layout(nc, opt.lever_arm == "estimate", est_p, n_axes)
     fs = rec.sample_rate
     block_n = max(1, int(round(opt.block_s * fs)))
     on = np.concatenate([np.arange(rec.segments[cy.seg_index].start,
@@ -560,11 +581,15 @@ def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, 
               "gyro_K": par["G"], "gyro_D": par["D"]}
     if opt.lever_arm != "off":
         params["lever_arm"] = par["s"] if L.est_s else s_known
-    if L.est_p:
-        params["proof_mass_offsets"] = par["P"]
+    # the key is always present (CONTRACT.md section 7); not estimated: 0 with sigma null
+    params["proof_mass_offsets"] = par["P"]
     sigma = {k: np.zeros(np.shape(v)) for k, v in params.items()}
     for (key, flat), s in zip(order, sd):
         sigma[key].reshape(-1)[flat] = s
+    pm_fixed = []
+    if not L.est_p:
+        sigma["proof_mass_offsets"] = np.where(np.eye(3) > 0, 0.0, np.nan)
+        pm_fixed = [f"proof_mass_offsets[{i},{j}]" for i, j in P_OFF]
     units = {"accel_bias": "m/s^2", "accel_K": "-", "gyro_bias": "rad/s", "gyro_K": "-",
              "gyro_D": "(rad/s)/(m/s^2)", "lever_arm": "m", "proof_mass_offsets": "m"}
     innov = np.array(out.innov)
@@ -585,7 +610,7 @@ def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, 
         "g_error_rms_after": float(np.sqrt(np.mean((lowrate[:, 1] - g) ** 2))) if len(lowrate)
         else None,
         "unobservable": [f"{k}[{','.join(str(int(i)) for i in np.unravel_index(f, np.shape(params[k])))}]"
-                         for (k, f), u in zip(order, unobs) if u],
+                         for (k, f), u in zip(order, unobs) if u] + pm_fixed,
         "n_cycles": len(cycles),
         "cycles": [rec.segments[cy.seg_index].label for cy in cycles],
         "lever_arm_mode": opt.lever_arm, "proof_mass_mode": opt.proof_mass,

@@ -21,7 +21,6 @@ sigma, statistics, provenance) and a note saying so. docs/report.md.
 from __future__ import annotations
 
 import base64
-import html
 import importlib
 import json
 import pkgutil
@@ -33,6 +32,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from calib_cli.data import CalibrationResult
+from calib_cli.io.escape import html_text, md_text
 from calib_cli.report.figures import png_bytes
 
 
@@ -153,6 +153,10 @@ def generic_sections(ctx: ReportContext) -> list[Section]:
                        f"after {st['g_error_rms_after'] * 1e3 / 9.80665:.4f} mg "
                        f"(noise floor {st.get('g_error_floor', float('nan')) * 1e3 / 9.80665:.4f}"
                        " mg).")
+    if st.get("g_norm_std_after") is not None:
+        from calib_cli.units import g_figures_line
+
+        summary.append(g_figures_line(st) + " (Avrutov et al.'s figures of merit).")
     if st.get("unobservable"):
         summary.append("Unobservable from this data: " + ", ".join(st["unobservable"]) + ".")
     if st.get("sigma_inflation", 1.0) not in (1.0, None):
@@ -190,11 +194,15 @@ def allan_section(ctx: ReportContext) -> Section | None:
         at = res.averaging_time[i]
         row.append(f"{at:.3g} s" if np.isfinite(at) else
                    ("not reached" if np.isfinite(res.target[i]) else "no target"))
+        tq = res.min_avg()[i]
+        row.append(f"{tq:.3g} s" if np.isfinite(tq) else "-")
         rows.append(row)
-    tab = Table(f"IEEE Std 952 noise terms with {CONFIDENCE:.0%} intervals, and the shortest "
-                "averaging time that brings the noise below the target.",
-                ["channel", "random walk N", "bias instability B", "rate random walk K",
-                 "averaging time"], rows)
+    tab = Table(f"IEEE Std 952 noise terms with {CONFIDENCE:.0%} intervals, the shortest "
+                "averaging time that brings the noise below the target, and the minimum "
+                "averaging time per position from the quantisation term (where the "
+                "quantisation stops dominating the noise of a mean).",
+                ["channel", "quantization Q", "random walk N", "bias instability B",
+                 "rate random walk K", "averaging time", "min. averaging (Q)"], rows)
     fig = FigureItem("allan", allan_figure(res),
                      "Overlapping Allan deviation of each channel (shaded: "
                      f"{CONFIDENCE:.0%} interval from the number of independent clusters) "
@@ -231,9 +239,9 @@ def build_report(ctx: ReportContext) -> list[Section]:
 
 
 def _md_table(t: Table) -> list[str]:
-    esc = [[str(c).replace("|", "\\|") for c in r] for r in t.rows]
-    head = [str(h).replace("|", "\\|") for h in t.header]
-    out = [f"*{t.caption}*", "", "| " + " | ".join(head) + " |",
+    esc = [[md_text(c, block=False) for c in r] for r in t.rows]
+    head = [md_text(h, block=False) for h in t.header]
+    out = [f"*{md_text(t.caption)}*", "", "| " + " | ".join(head) + " |",
            "|" + "|".join("---" for _ in t.header) + "|"]
     out += ["| " + " | ".join(r) + " |" for r in esc]
     return out + [""]
@@ -251,16 +259,18 @@ def write_report(sections: list[Section], title: str, out_dir) -> dict:
     out_dir (which must exist). Returns a manifest {figures: [{file, axes,
     caption}], markdown, html}. Figures are rendered once."""
     out_dir = Path(out_dir)
-    md = [f"# {title}", ""]
-    body = [f"<h1>{html.escape(title)}</h1>"]
+    # every text goes through the escaper of its language (calib_cli.io.escape): the
+    # serial, method, labels, units and command line come from files
+    md = [f"# {md_text(title)}", ""]
+    body = [f"<h1>{html_text(title)}</h1>"]
     manifest = {"figures": [], "markdown": "report.md", "html": "report.html"}
     k = 0
     for sec in sections:
-        md += [f"## {sec.title}", ""]
-        body.append(f"<h2>{html.escape(sec.title)}</h2>")
+        md += [f"## {md_text(sec.title)}", ""]
+        body.append(f"<h2>{html_text(sec.title)}</h2>")
         for p in sec.text:
-            md += [p, ""]
-            body.append(f"<p>{html.escape(p)}</p>")
+            md += [md_text(p), ""]
+            body.append(f"<p>{html_text(p)}</p>")
         for fi in sec.figures:
             k += 1
             fname = f"fig-{k:02d}-{fi.name}.png"
@@ -268,21 +278,22 @@ def write_report(sections: list[Section], title: str, out_dir) -> dict:
             (out_dir / fname).write_bytes(data)
             manifest["figures"].append({"file": fname, "axes": len(fi.fig.axes),
                                         "caption": fi.caption})
-            md += [f"![{fi.name}]({fname})", "", f"*Figure {k}. {fi.caption}*", ""]
+            md += [f"![{md_text(fi.name)}]({fname})", "", f"*Figure {k}. {md_text(fi.caption)}*",
+                   ""]
             b64 = base64.b64encode(data).decode("ascii")
-            body.append(f'<figure><img alt="{html.escape(fi.name)}" '
+            body.append(f'<figure><img alt="{html_text(fi.name)}" '
                         f'src="data:image/png;base64,{b64}"><figcaption>Figure {k}. '
-                        f"{html.escape(fi.caption)}</figcaption></figure>")
+                        f"{html_text(fi.caption)}</figcaption></figure>")
         for t in sec.tables:
             md += _md_table(t)
-            rows = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r)
+            rows = "".join("<tr>" + "".join(f"<td>{html_text(c)}</td>" for c in r)
                            + "</tr>" for r in t.rows)
-            head = "".join(f"<th>{html.escape(h)}</th>" for h in t.header)
-            body.append(f"<table><caption>{html.escape(t.caption)}</caption><tr>{head}</tr>"
+            head = "".join(f"<th>{html_text(h)}</th>" for h in t.header)
+            body.append(f"<table><caption>{html_text(t.caption)}</caption><tr>{head}</tr>"
                         f"{rows}</table>")
     (out_dir / "report.md").write_text("\n".join(md), encoding="utf-8")
     page = ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\">"
-            f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body>\n"
+            f"<title>{html_text(title)}</title><style>{CSS}</style></head><body>\n"
             + "\n".join(body) + "\n</body></html>\n")
     (out_dir / "report.html").write_text(page, encoding="utf-8")
     (out_dir / "figures.json").write_text(json.dumps(manifest, indent=2), encoding="utf-8")

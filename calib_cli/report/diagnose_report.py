@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calib_cli.io.escape import md_text
 from calib_cli.methods.diagnose import WANDERS, Diagnosis
 from calib_cli.methods.diagnose_candidates import effect_key
 from calib_cli.methods.diagnose_fit import predict_bins
@@ -169,7 +170,7 @@ def write_report(d: Diagnosis, out_dir, source: str = "") -> list[str]:
         _step_plot(d, k, out / name)
         files.append(name)
     j = d.to_json()
-    lines = [f"# calib diagnose: {source or 'recording'} ({d.method})", "",
+    lines = [f"# calib diagnose: {md_text(source or 'recording')} ({md_text(d.method)})", "",
              f"Base model: {', '.join(d.base_model)}.", "",
              f"Noise floor (RMS white noise would leave after the final fit): "
              f"{d.noise_rms:.3f} noise units. Residual RMS: {d.residual_rms_initial:.3f} with "
@@ -194,8 +195,9 @@ def write_report(d: Diagnosis, out_dir, source: str = "") -> list[str]:
                   + " |" for r in rnd]
         lines.append("")
     if d.untested:
-        lines += ["## Not tested", ""] + [f"- {k}: {v}" for k, v in d.untested.items()] + [""]
+        lines += ["## Not tested", ""] + [f"- {md_text(k)}: {md_text(v)}"
+                                          for k, v in d.untested.items()] + [""]
     if d.notes:
-        lines += ["## Notes", ""] + [f"- {n}" for n in d.notes] + [""]
+        lines += ["## Notes", ""] + [f"- {md_text(n)}" for n in d.notes] + [""]
     (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
     return files + ["summary.md"]

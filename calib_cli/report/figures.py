@@ -12,6 +12,7 @@ import io
 import numpy as np
 from matplotlib.figure import Figure
 
+from calib_cli.io.escape import mpl_text
 from calib_cli.methods.allan import ARW_TAU, BI_FACTOR, RRW_TAU, AllanResult
 
 DPI = 100
@@ -41,7 +42,8 @@ def allan_figure(res: AllanResult, title: str = "Allan deviation") -> Figure:
     t = res.tau
     for ax, (sensor, idx) in zip(axes, groups.items(), strict=True):
         for i in idx:
-            line, = ax.loglog(t, res.adev[:, i], marker="o", ms=3, label=res.channels[i])
+            line, = ax.loglog(t, res.adev[:, i], marker="o", ms=3,
+                              label=mpl_text(res.channels[i]))
             ax.fill_between(t, res.adev_lo[:, i], res.adev_hi[:, i], color=line.get_color(),
                             alpha=0.15, lw=0)
             col = line.get_color()
@@ -59,7 +61,7 @@ def allan_figure(res: AllanResult, title: str = "Allan deviation") -> Figure:
         ax.set_ylim(lo / 2, hi * 2)
         ax.set_xlabel("averaging time tau (s)")
         ax.set_ylabel(f"Allan deviation ({res.units[idx[0]]})")
-        ax.set_title(f"{title}: {sensor}")
+        ax.set_title(mpl_text(f"{title}: {sensor}"))
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8, title="-- N (-1/2)  : 0.664B  -. K (+1/2)", title_fontsize=7)
     return fig

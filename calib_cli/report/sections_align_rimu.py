@@ -36,9 +36,34 @@ def _residual_items(ctx: ReportContext, units: dict, hint: str) -> list:
     return items
 
 
+def _static_align_section(ctx: ReportContext):
+    """--method static: no turn; conditioning and every position's attitude."""
+    st = ctx.cal.stats
+    deg = st.get("degeneracy")
+    text = [f"{st.get('n_positions', '?')} static positions, no turn used (static-only "
+            "alignment: both attitudes and the six biases from the static equations).",
+            f"Condition number of the equations (normalised units) "
+            f"{st.get('condition_number', float('nan')):.3g}, limit "
+            f"{st.get('condition_max', float('nan')):.3g}"
+            + (f": degenerate, {deg}." if deg else ": well conditioned."),
+            f"Earth rate used: {st.get('earth_rate_used', '?')} ({st.get('grade_check', '')})."]
+    labels = _labels(ctx, len(st.get("attitudes_all", [])))
+    rows = []
+    for lab, att, sig in zip(labels, st.get("attitudes_all", []),
+                             st.get("attitudes_all_sigma", []), strict=False):
+        rows.append([lab] + [f"{np.degrees(a):.4f} +- "
+                             + ("null" if s is None else f"{np.degrees(s):.4f}")
+                             for a, s in zip(att, sig, strict=False)])
+    tables = [Table("Attitude of every position, deg, with 1 sigma (null: not observable).",
+                    ["position", "roll", "pitch", "yaw"], rows)] if rows else []
+    return Section("Static-only alignment", text=text, tables=tables, figures=[])
+
+
 @register("align", "align-classic")
 def align_sections(ctx: ReportContext):
     st = ctx.cal.stats
+    if st.get("method") == "static":
+        return _static_align_section(ctx)
     text = [f"{st.get('n_positions', '?')} static positions; {st.get('observability', '')}.",
             f"Earth rate used: {st.get('earth_rate_used', '?')} ({st.get('grade_check', '')}); "
             f"chi-square per degree of freedom {st.get('chi2_dof', float('nan')):.2f}."]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.figure import Figure
 
+from calib_cli.io.escape import mpl_text
 from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
 
 MG = 1e3 / 9.80665  # m/s^2 -> mg
@@ -35,7 +36,7 @@ def g_figure(labels, before, after, sigma_after, g_ref) -> Figure:
     ax2.axhline(0, color="k", lw=1)
     ax2.set_ylabel("|f| - g after correction (mg)")
     ax2.set_xlabel("static position")
-    ax2.set_xticks(x, labels, rotation=45, ha="right", fontsize=8)
+    ax2.set_xticks(x, [mpl_text(s) for s in labels], rotation=45, ha="right", fontsize=8)
     ax2.legend(fontsize=8)
     ax2.grid(alpha=0.3)
     return fig
@@ -60,7 +61,7 @@ def residual_figure(labels, resid, scale: float = MG, unit: str = "mg", what: st
     ax.axhline(0, color="k", lw=1)
     ax.set_ylabel(f"residual ({unit})")
     ax.set_xlabel("static position")
-    ax.set_xticks(x, labels, rotation=45, ha="right", fontsize=8)
+    ax.set_xticks(x, [mpl_text(s) for s in labels], rotation=45, ha="right", fontsize=8)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, axis="y")
     return fig

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.figure import Figure
 
+from calib_cli.io.escape import mpl_text
 from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
 
 
@@ -20,7 +21,7 @@ def sigma_history_figure(res, title: str | None = None) -> Figure:
     ax = fig.subplots()
     for k, lab in enumerate(labels):
         style = "-" if lab.startswith("lever") else "--"
-        ax.semilogy(t - (t[0] if len(t) else 0.0), sig[:, k] * 1e3, style, lw=1.0, label=lab)
+        ax.semilogy(t - (t[0] if len(t) else 0.0), sig[:, k] * 1e3, style, lw=1.0, label=mpl_text(lab))
     ax.set_xlabel("time from the first cycle's start (s)")
     ax.set_ylabel("1-sigma (mm)")
     ax.set_title(title or "turntable fit: sigma history of lever arms and proof-mass offsets")

@@ -104,3 +104,87 @@ def run_case(turns, seeds, fit, duration: float = 300.0, rate: float = 50.0,
         sig.append(np.concatenate([res.sigma[k] for k in ("accel_bias", "gyro_bias",
                                                            "attitude")]))
     return {"err": np.array(err), "sigma": np.array(sig)}
+
+
+def polar_axis_body(start=START_ATT_DEG, lat: float = 32.0) -> tuple:
+    """The earth's axis in body axes of a unit at attitude ``start`` (deg)."""
+    from calib_cli.model.frames import attitude_to_rotation
+
+    la = np.radians(lat)
+    v = attitude_to_rotation(np.radians(start)).inv().apply([0.0, np.cos(la), np.sin(la)])
+    return tuple(float(x) for x in v)
+
+
+def vertical_axis_body(start=START_ATT_DEG) -> tuple:
+    """The local vertical in body axes of a unit at attitude ``start`` (deg)."""
+    from calib_cli.model.frames import attitude_to_rotation
+
+    v = attitude_to_rotation(np.radians(start)).inv().apply([0.0, 0.0, 1.0])
+    return tuple(float(x) for x in v)
+
+
+# static-only alignment (methods/align_static.py): (label, axis, angle, start).
+# vertical-120 of ROTATIONS turns about body z, 0.94 deg off the vertical at
+# START_ATT_DEG: near-degenerate for the static method (condition ~5e3)
+STATIC_OBSERVABLE = [(lab, ax, ang, START_ATT_DEG) for lab, ax, ang in ROTATIONS[1:]] + [
+    ("vertical+2deg-120", None, 120.0, START_ATT_DEG)]
+STATIC_DEGENERATE = [
+    ("vertical-120", (0.0, 0.0, 1.0), 120.0, START_ATT_DEG),
+    ("vertical-exact-120", "vertical", 120.0, (0.0, 0.0, 30.0)),
+    ("polar-axis-120", "polar", 120.0, START_ATT_DEG),
+]
+
+
+def static_axis(axis, start):
+    """Resolve the named axes of STATIC_* (None: 2 deg off the vertical)."""
+    if axis == "vertical":
+        return vertical_axis_body(start)
+    if axis == "polar":
+        return polar_axis_body(start)
+    if axis is None:
+        from scipy.spatial.transform import Rotation
+
+        v = Rotation.from_rotvec([np.radians(2.0), 0.0, 0.0]).apply(vertical_axis_body(start))
+        return tuple(float(x) for x in v)
+    return axis
+
+
+def run_static_pair(axis, angle, seeds, fits, duration: float = 300.0, start=START_ATT_DEG):
+    """Simulate one relative attitude per seed and run each of ``fits``
+    (name -> function of the recording) on the same data. Returns, per fit,
+    "err" (S, 12) estimate - truth over [nabla, eps, attitude_1, attitude_2]
+    (attitude_2 NaN where the fit does not report it), "sigma" (S, 12; NaN:
+    null) and "failed" (S,) bool (EstimationError, exit 4)."""
+    from calib_cli.errors import EstimationError
+    from calib_cli.sim.simulate import simulate
+
+    p = plan([(static_axis(axis, start), angle)], duration=duration, start=start)
+    out = {k: {"err": [], "sigma": [], "failed": []} for k in fits}
+    for s in seeds:
+        truth = nav_truth(np.random.default_rng(10_000 + s))
+        rec = simulate(p, truth, seed=s)
+        att = rec.truth["attitudes"][[i for i, sg in enumerate(rec.segments)
+                                      if sg.kind == "static"]]
+        for name, fn in fits.items():
+            o = out[name]
+            try:
+                res = fn(rec)
+            except EstimationError:
+                o["failed"].append(True)
+                o["err"].append(np.full(12, np.nan))
+                o["sigma"].append(np.full(12, np.nan))
+                continue
+            a2 = res.stats.get("attitude_2")
+            if a2 is None and "attitudes_all" in res.stats:
+                a2 = res.stats["attitudes_all"][1]
+            s2 = res.stats.get("attitude_2_sigma", [None] * 3)
+            o["failed"].append(False)
+            o["err"].append(np.concatenate([
+                res.params["accel_bias"] - truth.params["accel_bias"],
+                res.params["gyro_bias"] - truth.params["gyro_bias"],
+                wrap(res.params["attitude"] - att[0]),
+                wrap(np.asarray(a2, float) - att[1]) if a2 is not None else np.full(3, np.nan)]))
+            o["sigma"].append(np.concatenate(
+                [np.asarray(res.sigma[k], float) for k in ("accel_bias", "gyro_bias", "attitude")]
+                + [np.array([np.nan if v is None else v for v in s2], float)]))
+    return {k: {kk: np.array(vv) for kk, vv in v.items()} for k, v in out.items()}

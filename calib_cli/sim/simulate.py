@@ -14,7 +14,10 @@ continuously (transition samples have segment index -1). Per segment kind:
   ``rate_profile = [[t_s, rate_dps], ...]`` (piecewise linear knots from the
   segment start; the duration is the last knot). Each rotating segment is a
   lever-arm cycle. ``rate_shape = "smooth"`` joins the knots with smoothsteps
-  (continuous angular acceleration) instead of straight ramps.
+  (continuous angular acceleration) instead of straight ramps. Without any
+  rate key (CONTRACT.md section 3: the rate keys are optional) the default
+  profile ``turntable_plans.rate_profile(duration_s or 120 s)`` is run: holds
+  at 0, +-200, +-100, +-150, +-50 deg/s with 1 s straight ramps.
   ``sim_table_axis_enu``: the true table axis where it differs from the plan's.
 
 Top-level simulation keys: ``sample_rate_hz`` (100), ``transition_s`` (4),
@@ -37,6 +40,7 @@ from calib_cli.model.frames import attitude_to_rotation, axis_angle, rotation_to
 from calib_cli.sim.truth import Truth, default_truth
 
 D2R = np.pi / 180.0
+DEFAULT_ROTATING_S = 120.0  # a rotating segment without duration_s or rate keys
 
 
 def plan_layout(plan: Plan) -> Layout:
@@ -68,9 +72,14 @@ def _rate_profile(seg: PlanSegment, fs: float, t0: float):
             raise InputError(f"segment {seg.label!r}: rate_profile must be [[t_s, rate_dps], ...] "
                              "with increasing times")
         kt, kr = knots[:, 0] - knots[0, 0], knots[:, 1] * D2R
-    else:
+    elif seg.table_rate is not None:
         dur = seg.duration or 36.0
-        kt, kr = np.array([0.0, dur]), np.full(2, seg.table_rate or 0.0)
+        kt, kr = np.array([0.0, dur]), np.full(2, seg.table_rate)
+    else:  # no rate key: the default profile (holds at 0, +-50 .. +-200 deg/s, docs/simulate.md)
+        from calib_cli.sim.turntable_plans import rate_profile
+
+        knots = np.asarray(rate_profile(seg.duration or DEFAULT_ROTATING_S), dtype=float)
+        kt, kr = knots[:, 0], knots[:, 1] * D2R
     t = _times(0.0, kt[-1], fs)
     rate = np.interp(t, kt, kr)
     slope = np.diff(kr) / np.diff(kt)
@@ -182,7 +191,7 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
             reps = int(seg.extra.get("sim_repeat", 12))
             expanded += [(i, seg, f"{seg.label}#{k + 1}") for k in range(reps)]
         else:
-            expanded.append((i, seg, seg.label))
+            expanded.append((i, seg, plan.visit_labels[i]))
 
     for plan_index, seg, label in expanded:
         kind = seg.kind
