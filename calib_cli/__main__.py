@@ -1,3 +1,15 @@
-from calib_cli.cli.main import main
+"""`calib` and `python -m calib_cli`: the command line, with the commands'
+modules imported on demand (calib_cli.cli.main._Commands)."""
 
-main()
+
+def run() -> None:
+    import calib_cli.cli as pkg
+
+    pkg.LAZY_COMMANDS = True
+    from calib_cli.cli.main import main
+
+    main()
+
+
+if __name__ == "__main__":
+    run()

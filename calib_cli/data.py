@@ -11,6 +11,7 @@ from calib_cli.model.earth import Site
 from calib_cli.model.effects import Layout
 
 SI_UNITS = {"accel": "m/s^2", "gyro": "rad/s"}
+SAMPLE_KINDS = ("instant", "interval-mean")
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,9 @@ class Recording:
     table_rate: np.ndarray | None = None
     truth: dict | None = None
     counters: dict = field(default_factory=dict)
+    # "instant": each sample is the value at its stamp; "interval-mean": the mean over
+    # [t_k - 1/fs, t_k] (many MEMS parts output filtered data), docs/import.md
+    sample_kind: str = "instant"
 
     def __len__(self) -> int:
         return len(self.time)

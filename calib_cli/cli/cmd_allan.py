@@ -204,9 +204,24 @@ def show_allan(files, as_json, covariance):
 @click.option("--exact", is_flag=True, help="Use every overlapping cluster at every tau "
               "(slower; the default keeps 16 per cluster length).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def allan_cmd(raw, segment, out, plot, targets, exact, as_json):
+@click.option("--kalibr", "kalibr_path", type=click.Path(dir_okay=False),
+              help="Write Kalibr's imu.yaml (noise densities and random walks; docs/allan.md).")
+@click.option("--rostopic", default="/imu0", show_default=True,
+              help="--kalibr: the IMU topic written into imu.yaml.")
+def allan_cmd(raw, segment, out, plot, targets, exact, as_json, kalibr_path, rostopic):
     """Allan deviation and noise terms (IEEE Std 952) of a free-running record."""
     res = compute_allan(raw, segment, targets, 0 if exact else A.STRIDE_DIV)
+    if kalibr_path:
+        from calib_cli.io.export_autopilot import kalibr_from_allan, kalibr_yaml
+
+        d = kalibr_from_allan(res, rostopic)
+        text = kalibr_yaml(d)
+        with atomic_path(kalibr_path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        missing = [k for k, v in d.items() if v is None]
+        if missing:
+            info(f"warning: {', '.join(missing)} not visible in this record (null in "
+                 f"{kalibr_path}): record longer")
     if out:
         from calib_cli.io.allan_h5 import write_allan
 
@@ -221,7 +236,7 @@ def allan_cmd(raw, segment, out, plot, targets, exact, as_json):
         print_json(allan_json(res))
     elif not Ctx.quiet:
         render_allan(res, f"{raw} [{res.meta.get('segment')}]")
-    for p in (out, plot):
+    for p in (out, plot, kalibr_path):
         if p:
             info(f"-> {p}")
     return 0

@@ -1,4 +1,4 @@
-"""calib export CAL.h5 --format json|yaml|c-header|csv [--out FILE] [--float]"""
+"""calib export CAL.h5 --format json|yaml|c-header|csv|kalibr|px4|ardupilot [--out FILE]"""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import click
 from calib_cli.cli.common import info
 from calib_cli.cli.main import cli
 from calib_cli.io import escape
-from calib_cli.io.export import FORMATS, export_object, to_c_header, to_csv, to_json, to_yaml
+from calib_cli.io.export import ALL_FORMATS, export_object, to_c_header, to_csv, to_json, to_yaml
 from calib_cli.io.h5 import atomic_path, provenance, read_calibration, sha256_file
 
 
@@ -25,14 +25,21 @@ class PrefixError(click.ClickException):
 
 @cli.command("export")
 @click.argument("cal", type=click.Path(dir_okay=False))
-@click.option("--format", "fmt", type=click.Choice(FORMATS), required=True,
-              help="json | yaml | c-header | csv (docs/export.md).")
+@click.option("--format", "fmt", type=click.Choice(ALL_FORMATS), required=True,
+              help="json | yaml | c-header | csv | kalibr | px4 | ardupilot (docs/export.md).")
 @click.option("--out", type=click.Path(dir_okay=False), help="Output file (default: stdout).")
 @click.option("--float", "single", is_flag=True, help="c-header: float instead of double.")
 @click.option("--prefix", default="calib", show_default=True,
               help="c-header: prefix of the names (CALIB_ACCEL_KINV, calib_correct_accel); "
                    "a C identifier: a letter, then letters, digits or '_', at most 32.")
-def export_cmd(cal, fmt, out, single, prefix):
+@click.option("--allan", "allan_path", type=click.Path(dir_okay=False),
+              help="kalibr: noise densities and random walks from this 'allan' file.")
+@click.option("--raw", "raw_path", type=click.Path(dir_okay=False),
+              help="kalibr without --allan: noise densities from this raw file's static noise.")
+@click.option("--rostopic", default="/imu0", show_default=True, help="kalibr: the IMU topic.")
+@click.option("--instance", default=0, show_default=True, type=int,
+              help="px4/ardupilot: IMU instance the parameters are for.")
+def export_cmd(cal, fmt, out, single, prefix, allan_path, raw_path, rostopic, instance):
     """Export the correction (K^-1, biases, D) for firmware and other tools."""
     try:
         escape.c_identifier(prefix, "--prefix")
@@ -45,7 +52,22 @@ def export_cmd(cal, fmt, out, single, prefix):
     prov = provenance(cal)
     prov["sha256"] = sha256_file(cal)
     source = Path(cal).name
-    if fmt == "c-header":
+    if fmt in ("kalibr", "px4", "ardupilot"):
+        from calib_cli.io.export_autopilot import export_for_tool
+
+        allan = raw = None
+        if allan_path:
+            from calib_cli.io.allan_h5 import read_allan
+
+            allan = read_allan(allan_path)
+        if raw_path:
+            from calib_cli.io.h5 import read_raw
+
+            raw = read_raw(raw_path)
+        text, warnings = export_for_tool(c, fmt, source, cal, allan, raw, rostopic, instance)
+        for w in warnings:
+            info(f"warning: {w}")
+    elif fmt == "c-header":
         text = to_c_header(c, prov, source, single=single, prefix=prefix)
     else:
         obj = export_object(c, prov, source)

@@ -1,4 +1,4 @@
-"""calib import csv LOG.csv --plan PLAN.toml --out RAW.h5"""
+"""calib import csv|text|bag|ulog|dataflash: logs in -> raw.h5 (docs/import.md)"""
 
 from __future__ import annotations
 
@@ -6,9 +6,10 @@ import click
 
 from calib_cli.cli.common import info
 from calib_cli.cli.main import cli
-from calib_cli.io.csvlog import import_csv
 from calib_cli.io.h5 import write_raw
 from calib_cli.io.plan import load_plan
+
+COMPLETE_COMMAND = True  # every `calib import` subcommand lives here (cli/main.py)
 
 
 @cli.group("import")
@@ -31,23 +32,24 @@ def import_group():
               show_default=True, help="Units of ax ay az (g: 9.80665 m/s^2).")
 @click.option("--gyro-units", type=click.Choice(["count", "rad/s", "deg/s"]), default="rad/s",
               show_default=True, help="Units of gx gy gz.")
+@click.option("--sample-kind", type=click.Choice(["instant", "interval-mean"]), default="instant",
+              show_default=True,
+              help="instant: each sample is the value at its time stamp; interval-mean: the mean "
+                   "over the sample period ending at the stamp (filtered MEMS output).")
 def import_csv_cmd(log, plan_path, out, window_s, multiplier, min_static_s, accel_units,
-                   gyro_units):
+                   gyro_units, sample_kind):
     """Import a CSV log (contract columns) with its plan.
 
     Without a `segment` column, static intervals are detected and matched to
     the plan's static segments in order (docs/import.md).
     """
-    plan = load_plan(plan_path)
-    rec = import_csv(log, plan, window_s, multiplier, min_static_s)
-    if (accel_units, gyro_units) != ("m/s^2", "rad/s"):
-        from calib_cli.io.textlog import convert_units
+    from calib_cli.io.csvlog import import_csv_stream
 
-        a, g, units = convert_units(rec.accel, rec.gyro, accel_units, gyro_units, log)
-        rec = rec.with_(accel=a, gyro=g, units=units)
-    write_raw(out, rec, [log, plan_path])
-    n_static = len(rec.static_segments())
-    info(f"imported {len(rec)} samples, {len(rec.segments)} segments ({n_static} static) -> {out}")
+    plan = load_plan(plan_path)
+    res = import_csv_stream(log, plan, out, [log, plan_path], window_s, multiplier, min_static_s,
+                            accel_units, gyro_units, sample_kind=sample_kind)
+    n_static = sum(1 for s in res.segments if s.kind == "static")
+    info(f"imported {res.n} samples, {len(res.segments)} segments ({n_static} static) -> {out}")
 
 
 @import_group.command("text")
@@ -79,9 +81,13 @@ def import_csv_cmd(log, plan_path, out, window_s, multiplier, min_static_s, acce
               help="Static detection: multiple of the noise floor.")
 @click.option("--min-static", "min_static_s", default=1.0, show_default=True, type=float,
               help="Static detection: shortest static interval, s.")
+@click.option("--sample-kind", type=click.Choice(["instant", "interval-mean"]), default="instant",
+              show_default=True,
+              help="instant: each sample is the value at its time stamp; interval-mean: the mean "
+                   "over the sample period ending at the stamp (filtered MEMS output).")
 def import_text_cmd(acc, gyro, plan_path, out, columns, gyro_columns, accel_units, gyro_units,
                     rate, time_unit, delimiter, header, sort, segments_json, window_s,
-                    multiplier, min_static_s):
+                    multiplier, min_static_s, sample_kind):
     """Import a text log in another layout: whitespace or CSV, with or without a
     header, raw counts or other units, accelerometer and gyro in one file or in
     two files sharing timestamps (docs/import.md)."""
@@ -93,7 +99,134 @@ def import_text_cmd(acc, gyro, plan_path, out, columns, gyro_columns, accel_unit
                       min_static_s)
     inputs = [acc] + ([gyro] if gyro else []) + [plan_path] + ([segments_json] if segments_json
                                                              else [])
+    rec = rec.with_(sample_kind=sample_kind)
     write_raw(out, rec, inputs)
     n_static = len(rec.static_segments())
     info(f"imported {len(rec)} samples ({rec.units['accel']}, {rec.units['gyro']}), "
          f"{len(rec.segments)} segments ({n_static} static) -> {out}")
+
+
+def _detection_options(f):
+    for opt in reversed([
+        click.option("--plan", "plan_path", type=click.Path(dir_okay=False),
+                     help="The experiment plan (TOML)."),
+        click.option("--out", type=click.Path(dir_okay=False), help="raw.h5 to write."),
+        click.option("--window", "window_s", default=1.0, show_default=True, type=float,
+                     help="Static detection: moving window, s."),
+        click.option("--threshold", "multiplier", default=3.0, show_default=True, type=float,
+                     help="Static detection: multiple of the noise floor."),
+        click.option("--min-static", "min_static_s", default=1.0, show_default=True, type=float,
+                     help="Static detection: shortest static interval, s."),
+        click.option("--json", "as_json", is_flag=True, help="Listing as JSON."),
+    ]):
+        f = opt(f)
+    return f
+
+
+def _list_streams(rows, as_json, what):
+    import json
+
+    if as_json:
+        click.echo(json.dumps(rows))
+        return
+    if not rows:
+        click.echo(f"no IMU {what} found")
+        return
+    width = max(len(r["topic"]) for r in rows)
+    for r in rows:
+        click.echo(f"{r['topic']:{width}s}  {r['count']:9d} messages  {r['rate_hz']:9.2f} Hz")
+
+
+def _import_stream(path, stream, plan_path, out, window_s, multiplier, min_static_s, inputs):
+    from pathlib import Path
+
+    from calib_cli.io.imu_logs import gap_check, stream_chunks
+    from calib_cli.io.stream_import import import_to_raw
+
+    plan = load_plan(plan_path)
+    if Path(path).is_dir():  # a ROS 2 bag folder: hash every file in it
+        inputs = sorted(str(p) for p in Path(path).rglob("*") if p.is_file())
+    counters = {"source_stream": stream.name}
+    counters.update({k: v for k, v in stream.info.items() if isinstance(v, (str, int, float))})
+    res = import_to_raw(out, stream_chunks(path, stream), plan, path, inputs + [plan_path],
+                        window_s, multiplier, min_static_s, counters=counters,
+                        check=gap_check(path, stream.name))
+    n_static = sum(1 for s in res.segments if s.kind == "static")
+    gaps = res.counters.get("gaps", 0)
+    gap_txt = (f", {gaps} short gap{'s' * (gaps != 1)} (longest "
+               f"{res.counters['longest_gap_periods']:.1f} sample periods)") if gaps else ""
+    from calib_cli.io.escape import term_text
+
+    info(f"imported {res.n} samples of {term_text(stream.name)}, {len(res.segments)} segments "
+         f"({n_static} static){gap_txt} -> {out}")
+
+
+def _need_plan(plan_path, out, what):
+    if not plan_path or not out:
+        raise click.UsageError(f"give --plan and --out to import {what} (without them the "
+                               "command lists the IMU streams)")
+
+
+@import_group.command("bag")
+@click.argument("path", type=click.Path())
+@click.option("--topic", help="The sensor_msgs/Imu topic; without it, list the IMU topics.")
+@click.option("--stamp", type=click.Choice(["header", "receive"]), default="header",
+              show_default=True, help="Time: the messages' header stamps or the receive times.")
+@_detection_options
+def import_bag_cmd(path, topic, stamp, plan_path, out, window_s, multiplier, min_static_s,
+                   as_json):
+    """Import sensor_msgs/Imu from a ROS 1 .bag, a ROS 2 bag folder (sqlite3 or
+    MCAP) or a bare .mcap file (needs calib-cli[ros]; docs/import.md).
+    Without --topic, list the IMU topics with their message counts and rates."""
+    from calib_cli.io.imu_logs import bag_stream, list_bag_topics
+
+    if topic is None:
+        _list_streams(list_bag_topics(path), as_json, "topics")
+        return
+    _need_plan(plan_path, out, "a topic")
+    _import_stream(path, bag_stream(path, topic, stamp), plan_path, out, window_s, multiplier,
+                   min_static_s, [path])
+
+
+@import_group.command("ulog")
+@click.argument("path", type=click.Path(dir_okay=False))
+@click.option("--source", type=click.Choice(["sensor_combined", "sensor"]),
+              default="sensor_combined", show_default=True,
+              help="sensor_combined (corrected by PX4's calibration) or sensor_accel/sensor_gyro "
+                   "of one instance (before it).")
+@click.option("--instance", default=0, show_default=True, type=int,
+              help="Instance of sensor_accel/sensor_gyro (--source sensor).")
+@_detection_options
+def import_ulog_cmd(path, source, instance, plan_path, out, window_s, multiplier, min_static_s,
+                    as_json):
+    """Import the IMU of a PX4 ULog file (needs calib-cli[px4]; docs/import.md).
+    Without --plan, list the IMU topics with their message counts and rates."""
+    from calib_cli.io.imu_logs import list_ulog_streams, ulog_stream
+
+    if not plan_path and not out:
+        _list_streams(list_ulog_streams(path), as_json, "topics")
+        return
+    _need_plan(plan_path, out, "a ULog file")
+    _import_stream(path, ulog_stream(path, source, instance), plan_path, out, window_s,
+                   multiplier, min_static_s, [path])
+
+
+@import_group.command("dataflash")
+@click.argument("path", type=click.Path(dir_okay=False))
+@click.option("--message", type=click.Choice(["IMU", "ACC"]), default="IMU", show_default=True,
+              help="IMU (filtered, at the logging rate) or ACC/GYR (unfiltered samples).")
+@click.option("--instance", default=0, show_default=True, type=int, help="IMU instance (field I).")
+@_detection_options
+def import_dataflash_cmd(path, message, instance, plan_path, out, window_s, multiplier,
+                         min_static_s, as_json):
+    """Import the IMU of an ArduPilot DataFlash .bin log (needs
+    calib-cli[ardupilot]; docs/import.md). Without --plan, list the IMU
+    messages with their counts and rates."""
+    from calib_cli.io.imu_logs import dataflash_stream, list_dataflash_streams
+
+    if not plan_path and not out:
+        _list_streams(list_dataflash_streams(path), as_json, "messages")
+        return
+    _need_plan(plan_path, out, "a DataFlash log")
+    _import_stream(path, dataflash_stream(path, message, instance), plan_path, out, window_s,
+                   multiplier, min_static_s, [path])

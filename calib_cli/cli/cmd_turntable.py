@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import click
+from click import UsageError
 
 from calib_cli.cli.cmd_fit import fit_group, save
 from calib_cli.cli.common import info
@@ -31,12 +32,21 @@ from calib_cli.io.h5 import read_raw
 @click.option("--table-tilt-deg", type=float, default=0.05, show_default=True,
               help="Prior 1-sigma of the table axis's tilt from the plan's direction "
                    "(estimated, one per table axis); 0: take the plan's axis as exact.")
+@click.option("--grade", type=click.Choice(["mems", "tactical", "navigation"]), default="mems",
+              show_default=True,
+              help="Prior widths of the parameters for this grade of unit (docs/turntable.md).")
+@click.option("--prior", "priors", multiple=True, metavar="KEY=SIGMA",
+              help="Override one prior 1-sigma (SI), e.g. --prior lever_arm=0.1; keys: "
+                   "accel_bias accel_K gyro_bias gyro_K gyro_D lever_arm proof_mass_offsets.")
+@click.option("--noise", "noise_spec", metavar="accel=SIGMA,gyro=SIGMA",
+              help="Per-sample white noise (SI: m/s^2, rad/s) instead of the estimate from the "
+                   "data; one value for all axes of a sensor.")
 @click.option("--json", "as_json", is_flag=True,
               help="Print the result as JSON (contract section 5) on stdout.")
 @click.option("--plot", type=click.Path(dir_okay=False),
               help="Write the sigma history of the lever arms and proof-mass offsets (PNG).")
 def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis_sigma_mrad,
-                      table_tilt_deg, as_json, plot):
+                      table_tilt_deg, grade, priors, noise_spec, as_json, plot):
     """Accelerometer b, K (lower triangular), gyro d, G, D, lever arms and proof-mass
     offsets from rotation cycles on a single-axis table of imprecise angle and rate."""
     import numpy as np
@@ -50,11 +60,25 @@ def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis
         raise InputError(f"--axis-sigma-mrad must be > 0, got {axis_sigma_mrad}")
     if not (np.isfinite(table_tilt_deg) and 0 <= table_tilt_deg <= 10):
         raise InputError(f"--table-tilt-deg must be in [0, 10], got {table_tilt_deg}")
+    from calib_cli.methods.turntable import PRIOR_KEYS
+
+    prior = _key_values(priors, "--prior")
+    unknown = sorted(set(prior) - set(PRIOR_KEYS))
+    if unknown:
+        raise UsageError(f"--prior: unknown key {unknown[0]!r}; expected one of "
+                         f"{', '.join(PRIOR_KEYS)}")
+    noise = None
+    if noise_spec:
+        kv = _key_values(noise_spec.split(","), "--noise")
+        if set(kv) != {"accel", "gyro"}:
+            raise UsageError("--noise needs accel=SIGMA,gyro=SIGMA")
+        noise = {k: np.full(3, v) for k, v in kv.items()}
     rec = read_raw(raw)
     opt = TurntableOptions(lever_arm=lever_arm, proof_mass=proof_mass,
                            tangential=tangential == "on", block_s=block_s,
                            axis_sigma=axis_sigma_mrad * 1e-3,
-                           table_tilt_sigma=float(np.radians(table_tilt_deg)))
+                           table_tilt_sigma=float(np.radians(table_tilt_deg)),
+                           grade=grade, priors=prior or None, noise=noise)
     try:
         res = fit_turntable(rec, opt)
     except InputError as exc:
@@ -80,3 +104,20 @@ def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis
 
         sigma_history_plot(res, plot)
         info(f"sigma history -> {plot}")
+
+
+def _key_values(items, option: str) -> dict:
+    """KEY=NUMBER items -> {key: float}; a malformed one is a usage error."""
+    import math
+
+    out = {}
+    for item in items:
+        key, sep, val = item.partition("=")
+        try:
+            num = float(val)
+        except ValueError:
+            num = math.nan
+        if not sep or not key.strip() or not math.isfinite(num) or num <= 0:
+            raise UsageError(f"{option} expects KEY=POSITIVE_NUMBER, got {item!r}")
+        out[key.strip()] = num
+    return out

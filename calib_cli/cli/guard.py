@@ -98,3 +98,11 @@ def guard_all(group: click.Group) -> None:
             guard_all(cmd)
         else:
             _wrap(cmd)
+
+
+def guard_one(cmd: click.Command) -> None:
+    """Guard one command (a group: all its subcommands); idempotent."""
+    if isinstance(cmd, click.Group):
+        guard_all(cmd)
+    else:
+        _wrap(cmd)

@@ -14,7 +14,32 @@ from calib_cli.errors import CalibError
 EXIT_INTERNAL = 70  # not in the contract: an unexpected error inside calib (a bug)
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class _Commands(click.Group):
+    """The top-level group. In a process started by the ``calib`` entry point
+    (``calib_cli.__main__.run``), modules are imported on demand: a command
+    whose module declares ``COMPLETE_COMMAND = True`` (all its subcommands
+    live there) is loaded alone, which spares `calib import` the start-up of
+    every other command (about 1 s of SciPy imports); anything else, and any
+    listing (help), loads every module."""
+
+    def get_command(self, ctx, name):
+        cmd = super().get_command(ctx, name)
+        if cmd is None and not _loaded:
+            if not _load_one(name):
+                _register()
+            cmd = super().get_command(ctx, name)
+        if cmd is not None:  # output-path and number guards (issue 15), lazily loaded too
+            from calib_cli.cli.guard import guard_one
+
+            guard_one(cmd)
+        return cmd
+
+    def list_commands(self, ctx):
+        _register()
+        return super().list_commands(ctx)
+
+
+@click.group(cls=_Commands, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="calib")
 @click.option("--debug", is_flag=True, help="Show tracebacks on errors.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress or status output.")
@@ -28,6 +53,9 @@ def cli(debug: bool, quiet: bool) -> None:
     Ctx.quiet = quiet
 
 
+_loaded = False
+
+
 def _register() -> None:
     """Each command lives in its own module ``cli/cmd_*.py``; importing it
     registers it on ``cli`` (no central list to edit when adding a command)."""
@@ -36,12 +64,31 @@ def _register() -> None:
 
     import calib_cli.cli as pkg
 
+    global _loaded
+    if _loaded:
+        return
+    _loaded = True
     for mod in sorted(m.name for m in pkgutil.iter_modules(pkg.__path__)):
         if mod.startswith("cmd_"):
             importlib.import_module(f"calib_cli.cli.{mod}")
 
 
-_register()
+def _load_one(name: str) -> bool:
+    """Import ``cmd_<name>`` alone; True when it holds the whole command."""
+    import importlib
+    import importlib.util
+
+    modname = f"calib_cli.cli.cmd_{name.replace('-', '_')}"
+    if not name.isidentifier() or importlib.util.find_spec(modname) is None:
+        return False
+    mod = importlib.import_module(modname)
+    return bool(getattr(mod, "COMPLETE_COMMAND", False)) and name in cli.commands
+
+
+import calib_cli.cli as _pkg  # noqa: E402
+
+if not getattr(_pkg, "LAZY_COMMANDS", False):
+    _register()
 
 from calib_cli.cli.guard import guard_all  # noqa: E402
 

@@ -217,7 +217,7 @@ def import_csv(path, plan: Plan, window_s: float = 1.0, multiplier: float = 3.0,
                min_static_s: float = 1.0, units: dict | None = None) -> Recording:
     """A contract CSV and its plan -> Recording. Raises InputError naming the file."""
     path = str(path)
-    from calib_cli.sim.simulate import plan_layout
+    from calib_cli.io.stream_import import plan_layout
 
     layout = plan_layout(plan)
     t, accel, gyro, opt, seg = read_columns(path, layout)
@@ -265,3 +265,322 @@ def write_csv(path, rec: Recording) -> None:
             fh.write(",".join(["time"] + names) + "\n")
             fmt = ["%.6f"] + ["%.12g"] * (table.shape[1] - 2) + ["%d"]
             np.savetxt(fh, table, delimiter=",", fmt=fmt)
+
+
+# ---------------------------------------------------------------------------
+# streaming import (docs/import.md): the log is read block by block into the
+# raw file; memory does not grow with the log's length.
+
+STREAM_ROWS = 65536  # rows per block of the pure-Python reader
+ARROW_BLOCK = 1 << 20  # bytes per block of the pyarrow reader (its default; larger blocks
+# are no faster and its readahead then holds hundreds of MB)
+USE_THREADS = True
+
+
+class _Fallback(Exception):
+    """The fast reader met something it does not handle exactly as the
+    reference reader does: start again with the reference reader."""
+
+
+def _stream_header(path: str):
+    """(column names, byte offset of the line after the header, header bytes)."""
+    try:
+        fh = open(path, "rb")
+    except FileNotFoundError:
+        raise InputError("no such file", path) from None
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc}", path) from None
+    with fh:
+        consumed = b""
+        while True:
+            raw = fh.readline()
+            if not raw:
+                raise InputError("empty file (no header line)", path)
+            consumed += raw
+            try:
+                s = raw.decode("utf-8").strip()
+            except UnicodeDecodeError as exc:
+                raise InputError(f"cannot read: {exc}", path) from None
+            if not s or s.startswith("#"):
+                continue
+            header = [c.strip() for c in s.split(",")]
+            if len(set(header)) != len(header):
+                raise InputError(f"duplicate column names in header: {header}", path)
+            return header, len(consumed), consumed
+
+
+def _layout_columns(header, layout: Layout, path: str):
+    """Column indices of time, accel, gyro (None), optional, segment; the
+    missing-column errors of ``read_columns``."""
+    idx = {name: i for i, name in enumerate(header)}
+    if "time" not in idx:
+        raise InputError("missing column 'time'", path)
+    if layout.redundant:
+        an = [f"a{i}" for i in range(layout.n)]
+        gn = [f"g{i}" for i in range(layout.n)]
+    else:
+        an, gn = ["ax", "ay", "az"], ["gx", "gy", "gz"]
+    missing = [c for c in an if c not in idx]
+    if missing:
+        raise InputError(f"missing column{'s' * (len(missing) > 1)} {', '.join(missing)}", path)
+    gmiss = [c for c in gn if c not in idx]
+    if gmiss and len(gmiss) < len(gn):
+        raise InputError(f"missing column{'s' * (len(gmiss) > 1)} {', '.join(gmiss)}", path)
+    return (idx["time"], [idx[c] for c in an], None if gmiss else [idx[c] for c in gn],
+            {k: idx[k] for k in OPTIONAL if k in idx}, idx.get("segment"))
+
+
+def _chunk(data_cols, cols):
+    from calib_cli.io.stream_import import Chunk
+
+    ti, ai, gi, oi, si = cols
+    return Chunk(time=data_cols[ti], accel=np.column_stack([data_cols[i] for i in ai]),
+                 gyro=None if gi is None else np.column_stack([data_cols[i] for i in gi]),
+                 opt={k: data_cols[i] for k, i in oi.items()},
+                 segment=None if si is None else data_cols[si])
+
+
+class _CommentFilter:
+    """A read-only byte stream over the log from the line after the header,
+    without comment lines (first non-blank character ``#``) and blank lines;
+    it hashes every byte of the file on the way (the provenance's SHA-256)."""
+
+    def __init__(self, path, offset, head, hasher):
+        self.fh = open(path, "rb")
+        self.fh.seek(offset)
+        self.hasher = hasher
+        hasher.update(head)
+        self.tail = b""
+        self.closed = False
+        self.removed = 0  # lines dropped (comments, blank lines)
+
+    def readable(self):
+        return True
+
+    def seekable(self):
+        return False
+
+    def writable(self):
+        return False
+
+    def read(self, size=-1):
+        while True:
+            chunk = self.fh.read(size if size and size > 0 else ARROW_BLOCK)
+            if not chunk:
+                out, self.tail = self.tail, b""
+                return self._filter(out) if out else b""
+            self.hasher.update(chunk)
+            data = self.tail + chunk
+            cut = data.rfind(b"\n") + 1
+            if cut == 0:  # no complete line yet
+                self.tail = data
+                continue
+            out, self.tail = data[:cut], data[cut:]
+            out = self._filter(out)
+            if out:
+                return out
+
+    def _filter(self, data: bytes) -> bytes:
+        if b"#" not in data and b"\n\n" not in data and not data.startswith(b"\n"):
+            return data
+        lines = data.split(b"\n")
+        if not lines[-1]:
+            lines.pop()
+        keep = [ln for ln in lines if ln.strip() and not ln.lstrip().startswith(b"#")]
+        self.removed += len(lines) - len(keep)
+        return b"\n".join(keep) + b"\n" if keep else b""
+
+    def close(self):
+        self.fh.close()
+        self.closed = True
+
+
+def _arrow_chunks(path, header, offset, head, cols, hasher):
+    """The pyarrow reader: yields chunks; raises _Fallback on anything unusual."""
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    stream = _CommentFilter(path, offset, head, hasher)
+    try:
+        reader = pacsv.open_csv(
+            stream,
+            read_options=pacsv.ReadOptions(column_names=header, block_size=ARROW_BLOCK,
+                                           use_threads=USE_THREADS),
+            parse_options=pacsv.ParseOptions(delimiter=",", quote_char=False),
+            convert_options=pacsv.ConvertOptions(
+                column_types={h: pa.float64() for h in header}, strings_can_be_null=False,
+                quoted_strings_can_be_null=False, null_values=[]))
+    except pa.ArrowInvalid as exc:
+        stream.close()
+        if "Empty CSV file" in str(exc):
+            raise InputError("no data rows after the header", path) from None
+        raise _Fallback(str(exc)) from None
+    t_last = None
+    ti, si = cols[0], cols[4]
+    pending: list[list[np.ndarray]] = []
+    rows = 0
+
+    def flush():
+        data = [np.concatenate([p[i] for p in pending]) for i in range(len(header))] \
+            if len(pending) > 1 else pending[0]
+        pending.clear()
+        return _chunk(data, cols)
+
+    try:
+        while True:
+            try:
+                batch = reader.read_next_batch()
+            except StopIteration:
+                break
+            except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
+                raise _Fallback(str(exc)) from None
+            data = [batch.column(i).to_numpy(zero_copy_only=False) for i in range(len(header))]
+            if not all(np.isfinite(c).all() for c in data):
+                raise _Fallback("non-finite")
+            t = data[ti]
+            if len(t) and (np.any(np.diff(t) <= 0) or (t_last is not None and t[0] <= t_last)):
+                raise _Fallback("time")
+            if si is not None and np.any(data[si] != np.round(data[si])):
+                raise _Fallback("segment")
+            if len(t):
+                t_last = t[-1]
+                pending.append(data)
+                rows += len(t)
+                if rows >= STREAM_ROWS:  # pyarrow's blocks are small: write in larger ones
+                    yield flush()
+                    rows = 0
+        if pending:
+            yield flush()
+    finally:
+        stream.close()
+
+
+def _text_chunks(path, header, cols_or_error, hasher=None):
+    """The reference reader, streamed: every error exactly as ``_read_table``
+    and ``read_columns`` give it, in the same order of precedence."""
+    try:
+        fh = open(path, encoding="utf-8", newline=None)
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc}", path) from None
+    k = len(header)
+    nonfinite = None  # first NaN/inf cell (an unreadable cell anywhere takes precedence)
+    time_err = seg_err = None
+    t_last, n_rows = None, 0
+    seen_header = False
+    rows: list[tuple[int, str]] = []
+
+    def parse(rows):
+        try:
+            data = np.loadtxt(io.StringIO("\n".join(r for _, r in rows)), delimiter=",", ndmin=2)
+            if data.shape[1] != k:
+                raise ValueError
+        except ValueError:
+            for lineno, r in rows:
+                cells = r.split(",")
+                if len(cells) != k:
+                    raise InputError(f"line {lineno}: {len(cells)} cells, header has {k}",
+                                     path) from None
+                for name, c in zip(header, cells):
+                    try:
+                        float(c)
+                    except ValueError:
+                        raise InputError(f"line {lineno}, column {name!r}: not a number: "
+                                         f"{c.strip()!r}", path) from None
+            raise InputError("unreadable numeric data", path) from None
+        return data
+
+    def block(rows):
+        nonlocal nonfinite, time_err, seg_err, t_last, n_rows
+        data = parse(rows)
+        bad = ~np.isfinite(data)
+        if bad.any() and nonfinite is None:
+            r, c = np.argwhere(bad)[0]
+            nonfinite = (f"line {rows[r][0]}, column {header[c]!r}: {data[r, c]} (NaN or "
+                         "infinite values are not allowed)")
+        if nonfinite is None and not isinstance(cols_or_error, InputError):
+            ti, si = cols_or_error[0], cols_or_error[4]
+            t = data[:, ti]
+            tt = t if t_last is None else np.concatenate([[t_last], t])
+            if time_err is None and len(tt) > 1 and np.any(np.diff(tt) <= 0):
+                i = int(np.flatnonzero(np.diff(tt) <= 0)[0])
+                gi = n_rows + i - (t_last is not None)
+                time_err = (f"time is not increasing at data row {gi + 2} "
+                            f"({tt[i]!r} then {tt[i + 1]!r})")
+            t_last = t[-1]
+            if si is not None and seg_err is None and np.any(data[:, si] != np.round(data[:, si])):
+                seg_err = "column 'segment' must hold integers"
+        n_rows += len(data)
+        return data
+
+    with fh:
+        try:
+            for i, line in enumerate(fh):
+                if hasher is not None:
+                    hasher.update(line.encode("utf-8"))
+                s = line.strip()
+                if not seen_header:
+                    if s and not s.startswith("#"):
+                        seen_header = True
+                    continue
+                if not s or line.lstrip().startswith("#"):
+                    continue
+                rows.append((i + 1, line.rstrip("\n")))
+                if len(rows) >= STREAM_ROWS:
+                    data = block(rows)
+                    rows = []
+                    if not (nonfinite or time_err or seg_err
+                            or isinstance(cols_or_error, InputError)):
+                        yield _chunk([data[:, j] for j in range(k)], cols_or_error)
+        except UnicodeDecodeError as exc:
+            raise InputError(f"cannot read: {exc}", path) from None
+        if rows:
+            data = block(rows)
+            if not (nonfinite or time_err or seg_err or isinstance(cols_or_error, InputError)):
+                yield _chunk([data[:, j] for j in range(k)], cols_or_error)
+    if n_rows == 0:
+        raise InputError("no data rows after the header", path)
+    for err in (nonfinite, cols_or_error if isinstance(cols_or_error, InputError) else None,
+                time_err, seg_err):
+        if err is not None:
+            raise err if isinstance(err, InputError) else InputError(err, path)
+
+
+def have_pyarrow() -> bool:
+    try:
+        import pyarrow.csv  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def import_csv_stream(path, plan: Plan, out, inputs=(), window_s: float = 1.0,
+                      multiplier: float = 3.0, min_static_s: float = 1.0,
+                      accel_units: str = "m/s^2", gyro_units: str = "rad/s",
+                      fast: bool | None = None, sample_kind: str = "instant"):
+    """A contract CSV and its plan -> raw file ``out``, streamed (pyarrow's
+    reader when installed, ``calib-cli[fast]``, else the pure-Python one; the
+    same data and the same error messages either way). Returns ImportSummary."""
+    import hashlib
+
+    from calib_cli.io.stream_import import import_to_raw, plan_layout
+
+    path = str(path)
+    layout = plan_layout(plan)
+    header, offset, head = _stream_header(path)
+    try:
+        cols = _layout_columns(header, layout, path)
+    except InputError as exc:
+        cols = exc
+    use_fast = have_pyarrow() if fast is None else fast
+    kw = dict(window_s=window_s, multiplier=multiplier, min_static_s=min_static_s,
+              accel_units=accel_units, gyro_units=gyro_units, sample_kind=sample_kind)
+    if use_fast and not isinstance(cols, InputError):
+        hasher = hashlib.sha256()
+        try:
+            return import_to_raw(out, _arrow_chunks(path, header, offset, head, cols, hasher),
+                                 plan, path, inputs,
+                                 hashes=lambda: {path: hasher.hexdigest()}, **kw)
+        except _Fallback:
+            pass
+    hasher = hashlib.sha256()
+    return import_to_raw(out, _text_chunks(path, header, cols), plan, path, inputs, **kw)

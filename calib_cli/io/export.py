@@ -355,3 +355,14 @@ def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = 
                  f" + {P}_GYRO_GINV[i][2] * u[2];",
                  "}", ""]
     return "\n".join(head + body + [f"#endif /* {P}_CORRECTION_H */", ""])
+
+
+# Formats for other tools (Kalibr imu.yaml, PX4 and ArduPilot parameters) live in
+# io/export_autopilot.py; `calib export` dispatches on ALL_FORMATS.
+def _tool_formats() -> tuple[str, ...]:
+    from calib_cli.io.export_autopilot import AUTOPILOT_FORMATS
+
+    return AUTOPILOT_FORMATS
+
+
+ALL_FORMATS = FORMATS + _tool_formats()

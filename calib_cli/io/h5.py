@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 
 from calib_cli import __version__
-from calib_cli.data import CalibrationResult, Recording, Segment
+from calib_cli.data import SAMPLE_KINDS, CalibrationResult, Recording, Segment
 from calib_cli.errors import InputError
 from calib_cli.io import validate
 from calib_cli.io.escape import line_text
@@ -346,6 +346,7 @@ def write_raw(path, rec: Recording, inputs=(), kind: str = "raw") -> None:
                 smp.create_dataset(name, data=arr, chunks=chunks, fletcher32=ck)
         smp.attrs["accel_units"] = rec.units.get("accel", "m/s^2")
         smp.attrs["gyro_units"] = rec.units.get("gyro", "rad/s")
+        smp.attrs["sample_kind"] = rec.sample_kind
         write_segments(h5, rec.segments)
         write_site_layout(h5, rec.site, rec.layout)
         h5.create_group("plan").attrs["text"] = rec.plan_text
@@ -379,6 +380,10 @@ def read_raw(path, kinds=("raw", "corrected")) -> Recording:
                    for k in SAMPLE_FIELDS}
             units = {"accel": _attr_str(smp, "accel_units", "m/s^2"),
                      "gyro": _attr_str(smp, "gyro_units", "rad/s")}
+            sample_kind = _attr_str(smp, "sample_kind", "instant")
+            if sample_kind not in SAMPLE_KINDS:
+                raise InputError(f"unknown sample kind {sample_kind!r} (expected "
+                                 f"{' or '.join(SAMPLE_KINDS)})", p)
             segments = read_segments(h5, p)
             site, layout = read_site_layout(h5, p)
             plan_text = _attr_str(h5["plan"], "text") if "plan" in h5 else ""
@@ -403,7 +408,8 @@ def read_raw(path, kinds=("raw", "corrected")) -> Recording:
         rec = Recording(time=time, accel=accel, gyro=gyro, segments=segments, site=site,
                          plan_kind=_attr_str(h5, "plan_kind", "static"), plan_text=plan_text,
                          serial=_attr_str(h5, "unit_serial") or None, units=units,
-                         layout=layout, truth=truth, counters=counters, **opt)
+                         layout=layout, truth=truth, counters=counters,
+                         sample_kind=sample_kind, **opt)
     validate.check_recording(rec, p)
     return rec
 

@@ -22,14 +22,15 @@ from calib_cli.errors import InputError
 # -- plans (CONTRACT.md section 3; simulate's keys: docs/simulate.md) -------
 PLAN_TOP = {"name", "kind", "protocol", "description", "site", "unit", "segment", "rimu",
             "sample_rate_hz", "transition_s", "temperature_profile", "temperature_c",
-            "sim_table_rate_error", "sim_table_wobble_dps", "sim_grade",
-            "sim_proof_mass_sigma_m"}
+            "sim_table_rate_error", "sim_table_wobble_dps", "sim_table_wobble_hz", "sim_grade",
+            "sim_proof_mass_sigma_m", "sim_oversample", "sample_kind"}
 PLAN_SITE = {"latitude_deg", "height_m", "g", "longitude_deg", "name", "allow_any_g"}
 PLAN_UNIT = {"serial", "model", "name", "profile", "accel_range_g", "gyro_range_dps"}
 PLAN_RIMU = {"el0_deg", "az0_deg", "profile"}
 PLAN_SEGMENT = {"label", "attitude_deg", "attitude_sigma_deg", "table_axis_enu",
                 "table_rate_dps", "lever_arm_m", "duration_s", "rotation_axis_body",
-                "rotation_angle_deg", "repeat", "rate_profile", "rate_shape", "transition_s",
+                "rotation_angle_deg", "repeat", "rate_profile", "rate_shape", "rate_jerk_dps3",
+                "rate_oscillation", "transition_s",
                 "chamber_temp_degC", "sample_kind", "sim_attitude_deg", "sim_repeat",
                 "sim_table_axis_enu", "sim_lever_arm_m"}
 PLAN_TABLES = {"": PLAN_TOP, "site": PLAN_SITE, "unit": PLAN_UNIT, "rimu": PLAN_RIMU,

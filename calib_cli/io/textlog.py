@@ -20,7 +20,7 @@ from calib_cli.data import Recording
 from calib_cli.errors import InputError
 from calib_cli.io.csvlog import plan_cycles, segments_from_column, segments_from_detection
 from calib_cli.io.plan import Plan
-from calib_cli.methods.static_detect import detect_static
+from calib_cli.methods.static_stream import detect_static_arrays
 from calib_cli.model.effects import Layout
 
 G0 = 9.80665
@@ -50,18 +50,94 @@ def convert_units(accel, gyro, accel_units: str, gyro_units: str, path: str = ""
     fa, fg = ACCEL_UNITS[accel_units], GYRO_UNITS[gyro_units]
     units = {"accel": "count" if fa is None else "m/s^2",
              "gyro": "count" if fg is None else "rad/s"}
-    accel = accel if fa is None else accel * fa
-    gyro = None if gyro is None else (gyro if fg is None else gyro * fg)
+    accel = accel if fa in (None, 1.0) else accel * fa
+    gyro = None if gyro is None else (gyro if fg in (None, 1.0) else gyro * fg)
     return accel, gyro, units
 
 
-def read_text(path: str, delimiter: str = "auto", header: str = "auto"):
+def _read_text_arrow(path: str, delimiter: str, header: str):
+    """read_text with pyarrow's reader: (names, cells (N, k) float, line
+    numbers), or None whenever the file needs the reference reader (no
+    pyarrow, whitespace-separated, comment or blank lines in the body, a cell
+    that is not a number, NaN): that reader then gives the data or the exact
+    error message."""
+    from calib_cli.io.csvlog import _CommentFilter, have_pyarrow
+
+    if not have_pyarrow():
+        return None
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    try:
+        fh = open(path, "rb")
+    except OSError:
+        return None
+    with fh:
+        offset, lineno = 0, 0
+        while True:
+            raw = fh.readline()
+            if not raw:
+                return None
+            lineno += 1
+            try:
+                first = raw.decode("utf-8").strip()
+            except UnicodeDecodeError:
+                return None
+            if first and not first.startswith(("#", "%")):
+                break
+            offset += len(raw)
+    seps = {"comma": ",", "semicolon": ";", "tab": "\t", "whitespace": None}
+    if delimiter == "auto":
+        sep = next((s for s in (",", ";", "\t") if s in first), None)
+    else:
+        sep = seps.get(delimiter)
+    if sep is None:
+        return None
+    cells0 = [c.strip() for c in first.split(sep)]
+    has_header = any(not _is_number(c) for c in cells0) if header == "auto" else header == "yes"
+    names = cells0 if has_header else None
+    if names is not None and len(set(names)) != len(names):
+        return None
+    start = offset + (len(raw) if has_header else 0)
+    body_line = lineno + 1 if has_header else lineno
+
+    class _NoHash:
+        def update(self, b):
+            pass
+
+    stream = _CommentFilter(path, start, b"", _NoHash())
+    cols = [f"c{i}" for i in range(len(cells0))]
+    try:
+        table = pacsv.read_csv(
+            stream, read_options=pacsv.ReadOptions(column_names=cols, block_size=8 << 20),
+            parse_options=pacsv.ParseOptions(delimiter=sep, quote_char=False),
+            convert_options=pacsv.ConvertOptions(column_types={c: pa.float64() for c in cols},
+                                                 strings_can_be_null=False, null_values=[],
+                                                 quoted_strings_can_be_null=False))
+    except (pa.ArrowInvalid, pa.ArrowTypeError):
+        return None
+    finally:
+        stream.close()
+    if stream.removed or table.num_rows == 0:
+        return None
+    cells = np.column_stack([table.column(i).to_numpy() for i in range(len(cols))])
+    if not np.isfinite(cells).all():
+        return None
+    return names, cells, np.arange(len(cells)) + body_line
+
+
+def read_text(path: str, delimiter: str = "auto", header: str = "auto", fast: bool = True):
     """(column names or None, cells (N, k) array of str, line numbers (N,)).
 
     delimiter: auto (comma, semicolon or tab if the first data line has one,
     else whitespace), comma, semicolon, tab, whitespace. header: auto (the
     first non-comment line is a header when any cell is not a number), yes, no.
+    ``fast``: try pyarrow's reader first (cells then float, not str).
     """
+    if fast:
+        got = _read_text_arrow(path, delimiter, header)
+        if got is not None:
+            return got
     try:
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -233,7 +309,7 @@ def import_text(acc_path, plan: Plan, gyro_path=None, columns: str | None = None
                 multiplier: float = 3.0, min_static_s: float = 1.0) -> Recording:
     """A foreign-layout text log (one file, or accelerometer + gyro files) -> Recording."""
     acc_path = str(acc_path)
-    from calib_cli.sim.simulate import plan_layout
+    from calib_cli.io.stream_import import plan_layout
 
     layout = plan_layout(plan)
     if layout.redundant:
@@ -245,6 +321,8 @@ def import_text(acc_path, plan: Plan, gyro_path=None, columns: str | None = None
     names, cells, lines = read_text(acc_path, delimiter, header)
     cmap = parse_column_map(columns, acc_path) or _default_map(
         names, cells.shape[1], "accel" if gyro_path else "both")
+    if "segment" in cmap and cells.dtype != object:  # labels or indices: the text reader
+        names, cells, lines = read_text(acc_path, delimiter, header, fast=False)
     if not all(f in cmap for f in ("ax", "ay", "az")):
         raise InputError(f"cannot tell which columns hold ax, ay, az ({cells.shape[1]} columns"
                          f"{', header ' + ' '.join(names) if names else ', no header'}): give "
@@ -316,7 +394,7 @@ def import_text(acc_path, plan: Plan, gyro_path=None, columns: str | None = None
         segments = segments_from_column(_segment_indices(seg_col, plan, lines, acc_path), plan,
                                         acc_path)
     else:
-        report = detect_static(t, accel, gyro, window_s, multiplier, min_static_s)
+        report = detect_static_arrays(t, accel, gyro, window_s, multiplier, min_static_s)
         cycles = plan_cycles(plan, t, gyro, None)
         segments = segments_from_detection(report, plan, n, acc_path, cycles)
     if not segments:

@@ -45,6 +45,7 @@ from calib_cli.errors import EstimationError, InputError
 from calib_cli.model.effects import Layout
 from calib_cli.model.frames import attitude_to_rotation, skew
 from calib_cli.model.kinematics import rigid_body_accel
+from calib_cli.model.strapdown import mean_rotation, step_rotvec
 
 K_LOWER = [(0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2)]
 P_OFF = [(i, j) for i in range(3) for j in range(3) if i != j]
@@ -76,6 +77,24 @@ class TurntableOptions:
     accel_skip: float = 0.02  # rad/s^2: with tangential off, blocks accelerating faster are skipped
     history_every: float = 2.0
     noise: dict | None = None  # {"accel": (3,), "gyro": (3,)} per-sample sigma; else from data
+    grade: str = "mems"  # the prior widths of GRADES
+    priors: dict | None = None  # {contract key: 1-sigma, SI} overriding the grade's
+
+
+# A-priori 1-sigma of each parameter group (SI) per grade of unit: weakly informative
+# around a neutral unit. "mems" are the widths this fit always used (about ten times the
+# catalogue's typical MEMS sizes); "navigation" is the rough-stand paper's setting (gyro
+# drift 0.1 deg/h, accelerometer bias 6e-4 g, lever arms 0.1 m, proof-mass offsets 0.02 m).
+GRADES = {
+    "mems": {"accel_bias": 1.0, "accel_K": 0.05, "gyro_bias": 0.05, "gyro_K": 0.05,
+             "gyro_D": 2e-3, "lever_arm": 0.5, "proof_mass_offsets": 0.05},
+    "tactical": {"accel_bias": 0.02, "accel_K": 5e-3, "gyro_bias": float(np.radians(10 / 3600)),
+                 "gyro_K": 5e-3, "gyro_D": 2e-4, "lever_arm": 0.2, "proof_mass_offsets": 0.02},
+    "navigation": {"accel_bias": 6e-4 * 9.80665, "accel_K": 1e-3,
+                   "gyro_bias": float(np.radians(0.1 / 3600)), "gyro_K": 1e-3, "gyro_D": 2e-5,
+                   "lever_arm": 0.1, "proof_mass_offsets": 0.02},
+}
+PRIOR_KEYS = tuple(GRADES["mems"])
 
 
 @dataclass
@@ -200,10 +219,14 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
             f[:, i] -= rigid_body_accel(w0, dw0, pi)[:, i]
     w = (W - par["gb"] - f @ par["D"].T) @ Ginv.T
     dt = np.diff(t, append=t[-1] + (t[-1] - t[-2]))
-    # per-block scans over the samples of all blocks at once; the attitude is
-    # integrated with the mid-interval rate (trapezoidal), else it lags half a sample
-    wmid = np.concatenate([0.5 * (w[1:] + w[:-1]), w[-1:]])
-    fmid = np.concatenate([0.5 * (f[1:] + f[:-1]), f[-1:]])
+    # per-block scans over the samples of all blocks at once. Instant samples: the
+    # attitude steps with the mid-interval rate from one stamp to the next, and a block's
+    # accelerometer mean is the mean over its stamps. Interval means: step k is sample
+    # k's own period, and the block mean is the continuous mean over its periods
+    # (model/strapdown.py: step_rotvec, mean_rotation)
+    interval = rec.sample_kind == "interval-mean"
+    wmid = step_rotvec(w, np.ones(len(w)), rec.sample_kind)
+    fmid = step_rotvec(f, np.ones(len(f)), rec.sample_kind)
     wb = w[:n].reshape(nb, block_n, 3)
     wmb = wmid[:n].reshape(nb, block_n, 3)
     fb = fmid[:n].reshape(nb, block_n, 3)
@@ -219,15 +242,23 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
     wg = np.zeros((3, nb, 3, 21))
     ex = [skew(e) for e in np.eye(3)]
     for m in range(block_n):
-        r_sum += R
-        qbar += qc
-        for c in range(3):
-            wg[c] += np.swapaxes(R, 1, 2) @ (ex[c] @ qc)
+        step = wmb[:, m] * dtb[:, m, None]
         RG = (R * dtb[:, m, None, None]) @ Ginv
-        qc[:, :, 0:3] -= RG
-        qc[:, :, 3:12] -= (RG[:, :, :, None] * wmb[:, m, None, None, :]).reshape(nb, 3, 9)
-        qc[:, :, 12:21] -= (RG[:, :, :, None] * fb[:, m, None, None, :]).reshape(nb, 3, 9)
-        R = R @ Rotation.from_rotvec(wmb[:, m] * dtb[:, m, None]).as_matrix()
+        dq = np.zeros((nb, 3, 21))
+        dq[:, :, 0:3] = -RG
+        dq[:, :, 3:12] = -(RG[:, :, :, None] * wmb[:, m, None, None, :]).reshape(nb, 3, 9)
+        dq[:, :, 12:21] = -(RG[:, :, :, None] * fb[:, m, None, None, :]).reshape(nb, 3, 9)
+        if interval:  # the mean over the sample's own period
+            Rm = R @ mean_rotation(step)
+            qm = qc + 0.5 * dq
+        else:  # the value at the stamp
+            Rm, qm = R, qc
+        r_sum += Rm
+        qbar += qm
+        for c in range(3):
+            wg[c] += np.swapaxes(Rm, 1, 2) @ (ex[c] @ qm)
+        qc = qc + dq
+        R = R @ Rotation.from_rotvec(step).as_matrix()
     q = qc
     # mean centripetal operator [w x]^2 = w w^T - |w|^2 I
     ww = np.einsum("bmi,bmj->bij", wb, wb) / block_n
@@ -484,18 +515,27 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     sd = np.zeros(L.size)
     mean[L.idx["K"][[0, 2, 5]]] = 1.0
     mean[L.idx["G"][[0, 4, 8]]] = 1.0
-    sd[L.idx["ab"]] = 1.0
-    sd[L.idx["K"]] = 0.05
-    sd[L.idx["gb"]] = 0.05
-    sd[L.idx["G"]] = 0.05
-    sd[L.idx["D"]] = 2e-3
+    if opt.grade not in GRADES:
+        raise InputError(f"grade must be one of {', '.join(GRADES)}, got {opt.grade!r}")
+    width = dict(GRADES[opt.grade])
+    for k, v in (opt.priors or {}).items():
+        if k not in width:
+            raise InputError(f"unknown prior key {k!r}; expected one of {', '.join(PRIOR_KEYS)}")
+        if not (np.isfinite(v) and v > 0):
+            raise InputError(f"prior {k} must be a positive number, got {v!r}")
+        width[k] = float(v)
+    sd[L.idx["ab"]] = width["accel_bias"]
+    sd[L.idx["K"]] = width["accel_K"]
+    sd[L.idx["gb"]] = width["gyro_bias"]
+    sd[L.idx["G"]] = width["gyro_K"]
+    sd[L.idx["D"]] = width["gyro_D"]
     if L.est_s:
         for c, cy in enumerate(cycles):
             if cy.s_plan is not None:
                 mean[L.idx["s"][2 * c:2 * c + 2]] = cy.basis.T @ cy.s_plan
-        sd[L.idx["s"]] = 0.5
+        sd[L.idx["s"]] = width["lever_arm"]
     if L.est_p:
-        sd[L.idx["p"]] = 0.05
+        sd[L.idx["p"]] = width["proof_mass_offsets"]
     sd[L.idx["u"]] = np.radians(3.0)
     sd[L.idx["t"]] = opt.table_tilt_sigma
     # a model that does not explain the data (e.g. lever arms ignored) leaves accelerometer
@@ -519,7 +559,7 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     if not np.all(np.isfinite(out.theta)):
         raise EstimationError("the turntable filter diverged")
     return _result(rec, cycles, L, out, opt, s_known, sig_a * inflation, sig_g, block_n,
-                   inflation, sd)
+                   inflation, sd, width)
 
 
 def _tilts(cycles, L, par, P, prior: float) -> list:
@@ -539,7 +579,7 @@ def _tilts(cycles, L, par, P, prior: float) -> list:
 
 
 def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, inflation,
-            prior_sd_vec):
+            prior_sd_vec, prior_widths):
     theta, P = out.theta, out.P
     par = _unpack(theta, L, cycles)
     nc = len(cycles)
@@ -615,7 +655,8 @@ def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, 
         "cycles": [rec.segments[cy.seg_index].label for cy in cycles],
         "lever_arm_mode": opt.lever_arm, "proof_mass_mode": opt.proof_mass,
         "tangential": bool(opt.tangential), "block_s": block_n / rec.sample_rate,
-        "passes": int(opt.passes),
+        "passes": int(opt.passes), "grade": opt.grade,
+        "prior_sigma": {k: float(v) for k, v in prior_widths.items()},
         "accel_noise_inflation": float(inflation),
         "noise_accel": [float(v) for v in sig_a], "noise_gyro": [float(v) for v in sig_g],
         "table_axis_body": [[float(v) for v in a] for a in a_b],

@@ -9,11 +9,14 @@ into sensor outputs; the simulator and every estimator build one the same way.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from calib_cli.model.earth import Site
+
+if TYPE_CHECKING:  # imported where used: SciPy's spatial module costs ~0.5 s of start-up
+    from scipy.spatial.transform import Rotation
 
 
 @dataclass(frozen=True)
@@ -83,6 +86,8 @@ def table_attitude(axis_enu, theta, rot0: Rotation) -> Rotation:
     theta = np.asarray(theta, dtype=float)
     a = np.asarray(axis_enu, dtype=float)
     a = a / np.linalg.norm(a)
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_rotvec(np.outer(theta - theta[0], a)) * rot0
 
 
@@ -120,6 +125,8 @@ def slew_kinematics(t, rot_a: Rotation, rot_b: Rotation, site: Site, phi=None) -
     if phi is None:
         phi = (rot_a.inv() * rot_b).as_rotvec()  # body-frame rotation vector
     phi = np.asarray(phi, dtype=float)
+    from scipy.spatial.transform import Rotation
+
     rot = rot_a * Rotation.from_rotvec(np.outer(s, phi))
     # the rotation axis is fixed in the body, so w_rel = s' phi and dw_rel = s'' phi
     return from_attitude(t, rot, site, np.outer(ds, phi), np.outer(dds, phi))

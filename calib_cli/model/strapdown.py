@@ -120,3 +120,32 @@ def integrate_relative(t: np.ndarray, w: np.ndarray, C0: Rotation, site: Site,
         s2 = np.asarray(sigma, dtype=float) ** 2 * np.ones(3)
         noise = np.einsum("nij,j,nkj,n->ik", R, s2, R, dt**2)
     return RelativeRotation(Rotation.from_quat(q[[1, 2, 3, 0]]), float(t[-1] - t[0]), S_bias, S_K, noise)
+
+
+def step_rotvec(w: np.ndarray, dt: np.ndarray, sample_kind: str = "instant") -> np.ndarray:
+    """Rotation vectors (N, 3) of the steps between samples, body axes, rad. w (N, 3)
+    rad/s, dt (N,) s the step after each sample. ``instant`` samples (values at the
+    stamps): the mid-interval rate (w_k + w_k+1)/2 over [t_k, t_k+1] (else the attitude
+    lags half a sample); ``interval-mean`` samples (means over [t_k - dt, t_k]): sample
+    k is the mean rate of its own period, so step k spans [t_k - dt, t_k] and is exact
+    for a rotation about a fixed axis."""
+    if sample_kind == "interval-mean":
+        return w * dt[:, None]
+    wmid = np.concatenate([0.5 * (w[1:] + w[:-1]), w[-1:]])
+    return wmid * dt[:, None]
+
+
+def mean_rotation(phi: np.ndarray) -> np.ndarray:
+    """Mean over s in [0, 1] of Exp(s phi) (..., 3, 3), for rotation vectors phi (..., 3):
+    I + (1 - cos a)/a [u x] + (1 - sin a / a) [u x]^2, a = |phi| (the mean attitude
+    over a step of constant rate, for samples that are interval means)."""
+    phi = np.asarray(phi, dtype=float)
+    a = np.linalg.norm(phi, axis=-1)
+    small = a < 1e-6
+    a_safe = np.where(small, 1.0, a)
+    c1 = np.where(small, 0.5, (1 - np.cos(a_safe)) / a_safe**2)  # (1 - cos a)/a / a
+    c2 = np.where(small, 1.0 / 6.0, (1 - np.sin(a_safe) / a_safe) / a_safe**2)
+    K = np.zeros(phi.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -phi[..., 2], phi[..., 1], -phi[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = phi[..., 2], -phi[..., 1], phi[..., 0]
+    return np.eye(3) + c1[..., None, None] * K + c2[..., None, None] * (K @ K)

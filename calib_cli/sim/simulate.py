@@ -31,10 +31,13 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calib_cli.data import Recording, Segment
+from dataclasses import replace
+
+from calib_cli.data import SAMPLE_KINDS, Recording, Segment
 from calib_cli.errors import InputError
 from calib_cli.io.plan import Plan, PlanSegment
 from calib_cli.model import kinematics as kn
+from calib_cli.sim import rate_profiles as rp
 from calib_cli.model.effects import Layout
 from calib_cli.model.frames import attitude_to_rotation, axis_angle, rotation_to_attitude
 from calib_cli.sim.truth import Truth, default_truth
@@ -65,7 +68,19 @@ def _times(t0: float, duration: float, fs: float) -> np.ndarray:
 
 
 def _rate_profile(seg: PlanSegment, fs: float, t0: float):
-    """Table angle, rate and angular acceleration along a segment's profile."""
+    """Table angle, rate and angular acceleration along a segment's profile
+    (sim/rate_profiles.py: the families and their keys)."""
+    if "rate_oscillation" in seg.extra:
+        try:
+            amp, freq = (float(v) for v in seg.extra["rate_oscillation"])
+        except (TypeError, ValueError):
+            raise InputError(f"segment {seg.label!r}: rate_oscillation must be "
+                             "[amplitude_dps, frequency_hz]") from None
+        if not (freq > 0 and np.isfinite(amp)):
+            raise InputError(f"segment {seg.label!r}: rate_oscillation needs a positive frequency")
+        t = _times(0.0, seg.duration or DEFAULT_ROTATING_S, fs)
+        theta, rate, accel = rp.oscillation(t, amp * D2R, freq)
+        return t0 + t, theta, rate, accel
     if "rate_profile" in seg.extra:
         knots = np.asarray(seg.extra["rate_profile"], dtype=float)
         if knots.ndim != 2 or knots.shape[1] != 2 or len(knots) < 2 or np.any(np.diff(knots[:, 0]) <= 0):
@@ -80,25 +95,14 @@ def _rate_profile(seg: PlanSegment, fs: float, t0: float):
 
         knots = np.asarray(rate_profile(seg.duration or DEFAULT_ROTATING_S), dtype=float)
         kt, kr = knots[:, 0], knots[:, 1] * D2R
+    shape = seg.extra.get("rate_shape", "linear")
+    jerk = float(seg.extra.get("rate_jerk_dps3", 1000.0)) * D2R
+    try:
+        pieces = rp.knot_pieces(kt, kr, shape, jerk)
+    except ValueError as exc:
+        raise InputError(f"segment {seg.label!r}: {exc}") from None
     t = _times(0.0, kt[-1], fs)
-    rate = np.interp(t, kt, kr)
-    slope = np.diff(kr) / np.diff(kt)
-    accel = slope[np.clip(np.searchsorted(kt, t, side="right") - 1, 0, len(slope) - 1)]
-    # exact integral of a piecewise-linear rate
-    seg_area = np.concatenate([[0.0], np.cumsum(np.diff(kt) * (kr[:-1] + kr[1:]) / 2)])
-    k = np.clip(np.searchsorted(kt, t, side="right") - 1, 0, len(kt) - 2)
-    dt = t - kt[k]
-    theta = seg_area[k] + kr[k] * dt + 0.5 * slope[k] * dt**2
-    if seg.extra.get("rate_shape", "linear") == "smooth":
-        # smoothstep between knots: the angular acceleration is continuous (a real table's)
-        span = np.diff(kt)[k]
-        u = dt / span
-        dr = np.diff(kr)[k]
-        rate = kr[k] + dr * (3 * u**2 - 2 * u**3)
-        accel = dr * (6 * u - 6 * u**2) / span
-        area = np.diff(kt) * (kr[:-1] + kr[1:]) / 2  # the smoothstep has the linear ramp's area
-        seg_area = np.concatenate([[0.0], np.cumsum(area)])
-        theta = seg_area[k] + span * (kr[k] * u + dr * (u**3 - u**4 / 2))
+    theta, rate, accel = rp.evaluate(pieces, t)
     return t0 + t, theta, rate, accel
 
 
@@ -106,7 +110,8 @@ def _table_errors(plan: Plan, tau, theta, rate, accel, rng):
     """The true table motion of a low-grade table: the nominal profile with a
     relative rate error (plan key ``sim_table_rate_error``, 1-sigma, drawn per
     segment) and a smooth rate wobble (``sim_table_wobble_dps``: three random
-    sinusoids of 0.05-0.5 Hz, this total amplitude). Without the keys the
+    sinusoids of this total amplitude, frequencies drawn in ``sim_table_wobble_hz``
+    = [low, high], default [0.05, 0.5] Hz). Without the keys the
     motion is the nominal one (and no random numbers are drawn)."""
     scale_sd = float(plan.extra.get("sim_table_rate_error", 0.0))
     wobble = float(plan.extra.get("sim_table_wobble_dps", 0.0)) * D2R
@@ -115,7 +120,8 @@ def _table_errors(plan: Plan, tau, theta, rate, accel, rng):
     k = 1.0 + scale_sd * rng.standard_normal()
     th, rt, ac = theta * k, rate * k, accel * k
     if wobble > 0:
-        freqs = rng.uniform(0.05, 0.5, 3)
+        f_lo, f_hi = (float(v) for v in plan.extra.get("sim_table_wobble_hz", (0.05, 0.5)))
+        freqs = rng.uniform(f_lo, f_hi, 3)
         phases = rng.uniform(0, 2 * np.pi, 3)
         amp = wobble / np.sqrt(3)
         # the wobble fades in over the first second so the segment starts at the nominal rate
@@ -161,7 +167,62 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
     if not same_layout(truth.model.layout, layout):
         truth = Truth(truth.model.__class__(truth.model.effects, layout), truth.params,
                       truth.noise, truth.counts, truth.quantize)
+    kind = plan.extra.get("sample_kind", "instant")
+    if kind not in SAMPLE_KINDS:
+        raise InputError(f"sample_kind must be one of {', '.join(SAMPLE_KINDS)}, got {kind!r}",
+                         plan.path)
     fs = plan.sample_rate
+    if kind == "instant":
+        kin, segments, true_att, angle, rate = _timeline(plan, fs, rng)
+        out = truth.model.predict(truth.params, kin)
+    else:
+        # interval-mean: each sample is the mean over [t_k - 1/fs, t_k], from the forward
+        # model evaluated at n_sub points per period (trapezoid rule), stamped at t_k
+        n_sub = int(plan.extra.get("sim_oversample", 16))
+        kin_hi, seg_hi, true_att, angle_hi, rate_hi = _timeline(plan, fs * n_sub, rng)
+        out_hi = truth.model.predict(truth.params, kin_hi)
+        stamps = np.arange(n_sub, len(kin_hi), n_sub)
+        out = {k: _interval_means(v, n_sub, len(stamps)) for k, v in out_hi.items()
+               if v is not None}
+        kin = kin_hi.take(stamps)
+        angle = None if angle_hi is None else angle_hi[stamps]
+        rate = None if rate_hi is None else rate_hi[stamps]
+        segments = [replace(sg, start=-(-sg.start // n_sub) - 1, stop=-(-sg.stop // n_sub) - 1)
+                    for sg in seg_hi]
+        segments = [sg if sg.start >= 0 else replace(sg, start=0) for sg in segments]
+    stoch = truth.model.realise_noise(truth.params, kin, rng)
+    noisy = {}
+    for s in ("accel", "gyro"):
+        white = np.asarray(truth.noise.get(f"{s}_white", 0.0), dtype=float)
+        if f"{s}_white_density" in truth.noise:
+            white = np.asarray(truth.noise[f"{s}_white_density"], float) * np.sqrt(fs)
+        y = out[s] + stoch[s] + rng.standard_normal(out[s].shape) * white
+        if truth.quantize:
+            y = np.round(y)
+        noisy[s] = y
+    units = {"accel": "count", "gyro": "count"} if truth.counts else {"accel": "m/s^2",
+                                                                       "gyro": "rad/s"}
+    return Recording(
+        time=kin.t, accel=noisy["accel"], gyro=noisy["gyro"], segments=tuple(segments),
+        site=plan.site, plan_kind=plan.kind, plan_text=plan.text, serial=plan.serial,
+        units=units, layout=layout, temp=kin.temp, table_angle=angle, table_rate=rate,
+        sample_kind=kind,
+        truth={"params": truth.params, "noise": truth.noise,
+               "attitudes": np.array(true_att), "effects": truth.effect_list()},
+    )
+
+
+def _interval_means(y: np.ndarray, n_sub: int, n_out: int) -> np.ndarray:
+    """Trapezoid means of y over n_sub steps ending at samples n_sub, 2 n_sub, ..."""
+    c = np.concatenate([np.zeros((1,) + y.shape[1:]),
+                        np.cumsum(0.5 * (y[1:] + y[:-1]), axis=0)])
+    ends = np.arange(1, n_out + 1) * n_sub
+    return (c[ends] - c[ends - n_sub]) / n_sub
+
+
+def _timeline(plan: Plan, fs: float, rng):
+    """The plan's motion sampled at fs: (Kinematics, segments, true start attitudes,
+    table angle, table rate) -- the last two None without rotating segments."""
     site = plan.site
     trans_default = float(plan.extra.get("transition_s", 4.0))
 
@@ -241,27 +302,7 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
                                 rotation_angle=seg.rotation_angle))
 
     kin = kn.Kinematics.concatenate(parts)
-    kin = kin.with_(temp=_temperature(plan, kin.t))
-    out = truth.model.predict(truth.params, kin)
-    stoch = truth.model.realise_noise(truth.params, kin, rng)
-    noisy = {}
-    for s in ("accel", "gyro"):
-        white = np.asarray(truth.noise.get(f"{s}_white", 0.0), dtype=float)
-        if f"{s}_white_density" in truth.noise:
-            white = np.asarray(truth.noise[f"{s}_white_density"], float) * np.sqrt(fs)
-        y = out[s] + stoch[s] + rng.standard_normal(out[s].shape) * white
-        if truth.quantize:
-            y = np.round(y)
-        noisy[s] = y
+    kin = kin.with_(temp=_temperature(plan, kin.t))  # the forward model sees the temperature
     rotating = any(s.kind == "rotating" for s in segments)
-    units = {"accel": "count", "gyro": "count"} if truth.counts else {"accel": "m/s^2",
-                                                                       "gyro": "rad/s"}
-    return Recording(
-        time=kin.t, accel=noisy["accel"], gyro=noisy["gyro"], segments=tuple(segments),
-        site=site, plan_kind=plan.kind, plan_text=plan.text, serial=plan.serial, units=units,
-        layout=layout, temp=kin.temp,
-        table_angle=np.concatenate(angle_parts) if rotating else None,
-        table_rate=np.concatenate(rate_parts) if rotating else None,
-        truth={"params": truth.params, "noise": truth.noise,
-               "attitudes": np.array(true_att), "effects": truth.effect_list()},
-    )
+    return (kin, segments, true_att, np.concatenate(angle_parts) if rotating else None,
+            np.concatenate(rate_parts) if rotating else None)

@@ -1,0 +1,151 @@
+"""Import speed and memory against pyarrow's streaming CSV reader (issue 19).
+
+    python -m benchmarks.bench_import [--sizes 100,1000] [--repeat 3] [--dir DIR]
+
+Writes contract CSVs of the given sizes (MB; time, ax ay az, gx gy gz, temp;
+one comment line; static positions with turns between them, at 1 kHz) to a
+temporary directory, then measures, each in its own subprocess (whole
+process: interpreter start, imports, reading, writing), the wall time and
+peak RSS of
+
+- ``calib import csv LOG --plan PLAN --out RAW.h5`` (static detection on, a
+  ``repeat = "auto"`` plan so every detected position is kept),
+- ``calib import text`` of the same file,
+- the baseline: ``pyarrow.csv.open_csv`` streaming the same file to float64
+  numpy arrays in one pass,
+
+and prints the median over ``--repeat`` runs (wall time and CPU time, user +
+system, which is steadier on a shared machine) with the ratios. The peak
+RSS is that of the measured process alone (``getrusage(RUSAGE_CHILDREN)`` in
+a wrapper process that runs only it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+PLAN = 'name = "bench"\nkind = "static"\n[[segment]]\nlabel = "pos"\nrepeat = "auto"\n'
+
+BASELINE = r"""
+import sys, numpy as np, pyarrow as pa, pyarrow.csv as pc
+names = "time,ax,ay,az,gx,gy,gz,temp".split(",")
+r = pc.open_csv(sys.argv[1], read_options=pc.ReadOptions(skip_rows=1),
+                convert_options=pc.ConvertOptions(column_types={n: pa.float64() for n in names}))
+n = 0
+for b in r:
+    cols = [b.column(i).to_numpy() for i in range(b.num_columns)]
+    n += len(cols[0])
+print(n)
+"""
+
+
+def write_log(path: Path, mb: float, rate: float = 1000.0) -> int:
+    """A contract CSV of about ``mb`` megabytes: 20 s static positions with
+    5 s turns between them; returns the row count."""
+    import numpy as np
+    import pyarrow as pa
+    import pyarrow.csv as pc
+
+    rng = np.random.default_rng(0)
+    target = mb * 1e6
+    rows_per_chunk = 500_000
+    n = 0
+    with open(path, "wb") as fh:
+        fh.write(b"# calib benchmark log\ntime,ax,ay,az,gx,gy,gz,temp\n")
+        while fh.tell() < target:
+            i = np.arange(n, n + rows_per_chunk)
+            t = i / rate
+            phase = (t % 25.0)
+            k = np.floor(t / 25.0)
+            turning = phase >= 20.0
+            ang = k * 0.7 + np.where(turning, (phase - 20.0) / 5.0 * 0.7, 0.0)
+            g = 9.81
+            ax = g * np.sin(ang) + 0.01 * rng.standard_normal(len(i))
+            ay = 0.3 * np.cos(ang) + 0.01 * rng.standard_normal(len(i))
+            az = g * np.cos(ang) + 0.01 * rng.standard_normal(len(i))
+            w = np.where(turning, 0.7 / 5.0, 0.0)
+            gx = 1e-4 * rng.standard_normal(len(i))
+            gy = w + 1e-4 * rng.standard_normal(len(i))
+            gz = 1e-4 * rng.standard_normal(len(i))
+            temp = 25.0 + 0.001 * t
+            cols = {"time": np.round(t, 6)}
+            for name, v in (("ax", ax), ("ay", ay), ("az", az), ("gx", gx), ("gy", gy),
+                            ("gz", gz), ("temp", temp)):
+                cols[name] = np.round(v, 9 if name[0] == "g" else 6)
+            pc.write_csv(pa.table(cols), fh, write_options=pc.WriteOptions(include_header=False,
+                                                                           quoting_style="none"))
+            n += rows_per_chunk
+    return n
+
+
+def measure(cmd: list[str]) -> tuple[float, float, float]:
+    """(wall s, peak RSS MB, CPU s) of ``cmd`` run alone in a fresh wrapper process."""
+    wrapper = ("import resource, subprocess, sys, time, json\n"
+               "t0 = time.perf_counter()\n"
+               "p = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL)\n"
+               "dt = time.perf_counter() - t0\n"
+               "ru = resource.getrusage(resource.RUSAGE_CHILDREN)\n"
+               "print(json.dumps([p.returncode, dt, ru.ru_maxrss, ru.ru_utime + ru.ru_stime]))\n")
+    out = subprocess.run([sys.executable, "-c", wrapper] + cmd, capture_output=True, text=True,
+                         check=True).stdout
+    code, dt, rss_kb, cpu = json.loads(out)
+    if code != 0:
+        raise SystemExit(f"benchmark command failed ({code}): {' '.join(cmd)}")
+    return dt, rss_kb / 1024.0, cpu
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="100,1000", help="log sizes, MB, comma separated")
+    ap.add_argument("--repeat", type=int, default=3, help="runs per figure (median)")
+    ap.add_argument("--dir", help="where to write the logs (default: a temporary directory)")
+    ap.add_argument("--no-text", action="store_true", help="skip calib import text")
+    a = ap.parse_args(argv)
+    tmp = Path(a.dir or tempfile.mkdtemp(prefix="calib-bench-import-"))
+    tmp.mkdir(parents=True, exist_ok=True)
+    py = sys.executable
+    try:
+        plan = tmp / "plan.toml"
+        plan.write_text(PLAN)
+        base_py = tmp / "baseline.py"
+        base_py.write_text(BASELINE)
+        print(f"{'log':>8s} {'rows':>10s} {'reader':28s} {'time s':>8s} {'cpu s':>7s} "
+              f"{'peak MB':>8s} {'x time':>7s} {'x cpu':>6s} {'x mem':>6s}")
+        for mb in [float(s) for s in a.sizes.split(",") if s]:
+            log = tmp / f"log_{mb:g}MB.csv"
+            rows = write_log(log, mb)
+            size = os.path.getsize(log) / 1e6
+            out = tmp / "raw.h5"
+            runs = {"pyarrow open_csv -> float64": [py, str(base_py), str(log)],
+                    "calib import csv": [py, "-m", "calib_cli", "-q", "import", "csv", str(log),
+                                         "--plan", str(plan), "--out", str(out)]}
+            if not a.no_text:
+                runs["calib import text"] = [py, "-m", "calib_cli", "-q", "import", "text",
+                                             str(log), "--plan", str(plan), "--out", str(out)]
+            res = {}
+            for name, cmd in runs.items():
+                if name.startswith("calib import text") and mb > 200:
+                    continue  # the text reader is not streaming: 100 MB case only
+                ms = [measure(cmd) for _ in range(a.repeat if mb <= 200 else 1)]
+                res[name] = (statistics.median(m[0] for m in ms), max(m[1] for m in ms),
+                             statistics.median(m[2] for m in ms))
+            bt, bm, bc = res["pyarrow open_csv -> float64"]
+            for name, (t, m, c) in res.items():
+                print(f"{size:7.0f}M {rows:10d} {name:28s} {t:8.2f} {c:7.2f} {m:8.0f} "
+                      f"{t / bt:7.2f} {c / bc:6.2f} {m / bm:6.2f}", flush=True)
+            log.unlink()
+    finally:
+        if not a.dir:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

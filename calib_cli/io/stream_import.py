@@ -1,0 +1,267 @@
+"""The import pipeline every log format shares: blocks of samples in, a raw
+HDF5 file out, with memory bounded by the block size (docs/import.md).
+
+A *source* is an iterable of ``Chunk`` (time, accel, gyro, optional columns,
+segment index) in time order. ``import_to_raw`` writes the samples into
+chunked, resizable datasets as they come, then finds the segments (from the
+segment column's runs, or by the streaming static detection over the file it
+is writing, ``methods.static_stream``) and matches them to the plan exactly
+as ``import csv`` always has (``csvlog.segments_from_detection``). CSV, text,
+bag, ULog and DataFlash imports all go through here.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from calib_cli.data import Segment
+from calib_cli.errors import InputError
+from calib_cli.io.h5 import (
+    atomic_path,
+    sha256_file,
+    write_provenance,
+    write_segments,
+    write_site_layout,
+)
+from calib_cli.io.plan import Plan
+from calib_cli.methods.static_stream import StreamDetector
+from calib_cli.model.effects import Layout
+
+CHUNK_ROWS = 65536
+READ_ROWS = 1 << 18
+OPTIONAL = ("temp", "table_angle", "table_rate")
+
+
+@dataclass
+class Chunk:
+    time: np.ndarray
+    accel: np.ndarray
+    gyro: np.ndarray | None = None
+    opt: dict = field(default_factory=dict)  # temp, table_angle, table_rate -> (m,)
+    segment: np.ndarray | None = None  # plan segment index per sample (int)
+
+
+@dataclass
+class ImportSummary:
+    n: int
+    segments: tuple[Segment, ...]
+    units: dict
+    counters: dict = field(default_factory=dict)
+
+
+class _Sink:
+    """Resizable chunked datasets in /samples, appended block by block."""
+
+    def __init__(self, smp: h5py.Group):
+        self.smp = smp
+        self.ds: dict[str, h5py.Dataset] = {}
+        self.n = 0
+
+    def _ds(self, name, width):
+        if name not in self.ds:
+            shape = (0,) if width is None else (0, width)
+            maxshape = (None,) if width is None else (None, width)
+            chunks = (CHUNK_ROWS,) if width is None else (CHUNK_ROWS, width)
+            self.ds[name] = self.smp.create_dataset(name, shape=shape, maxshape=maxshape,
+                                                    chunks=chunks, dtype="f8")
+        return self.ds[name]
+
+    def append(self, name, arr):
+        arr = np.asarray(arr, dtype=float)
+        d = self._ds(name, None if arr.ndim == 1 else arr.shape[1])
+        m = len(arr)
+        d.resize(self.n + m, axis=0)
+        d[self.n:self.n + m] = arr
+
+    def times(self, rows=READ_ROWS):
+        """Fresh iterator of the time blocks alone."""
+        t = self.ds["time"]
+        for i in range(0, self.n, rows):
+            yield t[i:min(self.n, i + rows)]
+
+    def blocks(self, rows=READ_ROWS):
+        """Fresh iterator of (t, accel, gyro) blocks of what was written."""
+        t, a = self.ds["time"], self.ds["accel"]
+        g = self.ds.get("gyro")
+        for i in range(0, self.n, rows):
+            j = min(self.n, i + rows)
+            yield t[i:j], a[i:j], (g[i:j] if g is not None else None)
+
+
+class _SpillStore:
+    """The moving standard deviation of the detector, spilled to an anonymous
+    temporary file beside the output (deleted on close), read back by blocks
+    with plain reads (no memory map, so it never counts in the process's
+    resident memory)."""
+
+    def __init__(self, directory):
+        import tempfile
+
+        self.fh = tempfile.TemporaryFile(dir=directory)
+        self.k = None
+        self.rows = 0
+
+    def write(self, arr):
+        arr = np.ascontiguousarray(arr, dtype=float)
+        self.k = arr.shape[1]
+        self.fh.write(memoryview(arr).cast("B"))
+        self.rows += len(arr)
+
+    def times(self, rows=READ_ROWS):
+        """Fresh iterator of the time blocks alone."""
+        t = self.ds["time"]
+        for i in range(0, self.n, rows):
+            yield t[i:min(self.n, i + rows)]
+
+    def blocks(self, rows=READ_ROWS):
+        self.fh.flush()
+        self.fh.seek(0)
+        left = self.rows
+        while left > 0:
+            m = min(rows, left)
+            buf = np.empty((m, self.k))
+            self.fh.readinto(memoryview(buf).cast("B"))
+            left -= m
+            yield buf
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.fh.close()
+
+
+class _SegRuns:
+    """Runs of the segment column, block by block."""
+
+    def __init__(self):
+        self.vals, self.starts = [], []
+        self.last = None
+
+    def feed(self, seg, off):
+        seg = np.asarray(seg)
+        if not len(seg):
+            return
+        starts = np.concatenate([[0], np.flatnonzero(np.diff(seg)) + 1])
+        for s in starts.tolist():
+            v = int(seg[s])
+            if s == 0 and self.last == v:
+                continue  # the run goes on from the previous block
+            self.vals.append(v)
+            self.starts.append(int(off + s))
+        self.last = int(seg[-1])
+
+
+def segments_from_runs(vals, starts, n, plan: Plan, path: str):
+    """csvlog.segments_from_column, from the runs of the column."""
+    from calib_cli.io.csvlog import segments_from_column
+
+    if not vals:
+        return []
+    vals = np.asarray(vals)
+    starts = np.asarray(starts)
+    stops = np.concatenate([starts[1:], [n]])
+    # one entry per run: segments_from_column checks the indices and makes the labels
+    segs = segments_from_column(vals, plan, path)
+    runs = [(int(a), int(b)) for v, a, b in zip(vals, starts, stops) if v >= 0]
+    out = [replace(s, start=a, stop=b) for s, (a, b) in zip(segs, runs)]
+    return out
+
+
+def plan_layout(plan: Plan) -> Layout:
+    """``sim.simulate.plan_layout`` without importing the simulator (and SciPy)
+    into every import (tests/test_import_stream.py checks they agree)."""
+    n_cycles = sum(1 for s in plan.segments if s.kind == "rotating")
+    if plan.kind == "rimu":
+        return Layout(n=len(plan.rimu_el0), el0=plan.rimu_el0, az0=plan.rimu_az0,
+                      n_cycles=n_cycles)
+    return Layout(n_cycles=n_cycles)
+
+
+def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=(),
+                  window_s: float = 1.0, multiplier: float = 3.0, min_static_s: float = 1.0,
+                  accel_units: str = "m/s^2", gyro_units: str = "rad/s",
+                  hashes: Callable[[], dict] | None = None, counters: dict | None = None,
+                  check: Callable[[_Sink, list], None] | None = None,
+                  sample_kind: str = "instant") -> ImportSummary:
+    """Stream ``source`` into the raw file ``out`` (written atomically).
+
+    ``path`` names the log in error messages; ``inputs`` are hashed into the
+    provenance (``hashes()`` may supply hashes already computed while
+    streaming); ``check(sink, segments)`` may veto the segments (gap checks) and returns
+    counters to record.
+    """
+    from calib_cli.io.textlog import convert_units
+
+    layout = plan_layout(plan)
+    units = convert_units(np.zeros((1, 3)), np.zeros((1, 3)), accel_units, gyro_units, path)[2]
+    with atomic_path(out) as tmp, h5py.File(tmp, "w") as h5, _SpillStore(Path(tmp).parent) as spill:
+        smp = h5.create_group("samples")
+        sink = _Sink(smp)
+        runs = None
+        det = StreamDetector(window_s, spill)
+        for ch in source:
+            m = len(ch.time)
+            if not m:
+                continue
+            if (accel_units, gyro_units) == ("m/s^2", "rad/s"):
+                a, g = ch.accel, ch.gyro  # SI already: no copy
+            else:
+                a, g, _ = convert_units(ch.accel, ch.gyro, accel_units, gyro_units, path)
+            sink.append("time", ch.time)
+            sink.append("accel", a)
+            if runs is None and ch.segment is None:
+                det.feed(ch.time, a, g)
+            if g is not None:
+                sink.append("gyro", g)
+            for k in OPTIONAL:
+                if ch.opt.get(k) is not None:
+                    sink.append(k, ch.opt[k])
+            if ch.segment is not None:
+                runs = runs or _SegRuns()
+                runs.feed(ch.segment, sink.n)
+            sink.n += m
+        n = sink.n
+        if n == 0:
+            raise InputError("no samples", path)
+        if runs is not None:
+            segments = segments_from_runs(runs.vals, runs.starts, n, plan, path)
+        else:
+            from calib_cli.io.csvlog import plan_cycles, segments_from_detection
+
+            report = det.result(sink.blocks, multiplier, min_static_s, times=sink.times)
+            cycles = None
+            if "gyro" in sink.ds and any(s.kind == "rotating" for s in plan.segments):
+                # rotation cycles (methods/cycle_detect.py) work on the whole record: a
+                # turntable plan without a segment column reads time and gyro back in full
+                tr = sink.ds["table_rate"][()] if "table_rate" in sink.ds else None
+                cycles = plan_cycles(plan, sink.ds["time"][()], sink.ds["gyro"][()], tr)
+            segments = segments_from_detection(report, plan, n, path, cycles)
+        if not segments:
+            raise InputError("no segments found in the data", path)
+        counters = dict(counters or {})
+        if check is not None:
+            counters.update(check(sink, segments) or {})
+        n_cycles = sum(1 for s in segments if s.kind == "rotating")
+        layout = Layout(layout.n, layout.el0, layout.az0, n_cycles)
+        write_provenance(h5, "raw", [], plan.serial, {"plan_kind": plan.kind})
+        known = hashes() if hashes else {}
+        h5.attrs["input_sha256"] = json.dumps(
+            {str(p): known.get(str(p)) or sha256_file(p) for p in inputs if p and Path(p).is_file()})
+        smp.attrs["accel_units"] = units["accel"]
+        smp.attrs["gyro_units"] = units["gyro"]
+        smp.attrs["sample_kind"] = sample_kind
+        write_segments(h5, segments)
+        write_site_layout(h5, plan.site, layout)
+        h5.create_group("plan").attrs["text"] = plan.text
+        if counters:
+            c = h5.create_group("counters")
+            for k, v in counters.items():
+                c.attrs[k] = v
+    return ImportSummary(n, tuple(segments), units, counters)

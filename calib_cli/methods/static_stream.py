@@ -1,0 +1,534 @@
+"""Static-interval detection over a record that does not fit in memory.
+
+The same rule as ``static_detect.detect_static`` (docs/import.md), fed block
+by block: ``blocks()`` returns a fresh iterator over consecutive
+``(t, accel, gyro_or_None)`` blocks of the record (from the HDF5 file being
+written, for instance), and the detector makes a few passes over it, keeping
+only a decimated moving-std series and a bracket of values around the
+quantiles it needs:
+
+1. the sample period ``dt``: the exact median of ``diff(t)`` (time only);
+2. the noise floor of every axis: the exact 10th percentile of the moving
+   standard deviation, bracketed from a decimated series of it and then
+   selected exactly (values inside the bracket are kept, the rest counted);
+3. the quiet masks for every threshold multiplier, as runs.
+
+Memory is bounded by the block size, the decimated series (at most
+``SAMPLE_ROWS`` rows) and the bracket (at most ``BRACKET_CAP`` values per
+axis; a wider bracket is narrowed by a histogram pass first), not by the
+record's length. The intervals are those of ``detect_static`` on the whole
+record (the moving sums are accumulated per block instead of over the whole
+record, a difference of rounding only: tests/test_import_stream.py checks
+the boundaries are identical).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Iterator
+
+import numpy as np
+
+from calib_cli.methods.static_detect import (
+    DEFAULT_MULTIPLIER,
+    FLOOR_QUANTILE,
+    MULTIPLIERS,
+    DetectionReport,
+)
+
+SAMPLE_ROWS = 100_000  # decimated series kept for the bracket
+BRACKET_CAP = 1_000_000  # values per axis kept inside a bracket
+HIST_BINS = 65536
+
+Blocks = Callable[[], Iterable[tuple]]
+
+
+class MovingStd:
+    """``static_detect.moving_std`` fed block by block: ``feed(x)`` returns the
+    rows whose window is complete, ``finish(n)`` the rest (the last windows are
+    clipped to the record's end, so they wait for its length)."""
+
+    def __init__(self, w: int):
+        self.w = w
+        self.buf = None
+        self.buf_start = 0
+        self.next_out = 0
+        self.ref = None
+
+    def _emit(self, i_max, w, n):
+        out = _window_std(self.buf, self.buf_start, self.next_out, i_max, w, w // 2, n)
+        self.next_out = i_max
+        keep = min(max(i_max - w, 0), n - w)  # the last windows reach back to n - w
+        self.buf = self.buf[keep - self.buf_start:]
+        self.buf_start = keep
+        return out
+
+    def feed(self, x: np.ndarray, x2: np.ndarray | None = None) -> np.ndarray | None:
+        """``x2``: more columns of the same rows (the gyro beside the accelerometer)."""
+        parts = [np.asarray(x, dtype=float)] + ([] if x2 is None else [np.asarray(x2, float)])
+        parts = [p[:, None] if p.ndim == 1 else p for p in parts]
+        m = len(parts[0])
+        k = sum(p.shape[1] for p in parts)
+        if self.ref is None:
+            self.ref = np.concatenate([p.mean(axis=0) for p in parts])  # conditioning
+        old = 0 if self.buf is None else len(self.buf)
+        buf = np.empty((old + m, k))
+        if old:
+            buf[:old] = self.buf
+        j = 0
+        for p in parts:  # subtract the reference straight into the buffer
+            np.subtract(p, self.ref[j:j + p.shape[1]], out=buf[old:, j:j + p.shape[1]])
+            j += p.shape[1]
+        self.buf = buf
+        avail = self.buf_start + len(self.buf)
+        w, h = self.w, self.w // 2
+        if avail < w:
+            return None  # not one full window yet
+        i_max = avail - w + h + 1  # windows [i - h, i - h + w) inside what we have
+        if i_max <= self.next_out:
+            return None
+        return self._emit(i_max, w, 10**18)
+
+    def finish(self, n: int) -> np.ndarray | None:
+        if self.buf is None or self.next_out >= n:
+            return None
+        w = max(2, min(self.w, n))
+        if w != self.w:  # shorter than one window: nothing was emitted yet
+            self.buf_start = 0
+        return self._emit(n, w, n)
+
+
+def moving_std_blocks(xs: Iterable[np.ndarray], w: int, n: int) -> Iterator[np.ndarray]:
+    """``static_detect.moving_std`` of the concatenation of ``xs`` (n rows in
+    all), yielded block by block."""
+    ms = MovingStd(max(2, min(w, n)))
+    for x in xs:
+        out = ms.feed(x)
+        if out is not None and len(out):
+            yield out
+    out = ms.finish(n)
+    if out is not None and len(out):
+        yield out
+
+
+def _window_std(buf, buf_start, i0, i1, w, h, n):
+    lo = np.clip(np.arange(i0, i1) - h, 0, n - w) - buf_start
+    a, b = int(lo[0]), int(lo[-1]) + w
+    seg = buf[a:b]
+    c1 = np.empty((len(seg) + 1, seg.shape[1]))
+    c1[0] = 0.0
+    np.cumsum(seg, axis=0, out=c1[1:])
+    c2 = np.empty_like(c1)
+    c2[0] = 0.0
+    np.cumsum(np.square(seg), axis=0, out=c2[1:])
+    lo = lo - a
+    if lo[-1] - lo[0] == len(lo) - 1:  # contiguous windows: slices, not gathers
+        j0, j1 = int(lo[0]), int(lo[-1]) + 1
+        s1 = c1[j0 + w:j1 + w] - c1[j0:j1]
+        s2 = c2[j0 + w:j1 + w] - c2[j0:j1]
+    else:
+        s1 = c1[lo + w] - c1[lo]
+        s2 = c2[lo + w] - c2[lo]
+    # var = (s2 - s1^2 / w) / (w - 1), in place
+    np.square(s1, out=s1)
+    s1 *= 1.0 / w
+    s2 -= s1
+    s2 *= 1.0 / (w - 1)
+    np.maximum(s2, 0.0, out=s2)
+    return np.sqrt(s2, out=s2)
+
+
+def _lerp(a, b, t):
+    """numpy's percentile interpolation (``numpy.lib._function_base_impl._lerp``)."""
+    d = b - a
+    out = a + d * t
+    return np.where(t >= 0.5, b - d * (1 - t), out)
+
+
+def stream_percentile(values: Callable[[], Iterable[np.ndarray]], n: int, q: float,
+                      sample: np.ndarray | None = None) -> np.ndarray:
+    """``np.percentile(X, q, axis=0)`` (linear) of the (n, k) array whose rows
+    ``values()`` yields in blocks, with memory bounded by the bracket.
+
+    ``sample``: rows of X (any subset) that bracket the quantile; without it
+    one pass takes a decimated series."""
+    v = q / 100.0 * (n - 1)
+    r0 = int(math.floor(v))
+    r1 = min(r0 + 1, n - 1)
+    frac = v - r0
+    if sample is None:
+        step = max(1, n // SAMPLE_ROWS)
+        parts, off = [], 0
+        for blk in values():
+            first = (-off) % step
+            parts.append(blk[first::step])
+            off += len(blk)
+        sample = np.concatenate(parts)
+    sample = np.asarray(sample, dtype=float)
+    m, k = sample.shape
+    # a bracket of +-3 percentage points (at least 50 sample ranks) around the quantile
+    pad = max(50, int(0.03 * m))
+    p = q / 100.0 * (m - 1)
+    lo_i, hi_i = int(p) - pad, int(p) + 1 + pad
+    kth = [i for i in (lo_i, hi_i) if 0 <= i < m]
+    if kth:
+        sample = np.partition(sample, kth, axis=0)
+    lo = np.array([sample[lo_i, j] if lo_i >= 0 else -np.inf for j in range(k)])
+    hi = np.array([sample[hi_i, j] if hi_i < m else np.inf for j in range(k)])
+    result = np.empty(k)
+    todo = list(range(k))
+    for _ in range(40):
+        lo_t, hi_t = lo[todo], hi[todo]
+        below = np.zeros(len(todo), dtype=np.int64)
+        inside = np.zeros(len(todo), dtype=np.int64)
+        imin = np.full(len(todo), np.inf)
+        imax = np.full(len(todo), -np.inf)
+        kept: list[list[np.ndarray]] | None = [[] for _ in todo]
+        for blk in values():
+            x = blk[:, todo]
+            below += np.sum(x < lo_t, axis=0)
+            ins = (x >= lo_t) & (x <= hi_t)
+            inside += ins.sum(axis=0)
+            for j in range(len(todo)):
+                xj = x[ins[:, j], j]
+                if len(xj):
+                    imin[j] = min(imin[j], xj.min())
+                    imax[j] = max(imax[j], xj.max())
+                    if kept is not None:
+                        kept[j].append(xj)
+            if kept is not None and np.any(inside > BRACKET_CAP):
+                kept = None  # too many values in the bracket: narrow it first
+        done = []
+        for j, ax in enumerate(todo):
+            c = int(below[j])
+            if c > r0:
+                lo[ax] = -np.inf
+                continue
+            if c + int(inside[j]) <= r1:
+                hi[ax] = np.inf
+                continue
+            if imin[j] == imax[j]:  # every value in the bracket is the same
+                result[ax] = imin[j]
+                done.append(ax)
+                continue
+            if kept is None:
+                continue
+            vals = np.concatenate(kept[j])
+            vals = np.partition(vals, sorted({r0 - c, r1 - c}))
+            a, b = vals[r0 - c], vals[r1 - c]
+            result[ax] = _lerp(np.float64(a), np.float64(b), np.float64(frac))
+            done.append(ax)
+        todo = [ax for ax in todo if ax not in done]
+        if not todo:
+            return result
+        if kept is None:
+            lo, hi = _narrow(values, todo, lo, hi, r0, r1)
+    raise RuntimeError("percentile bracket did not converge")
+
+
+def _widen(x, sign):
+    if not np.isfinite(x):
+        return x
+    return -np.inf if sign < 0 else np.inf
+
+
+def _narrow(values, todo, lo, hi, r0, r1):
+    """One histogram pass over the bracket of each axis in ``todo``: the
+    bracket becomes the bins that hold ranks r0 and r1."""
+    lo, hi = lo.copy(), hi.copy()
+    below = np.zeros(len(todo), dtype=np.int64)
+    hists = [np.zeros(HIST_BINS, dtype=np.int64) for _ in todo]
+    # infinite bracket ends: use the finite range of the data
+    mn = np.full(len(todo), np.inf)
+    mx = np.full(len(todo), -np.inf)
+    if not (np.all(np.isfinite(lo[todo])) and np.all(np.isfinite(hi[todo]))):
+        for blk in values():
+            x = blk[:, todo]
+            mn = np.minimum(mn, x.min(axis=0))
+            mx = np.maximum(mx, x.max(axis=0))
+    a = np.where(np.isfinite(lo[todo]), lo[todo], mn)
+    b = np.where(np.isfinite(hi[todo]), hi[todo], mx)
+    width = np.where(b > a, b - a, 1.0)
+    for blk in values():
+        x = blk[:, todo]
+        below += np.sum(x < a, axis=0)
+        for j in range(len(todo)):
+            xj = x[:, j]
+            xj = xj[(xj >= a[j]) & (xj <= b[j])]
+            idx = np.minimum(((xj - a[j]) / width[j] * HIST_BINS).astype(np.int64), HIST_BINS - 1)
+            hists[j] += np.bincount(idx, minlength=HIST_BINS)
+    for j, ax in enumerate(todo):
+        cum = below[j] + np.cumsum(hists[j])
+        i0 = int(np.searchsorted(cum, r0 + 1))  # bin holding rank r0
+        i1 = int(np.searchsorted(cum, r1 + 1))
+        lo[ax] = a[j] + width[j] * max(i0 - 1, 0) / HIST_BINS
+        hi[ax] = a[j] + width[j] * min(i1 + 2, HIST_BINS) / HIST_BINS
+    return lo, hi
+
+
+def stream_median_diff(times: Callable[[], Iterable[np.ndarray]], n: int,
+                       sample: np.ndarray | None = None) -> float:
+    """``np.median(np.diff(t))`` of the concatenated time blocks."""
+    if n < 2:
+        return 1.0
+
+    def diffs():
+        last = None
+        for t in times():
+            t = np.asarray(t, dtype=float)
+            if len(t) == 0:
+                continue
+            d = np.diff(t) if last is None else np.diff(np.concatenate([[last], t]))
+            last = t[-1]
+            yield d[:, None]
+
+    return float(stream_percentile(diffs, n - 1, 50.0, sample)[0])
+
+
+class _RunTracker:
+    """[start, stop) runs of True over consecutive boolean blocks."""
+
+    def __init__(self):
+        self.starts, self.stops = [], []
+        self.off = 0
+        self.prev = False
+
+    def feed(self, f: np.ndarray) -> None:
+        if len(f) == 0:
+            return
+        d = np.diff(np.concatenate([[self.prev], f]).astype(np.int8))
+        self.starts.append(np.flatnonzero(d == 1) + self.off)
+        self.stops.append(np.flatnonzero(d == -1) + self.off)
+        self.prev = bool(f[-1])
+        self.off += len(f)
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        stops = self.stops + ([np.array([self.off])] if self.prev else [])
+
+        def cat(xs):
+            return np.concatenate(xs).astype(np.int64) if xs else np.empty(0, np.int64)
+
+        return cat(self.starts), cat(stops)
+
+
+def take_sorted(times: Callable[[], Iterable[np.ndarray]], idx: np.ndarray) -> np.ndarray:
+    """t[idx] for indices into the concatenated time blocks."""
+    idx = np.asarray(idx, dtype=np.int64)
+    order = np.argsort(idx, kind="stable")
+    srt = idx[order]
+    out_sorted = np.empty(len(srt))
+    off, j = 0, 0
+    for t in times():
+        end = off + len(t)
+        k = int(np.searchsorted(srt, end))
+        if k > j:
+            out_sorted[j:k] = np.asarray(t)[srt[j:k] - off]
+            j = k
+        off = end
+        if j == len(srt):
+            break
+    out = np.empty(len(srt))
+    out[order] = out_sorted
+    return out
+
+
+class Decimator:
+    """Every ``stride``-th row of a stream (from row 0), the stride doubling
+    whenever more than ``2 * limit`` rows are kept: a decimated series of
+    bounded size."""
+
+    def __init__(self, limit: int = SAMPLE_ROWS):
+        self.limit = limit
+        self.stride = 1
+        self.parts: list[np.ndarray] = []
+        self.kept = 0
+        self.off = 0
+
+    def feed(self, x: np.ndarray) -> None:
+        first = (-self.off) % self.stride
+        part = x[first::self.stride]
+        self.parts.append(np.array(part))
+        self.kept += len(part)
+        self.off += len(x)
+        if self.kept > 2 * self.limit:
+            cat = np.concatenate(self.parts)[::2]
+            self.parts, self.kept = [cat], len(cat)
+            self.stride *= 2
+
+    def series(self) -> np.ndarray | None:
+        return np.concatenate(self.parts) if self.parts else None
+
+
+class StreamDetector:
+    """Static detection fed during the import, block by block.
+
+    It keeps a decimated series of ``diff(t)`` and of the moving standard
+    deviation (window from the first block's sample period) and hands the
+    full moving std to ``store`` (``write(array)``, ``blocks()``), so that the
+    final passes read it back instead of computing it again. ``result``
+    checks the window against the exact median sample period and computes
+    the moving std again from the samples only when it differs."""
+
+    def __init__(self, window_s: float = 1.0, store=None):
+        self.window_s = window_s
+        self.store = store
+        self.ms = None
+        self.w_est = None
+        self.t_last = None
+        self.diffs = Decimator()
+        self.stds = Decimator()
+        self.n = 0
+
+    def feed(self, t, accel, gyro=None) -> None:
+        t = np.asarray(t, dtype=float)
+        if not len(t):
+            return
+        if self.ms is None:
+            dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+            self.w_est = max(3, int(round(self.window_s / dt))) if dt > 0 else 3
+            self.ms = MovingStd(self.w_est)
+        d = np.diff(t) if self.t_last is None else np.diff(np.concatenate([[self.t_last], t]))
+        self.t_last = t[-1]
+        self.diffs.feed(d[:, None])
+        self._out(self.ms.feed(accel, gyro))
+        self.n += len(t)
+
+    def _out(self, s):
+        if s is not None and len(s):
+            self.stds.feed(s)
+            if self.store is not None:
+                self.store.write(s)
+
+    def result(self, blocks: Blocks, multiplier: float = DEFAULT_MULTIPLIER,
+               min_duration_s: float = 1.0, times=None) -> DetectionReport:
+        """``times``: a fresh iterator of the time blocks alone (cheaper to read
+        than ``blocks``); taken from ``blocks`` when not given."""
+        n = self.n
+        if self.ms is not None:
+            self._out(self.ms.finish(n))
+
+        if times is None:
+            def times():
+                for t, _, _ in blocks():
+                    yield t
+
+        dt = stream_median_diff(times, n, self.diffs.series()) if n > 1 else 1.0
+        w = max(3, int(round(self.window_s / dt)))
+        if w == self.w_est and self.store is not None:
+            stds, sample = self.store.blocks, self.stds.series()
+        else:
+            stds, sample = _std_source(blocks, w, n), None
+        return _detect(blocks, times, stds, sample, n, dt, w, self.window_s, multiplier,
+                       min_duration_s)
+
+
+class ListStore:
+    """An in-memory store for ``StreamDetector`` (a record that is in memory
+    anyway, e.g. ``import text``)."""
+
+    def __init__(self):
+        self.parts: list[np.ndarray] = []
+
+    def write(self, arr):
+        self.parts.append(np.array(arr))
+
+    def blocks(self):
+        return iter(self.parts)
+
+
+def detect_static_arrays(t, accel, gyro=None, window_s: float = 1.0,
+                         multiplier: float = DEFAULT_MULTIPLIER, min_duration_s: float = 1.0,
+                         rows: int = 65536) -> DetectionReport:
+    """``detect_static`` of in-memory arrays through the block detector (one
+    moving-std computation instead of one per threshold)."""
+    t = np.asarray(t, dtype=float)
+    det = StreamDetector(window_s, ListStore())
+    for i in range(0, len(t), rows):
+        det.feed(t[i:i + rows], accel[i:i + rows], None if gyro is None else gyro[i:i + rows])
+
+    def blocks():
+        for i in range(0, len(t), rows):
+            yield t[i:i + rows], accel[i:i + rows], None if gyro is None else gyro[i:i + rows]
+
+    def times():
+        for i in range(0, len(t), rows):
+            yield t[i:i + rows]
+
+    return det.result(blocks, multiplier, min_duration_s, times=times)
+
+
+def _std_source(blocks, w, n):
+    def sensors():
+        for _, a, g in blocks():
+            yield a if g is None else np.concatenate([a, g], axis=1)
+
+    return lambda: moving_std_blocks(sensors(), w, n)
+
+
+def detect_static_stream(blocks: Blocks, n: int, window_s: float = 1.0,
+                         multiplier: float = DEFAULT_MULTIPLIER,
+                         min_duration_s: float = 1.0) -> DetectionReport:
+    """``detect_static`` over a record given as blocks (see the module doc)."""
+
+    def times():
+        for t, _, _ in blocks():
+            yield t
+
+    dt = stream_median_diff(times, n) if n > 1 else 1.0
+    w = max(3, int(round(window_s / dt)))
+    return _detect(blocks, times, _std_source(blocks, w, n), None, n, dt, w, window_s,
+                   multiplier, min_duration_s)
+
+
+def _detect(blocks, times, stds, sample, n, dt, w, window_s, multiplier, min_duration_s):
+    floors = stream_percentile(stds, n, FLOOR_QUANTILE, sample)
+    first = next(iter(blocks()))
+    na = first[1].shape[1]
+    has_g = first[2] is not None
+    fa = np.maximum(floors[:na], 1e-300)
+    fg = np.maximum(floors[na:], 1e-300) if has_g else None
+    f_all = floors.copy()
+    f_all[:na] = fa
+    if has_g:
+        f_all[na:] = fg
+
+    ks = sorted(set(MULTIPLIERS) | {multiplier})
+    trackers = {k: _RunTracker() for k in ks}
+    n_quiet = 0
+    for s in stds():  # one pass: quiet masks for every multiplier, kept as runs
+        r = np.max(s / f_all, axis=1)  # s_j < k f_j for every axis j <=> r < k
+        for k in ks:
+            q = r < k
+            trackers[k].feed(q)
+            if k == multiplier:
+                n_quiet += int(q.sum())
+    run_pairs = {k: trackers[k].result() for k in ks}
+    half = w // 2
+    # the times the interval rule needs, read in one pass
+    need = []
+    for a, b in run_pairs.values():
+        need += [a, b - 1, a + half, np.maximum(b - half - 1, 0)]
+    need_idx = np.unique(np.clip(np.concatenate(need) if need else np.empty(0, np.int64),
+                                 0, max(n - 1, 0)))
+    tv = take_sorted(times, need_idx) if len(need_idx) else np.empty(0)
+    tmap = dict(zip(need_idx.tolist(), tv.tolist()))
+
+    def find(k, short=None):
+        out = []
+        a_arr, b_arr = run_pairs[k]
+        for a, b in zip(a_arr.tolist(), b_arr.tolist()):
+            a2, b2 = a + half, b - half
+            span = (tmap[b2 - 1] - tmap[a2]) + dt if b2 > a2 else 0.0
+            if b2 > a2 and span >= min_duration_s:
+                out.append((int(a2), int(b2)))
+            elif short is not None:
+                short.append(float((tmap[b - 1] - tmap[a]) + dt - 2 * half * dt))
+        return out
+
+    counts = {k: len(find(k)) for k in ks}
+    short: list[float] = []
+    intervals = find(multiplier, short)
+    short = [x for x in short if x > 0]
+    return DetectionReport(intervals, multiplier, window_s, min_duration_s, fa, fg, counts,
+                           short_runs=len(short), longest_short_s=max(short, default=0.0),
+                           static_fraction=n_quiet / n if n else float("nan"))
