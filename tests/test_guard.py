@@ -151,7 +151,7 @@ def _raw_mutants(raw, d):
         info = h5["samples/accel"].id.get_chunk_info(0)
     b = bytearray(Path(p).read_bytes())
     for i in range(info.byte_offset + 1000, info.byte_offset + 1000 + 4096):
-        b[i] ^= 0xFF
+        b[i] ^= 0x5A
     Path(p).write_bytes(bytes(b))
     out["flipped"] = p
     # 17 KB declaring 1e11 samples
