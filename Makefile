@@ -20,8 +20,9 @@ demo: $(STAMP)
 test: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m pytest -q
 
+# make validate K=turntable: one method's part alone (pytest -k)
 validate: $(STAMP)
-	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m slow tests
+	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m slow tests $(if $(K),-k $(K))
 
 lint: $(STAMP)
 	$(BIN)/ruff check calib_cli tests

@@ -450,3 +450,34 @@ def test_record_bad_port_or_profile_exit_3_and_no_output(tmp_path):
     r = _cli("record", "--imu", str(bad), "--port", "x", "--duration", "1", "--out",
              str(tmp_path / "raw.h5"))
     assert "frame.sync" in str(r.exception) and not (tmp_path / "raw.h5").exists()
+
+
+def test_rotating_segment_without_rate_runs_its_profile(tmp_path):
+    """A contract-form rotating segment (no table_rate_dps): the cycle starts at rest and
+    the table is commanded through the profile's holds while the segment records."""
+    from calib_cli.acquire.session import rate_schedule
+
+    prof = load_imu_profile("generic-bin6")
+    plan = parse_plan('name = "rot"\nkind = "turntable"\n[site]\nlatitude_deg = 45\n'
+                      '[[segment]]\nlabel = "cycle"\nattitude_deg = [0, 0, 0]\n'
+                      'table_axis_enu = [0, 0, 1]\n'
+                      'rate_profile = [[0, 0], [0.2, 0], [0.2, 90], [0.5, 90], [0.5, 0], [0.8, 0]]\n')
+    dur, sched = rate_schedule(plan.segments[0])
+    assert dur == pytest.approx(0.8) and [r for _t, r in sched] == pytest.approx([np.pi / 2, 0.0])
+    tab = table_profile()
+    em = Emulator(prof, tab, site=plan.site, rate=1000, link_dir=str(tmp_path)).start()
+    try:
+        s = Session(prof, SerialTransport(em.paths["imu"], prof.transport), plan,
+                    str(tmp_path / "j.journal"), table=SerialTable(tab, em.paths["table"]),
+                    settle=SETTLE)
+        s.start()
+        s.run_plan()
+        s.close()
+    finally:
+        em.stop()
+    rec = journal_to_recording(str(tmp_path / "j.journal"))
+    cyc = rec.segments[0]
+    assert cyc.kind == "rotating" and abs(cyc.n - 800) <= 5
+    gz = rec.gyro[cyc.slice, 2]
+    assert abs(gz[:100].mean()) < 0.05  # at rest when the cycle starts
+    assert np.max(gz) == pytest.approx(np.pi / 2, abs=0.05)  # then at 90 deg/s

@@ -249,13 +249,17 @@ class Session:
                     f"--gyro-still) over {self.cfg.window_s:g} s; if the unit was still, its "
                     "noise is above the limits: raise them (or state [noise] in the profile)")
 
-    def record_segment(self, index: int, duration: float | None) -> None:
+    def record_segment(self, index: int, duration: float | None, schedule=None) -> None:
         """Tag the next ``duration`` seconds of samples with plan index ``index``
-        (until interrupted when duration is None)."""
+        (until interrupted when duration is None). ``schedule``: [(t_s, rate_rad_s), ...]
+        table rate commands at those times from the segment's first sample."""
         self.seg_index, self.seg_t0, self.seg_dur, self.seg_done = index, None, duration, False
         self.state, self.progress = "recording", 0.0
+        todo = list(schedule or [])
         while not self.seg_done:
             self.pump()
+            while todo and self.seg_t0 is not None and self.progress * (duration or 0) >= todo[0][0]:
+                self.table.set_rate(todo.pop(0)[1])
         self.seg_index = -1
         self.state = "done"
 
@@ -298,9 +302,13 @@ class Session:
                                      "motorised table (--table PROFILE --table-port PORT)",
                                      plan.path)
                 self.wait_settled()
-                table.set_rate(seg.table_rate)
-                self.wait_settled(check_still=False)
-                self.record_segment(i, dur)
+                if seg.table_rate is not None:  # a constant rate, reached before recording
+                    table.set_rate(seg.table_rate)
+                    self.wait_settled(check_still=False)
+                    self.record_segment(i, dur)
+                else:  # a profile: the cycle starts at rest, the table follows its holds
+                    dur, schedule = rate_schedule(seg, plan.path)
+                    self.record_segment(i, dur, schedule)
                 table.stop()
             else:  # a turn of known angle
                 self.wait_settled()
@@ -421,3 +429,25 @@ def journal_to_recording(path: str) -> Recording:
                      segments=tuple(segments), site=plan.site, plan_kind=plan.kind,
                      plan_text=plan.text, serial=plan.serial, layout=layout,
                      temp=data[:, 2 * n] if "temp" in chans else None, counters=counters)
+
+
+def rate_schedule(seg, path=None) -> tuple[float, list]:
+    """(duration s, [(t_s, rate_rad_s), ...]) of the rate commands that run a rotating
+    segment's profile on a table that ramps by itself: the segment's ``rate_profile``
+    knots, else the default profile over ``duration_s`` (docs/simulate.md); each
+    command at the start of a ramp. A sinusoidal ``rate_oscillation`` needs a table
+    that follows a profile and is refused."""
+    from calib_cli.sim.turntable_plans import rate_profile
+
+    if "rate_oscillation" in seg.extra:
+        raise InputError(f"segment {seg.label!r}: rate_oscillation cannot be run by rate "
+                         "commands; give rate_profile knots", path)
+    knots = seg.extra.get("rate_profile") or rate_profile(seg.duration or 120.0)
+    try:
+        kt = [float(k[0]) for k in knots]
+        kr = [float(k[1]) * np.pi / 180.0 for k in knots]
+    except (TypeError, ValueError, IndexError):
+        raise InputError(f"segment {seg.label!r}: rate_profile must be [[t_s, rate_dps], ...]",
+                         path) from None
+    schedule = [(kt[i] - kt[0], kr[i + 1]) for i in range(len(kt) - 1) if kr[i + 1] != kr[i]]
+    return kt[-1] - kt[0], schedule

@@ -277,7 +277,13 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
 
 
 def _rot(phi):
-    return Rotation.from_rotvec(phi).as_matrix()
+    """Rotation matrix of one small rotation vector (Rodrigues; SciPy's per-call overhead
+    is most of the filter's time at one call per block)."""
+    a = float(np.sqrt(phi @ phi))
+    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    if a < 1e-8:
+        return np.eye(3) + K + 0.5 * (K @ K)
+    return np.eye(3) + (np.sin(a) / a) * K + ((1.0 - np.cos(a)) / a**2) * (K @ K)
 
 
 def _select(rec: Recording) -> list[_Cycle]:
@@ -380,6 +386,14 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             fast = np.linalg.norm(b.dw_raw, axis=1) > opt.accel_skip
             skip = fast | np.roll(fast, 1) | np.roll(fast, -1)
         sA = slice(0, 3)
+        # fixed index maps of the accelerometer rows of H
+        rows3, col_ab = np.arange(3), 3 + L.idx["ab"]
+        k_rows = np.array([i for i, _j in K_LOWER])
+        k_cols = np.array([j for _i, j in K_LOWER])
+        col_K = 3 + L.idx["K"]
+        p_rows = np.array([i for i, _j in P_OFF])
+        p_cols = np.array([j for _i, j in P_OFF])
+        col_p = 3 + L.idx["p"] if L.est_p else None
         for j in range(nb):
             # the first pass is an extended filter (Jacobians at the running estimate: the
             # neutral start can be far off); later passes linearise every block about the
@@ -398,27 +412,21 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             h = np.zeros(5)
             dfdphi = Rbar.T @ g_sk
             Kc = cur["K"]
-            U = np.zeros((3, 3))
-            for i in range(3):
-                r_i = s_c + cur["P"][i]
-                U[i] = gb_ + Cw @ r_i
+            # force at each proof mass, row i: gravity + (centripetal + tangential) at s + p_i
+            U = gb_[None, :] + (s_c[None, :] + cur["P"]) @ Cw.T
             gam = Rh.T @ g_n
             Wg = gam[0] * b.wg[0, j] + gam[1] * b.wg[1, j] + gam[2] * b.wg[2, j]  # (3, 21)
             KW = Kc @ Wg
-            for i in range(3):
-                h[i] = cur["ab"][i] + Kc[i] @ U[i] + KW[i] @ x[iG]
-                H[i, iG] = KW[i]
-                H[i, sA] = Kc[i] @ dfdphi
-                H[i, 3 + L.idx["ab"][i]] = 1.0
-                for q_, (ii, jj) in enumerate(K_LOWER):
-                    if ii == i:
-                        H[i, 3 + L.idx["K"][q_]] = U[i, jj]
-                if L.est_s:
-                    H[i, 3 + L.idx["s"][2 * c:2 * c + 2]] = Kc[i] @ Cw @ cy.basis
-                if L.est_p:
-                    for q_, (ii, jj) in enumerate(P_OFF):
-                        if ii == i:
-                            H[i, 3 + L.idx["p"][q_]] = Kc[i] @ Cw[:, jj]
+            KCw = Kc @ Cw
+            h[:3] = cur["ab"] + np.einsum("ij,ij->i", Kc, U) + KW @ x[iG]
+            H[:3, iG] = KW
+            H[:3, sA] = Kc @ dfdphi
+            H[rows3, col_ab] = 1.0
+            H[k_rows, col_K] = U[k_rows, k_cols]
+            if L.est_s:
+                H[:3, 3 + L.idx["s"][2 * c:2 * c + 2]] = KCw @ cy.basis
+            if L.est_p:
+                H[p_rows, col_p] = KCw[p_rows, p_cols]
             # table axis fixed in ENU: Rbar a_b = a_enu (two components)
             ra = Rbar @ a_b
             Hg = -Nperp @ skew(ra) @ Rh @ b.qbar[j]
@@ -444,13 +452,14 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             v = z - h
             PH = P @ H.T
             S = H @ PH + Rm
-            Kg = np.linalg.solve(S, PH.T).T
+            Si = np.linalg.inv(S)
+            Kg = PH @ Si
             x = x + Kg @ v
             P = P - Kg @ PH.T
             P = 0.5 * (P + P.T)
             if not skip[j] and j >= nb // 2:  # the second half of each cycle: converged state
                 innov.append(v[:3] * np.sqrt(b.m) / sig_a)
-            nis.append(float(v @ np.linalg.solve(S, v)))
+            nis.append(float(v @ Si @ v))
             if b.wabs[j] < np.radians(0.5):
                 fcorr = np.linalg.solve(Kc, b.a_mean[j] - cur["ab"])
                 lowrate.append((np.linalg.norm(b.a_mean[j]), np.linalg.norm(fcorr)))
@@ -460,7 +469,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             # propagate to the next block start
             B = Rh @ b.q[j]  # (3, 21)
             x[:3] = B @ x[iG]
-            Pg = P[np.ix_(iG, np.arange(ns))]  # (21, ns)
+            Pg = P[iG]  # (21, ns)
             BP = B @ Pg  # (3, ns)
             P[:3, :] += BP
             P[:, :3] += BP.T

@@ -1,0 +1,50 @@
+"""The rotating-table fit on the motion of a real table controller (issue 14), fast cases.
+
+The many-seed validation over every profile family and both sample kinds is
+tests/test_turntable_profiles_slow.py (make validate K=turntable).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib_cli.io.plan import parse_plan
+from calib_cli.methods.turntable import TurntableOptions, fit_turntable
+from calib_cli.sim.simulate import simulate
+from tests.turntable_profiles import normalized_errors, profile_plan_text, profile_record
+
+
+def test_trapezoid_reproducer_within_sigma():
+    """The issue's reproducer: trapezoidal profile at 100 deg/s^2, 30-45 s holds, 3 x 600 s,
+    instantaneous samples; gyro_K was 24-26 sigma off (G_yy) before the fix."""
+    plan = parse_plan(profile_plan_text(11, "trapezoid-100", wobble_dps=0.0))
+    rec = simulate(plan, None, 11)
+    res = fit_turntable(rec, TurntableOptions())
+    z = normalized_errors(res, rec.truth["params"])
+    worst = {k: float(np.abs(v).max()) for k, v in z.items()}
+    assert max(worst.values()) < 4.5, worst
+    assert abs(z["gyro_K"]).max() < 4.0
+    assert "proof_mass_offsets" in res.params  # --proof-mass auto: always reported
+
+
+def test_interval_mean_samples_within_sigma():
+    rec, truth = profile_record(5, "s-curve", "interval-mean", duration_s=300.0, wobble=True,
+                                wide=False)
+    assert rec.sample_kind == "interval-mean"
+    res = fit_turntable(rec, TurntableOptions())
+    z = normalized_errors(res, truth)
+    allz = np.concatenate(list(z.values()))
+    assert np.abs(allz).max() < 4.5, {k: float(np.abs(v).max()) for k, v in z.items()}
+    assert 0.5 < np.sqrt(np.mean(allz**2)) < 1.6
+
+
+@pytest.mark.xfail(strict=True, reason="known limitation (docs/turntable.md): on some noise "
+                   "realisations one cycle's gyro scale factor is biased by several sigma; the "
+                   "bias depends on the order of the cycles")
+def test_noise_realisation_bias_seed4():
+    rec, truth = profile_record(4, "s-curve", "instant", duration_s=300.0, wobble=True,
+                                wide=False)
+    res = fit_turntable(rec, TurntableOptions())
+    z = normalized_errors(res, truth)
+    assert np.abs(z["gyro_K"]).max() < 4.0, np.round(z["gyro_K"], 1)
