@@ -138,3 +138,28 @@ def test_cycle_detection_keeps_holds_inside_a_cycle():
     assert len(det.short_runs) == 1
     trimmed = trim_intervals([(0, 300)], det.cycles, 10)
     assert trimmed == [] or trimmed[0][1] <= a0
+
+
+def test_simulate_warns_beyond_the_unit_range(tmp_path):
+    text = CONTRACT_TT.replace('serial = "SN-TT-C"', 'serial = "SN-TT-C"\naccel_range_g = 1.2')
+    text = text.replace('table_axis_enu = [1, 0, 0]\nduration_s = 100.0',
+                        'table_axis_enu = [1, 0, 0]\nlever_arm_m = [0, 0.5, 0]\nduration_s = 60.0', 1)
+    (tmp_path / "p.toml").write_text(text)
+    res = CliRunner().invoke(cli, ["simulate", str(tmp_path / "p.toml"), "--out",
+                                   str(tmp_path / "r.h5")])
+    assert res.exit_code == 0, res.output
+    assert "beyond the unit's range" in res.output
+
+
+def test_clipped_accelerometers_are_reported(contract_log, tmp_path):
+    from calib_cli.io.h5 import read_raw
+    from calib_cli.methods.turntable import TurntableOptions, fit_turntable
+
+    raw = tmp_path / "raw.h5"
+    assert _run(["import", "csv", str(contract_log / "log.csv"), "--plan",
+                 str(contract_log / "plan.toml"), "--out", str(raw)]).exit_code == 0
+    rec = read_raw(raw)
+    top = np.quantile(rec.accel[:, 0], 0.99)
+    rec = rec.with_(accel=np.column_stack([np.minimum(rec.accel[:, 0], top), rec.accel[:, 1:]]))
+    res = fit_turntable(rec, TurntableOptions(table_encoder="off"))
+    assert res.stats["accel_clipped_samples"][0] > 100

@@ -48,3 +48,29 @@ def test_noise_realisation_bias_seed4():
     res = fit_turntable(rec, TurntableOptions())
     z = normalized_errors(res, truth)
     assert np.abs(z["gyro_K"]).max() < 4.0, np.round(z["gyro_K"], 1)
+
+
+def test_table_encoder_angle_channel():
+    """A 2^16-count encoder with a 0.05 deg once-per-revolution error: used by default,
+    every sigma <= the IMU-only sigma, within sigma, the once-per-revolution error found;
+    a logged setpoint (the nominal profile, which misses the table's wobble) is not used."""
+    text = ("sim_table_encoder_counts = 65536\nsim_table_encoder_opr_deg = 0.05\n"
+            "sim_table_rate_scale_error = 2e-3\n"
+            + profile_plan_text(3, "trapezoid-100", duration_s=300.0))
+    rec = simulate(parse_plan(text), None, 3)
+    truth = rec.truth["params"]
+    enc = fit_turntable(rec, TurntableOptions())
+    imu = fit_turntable(rec, TurntableOptions(table_encoder="off"))
+    assert enc.stats["table_encoder"]["mode"] == "angle"
+    for k, s in imu.sigma.items():
+        m = np.isfinite(s) & (s > 0)
+        assert np.all(enc.sigma[k][m] <= s[m] * 1.0001), k
+    z = normalized_errors(enc, truth)
+    assert max(float(np.abs(v).max()) for v in z.values()) < 4.5
+    opr = np.hypot(*enc.stats["table_encoder"]["once_per_rev_mrad"])
+    assert abs(opr - np.radians(0.05) * 1e3) < 0.02
+    # the generator's default table channel is the nominal profile: not an encoder
+    rec2, _ = profile_record(3, "trapezoid-100", duration_s=200.0, wobble=True, wide=False)
+    res = fit_turntable(rec2, TurntableOptions())
+    assert res.stats["table_encoder"]["mode"] == "off"
+    assert "does not follow the gyros" in res.stats["table_encoder"]["notes"][0]

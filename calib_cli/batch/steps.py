@@ -60,7 +60,7 @@ def fit_gyro_step(rec, g_sensitivity: str = "auto"):
 
 def fit_turntable_step(rec, lever_arm: str = "estimate", proof_mass: str = "auto",
                        tangential: str = "on", block_s: float = 0.2, axis_sigma_mrad: float = 1.0,
-                       table_tilt_deg: float = 0.05):
+                       table_tilt_deg: float = 0.05, table_encoder: str = "auto"):
     """`calib fit turntable` with the command's options (same names)."""
     import numpy as np
 
@@ -70,7 +70,8 @@ def fit_turntable_step(rec, lever_arm: str = "estimate", proof_mass: str = "auto
                                                tangential=tangential in ("on", True),
                                                block_s=float(block_s),
                                                axis_sigma=float(axis_sigma_mrad) * 1e-3,
-                                               table_tilt_sigma=float(np.radians(table_tilt_deg))))
+                                               table_tilt_sigma=float(np.radians(table_tilt_deg)),
+                                               table_encoder=table_encoder))
 
 
 # plan kind -> the fit method `method = "auto"` runs for it
@@ -129,9 +130,9 @@ register_fit("gyro", "calib_cli.batch.steps:fit_gyro_step", options=("g_sensitiv
 register_fit("rimu", "calib_cli.methods.rimu:fit_rimu")
 register_fit("turntable", "calib_cli.batch.steps:fit_turntable_step",
              options=("lever_arm", "proof_mass", "tangential", "block_s", "axis_sigma_mrad",
-                      "table_tilt_deg"))
+                      "table_tilt_deg", "table_encoder"))
 # any option name is passed on: the chosen fit checks it
 register_fit("auto", "calib_cli.batch.steps:fit_auto_step",
              options=("method", "rotation", "gyro", "gyro_k_ppm", "turn_sigma_deg", "g_sensitivity",
                       "lever_arm", "proof_mass", "tangential", "block_s", "axis_sigma_mrad",
-                      "table_tilt_deg"))
+                      "table_tilt_deg", "table_encoder"))

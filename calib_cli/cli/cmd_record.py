@@ -114,10 +114,11 @@ def _raise_interrupt(*_):
               help="Stop when no valid frame arrives within S seconds of the start.")
 @click.option("--force", is_flag=True, help="Replace an existing recording at --out, and set "
               "an existing journal aside (renamed, never deleted).")
+@click.option("--no-check", is_flag=True, help="Skip the plan check before recording.")
 def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_path, duration,
                rate, out, journal_path, keep_journal, settle_window, accel_still, gyro_still,
                settle_timeout, segment_duration, reconnect_timeout, gravity_tolerance,
-               no_data_timeout, force):
+               no_data_timeout, force, no_check):
     """Record an experiment plan (or a free-running log) from an IMU into raw.h5."""
     from calib_cli.acquire.profile import load_imu_profile
     from calib_cli.acquire.session import free_run_plan
@@ -133,6 +134,12 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
     if prof.format != "can" and not port:
         raise click.UsageError(f"profile {prof.name!r} is a serial device: give --port")
     plan = load_plan(plan_path) if plan_path else parse_plan(free_run_plan(duration), "free-run")
+    if plan_path and not no_check:  # issue 20: warn when the plan cannot deliver
+        from calib_cli.methods.design import record_warning
+
+        warning = record_warning(plan, prof.rate_hz)
+        if warning:
+            err_console.print(f"calib: warning: {warning}", markup=False, soft_wrap=True)
     out_dir = os.path.dirname(os.path.abspath(out))
     if not os.path.isdir(out_dir):
         raise InputError("output directory does not exist", out)

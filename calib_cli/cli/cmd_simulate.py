@@ -30,4 +30,34 @@ def simulate_cmd(plan, out, seed, truth_path):
         write_csv(out, rec)
     else:
         write_raw(out, rec, inputs)
+    for line in range_warnings(p, rec):
+        info(f"[yellow]warning:[/] {line}")
     info(f"simulated {len(rec)} samples, {len(rec.segments)} segments -> {out}")
+
+
+def range_warnings(plan, rec) -> list[str]:
+    """Lines for sensor outputs beyond the unit's range (plan [unit] accel_range_g,
+    default 16 g; gyro_range_dps, default 2000 deg/s): on a rotating table the
+    centripetal and tangential terms at the lever arms add to gravity."""
+    import tomllib
+
+    import numpy as np
+
+    if rec.units.get("accel") != "m/s^2":
+        return []
+    unit = tomllib.loads(plan.text).get("unit", {}) if plan.text else {}
+    unit = unit if isinstance(unit, dict) else {}
+    out = []
+    a_rng = float(unit.get("accel_range_g", 16.0))
+    peak_a = float(np.max(np.abs(rec.accel))) / 9.80665 if len(rec.accel) else 0.0
+    if peak_a > a_rng:
+        out.append(f"the accelerometers would read up to {peak_a:.1f} g, beyond the unit's range "
+                   f"+-{a_rng:g} g (gravity plus the centripetal and tangential terms at the lever "
+                   "arms): lower the table rate, the ramp rate or the lever arm")
+    g_rng = float(unit.get("gyro_range_dps", 2000.0))
+    if rec.gyro is not None and len(rec.gyro):
+        peak_g = float(np.degrees(np.max(np.abs(rec.gyro))))
+        if peak_g > g_rng:
+            out.append(f"the gyros would read up to {peak_g:.0f} deg/s, beyond the unit's range "
+                       f"+-{g_rng:g} deg/s")
+    return out

@@ -41,12 +41,16 @@ from calib_cli.io.h5 import read_raw
 @click.option("--noise", "noise_spec", metavar="accel=SIGMA,gyro=SIGMA",
               help="Per-sample white noise (SI: m/s^2, rad/s) instead of the estimate from the "
                    "data; one value for all axes of a sensor.")
+@click.option("--table-encoder", "table_encoder", type=click.Choice(["auto", "off", "angle"]),
+              default="auto", show_default=True,
+              help="The table's angle channel as a measurement (zero, once-per-revolution error "
+                   "and clock offset estimated): auto uses it where the log has it.")
 @click.option("--json", "as_json", is_flag=True,
               help="Print the result as JSON (contract section 5) on stdout.")
 @click.option("--plot", type=click.Path(dir_okay=False),
               help="Write the sigma history of the lever arms and proof-mass offsets (PNG).")
 def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis_sigma_mrad,
-                      table_tilt_deg, grade, priors, noise_spec, as_json, plot):
+                      table_tilt_deg, grade, priors, noise_spec, table_encoder, as_json, plot):
     """Accelerometer b, K (lower triangular), gyro d, G, D, lever arms and proof-mass
     offsets from rotation cycles on a single-axis table of imprecise angle and rate."""
     import numpy as np
@@ -78,12 +82,18 @@ def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis
                            tangential=tangential == "on", block_s=block_s,
                            axis_sigma=axis_sigma_mrad * 1e-3,
                            table_tilt_sigma=float(np.radians(table_tilt_deg)),
-                           grade=grade, priors=prior or None, noise=noise)
+                           grade=grade, priors=prior or None, noise=noise,
+                           table_encoder=table_encoder)
     try:
         res = fit_turntable(rec, opt)
     except InputError as exc:
         exc.path = exc.path or raw
         raise
+    clipped = res.stats.get("accel_clipped_samples") or []
+    if any(clipped):
+        info(f"[yellow]warning:[/] {sum(clipped)} accelerometer samples sit at full scale "
+             "(saturated?): the centripetal and tangential terms may exceed the range; the fit "
+             "does not model clipping")
     if res.stats.get("accel_noise_inflation", 1.0) > 1.0:
         info(f"[yellow]the model does not explain the accelerometer data:[/] noise widened "
              f"x{res.stats['accel_noise_inflation']:.1f} (lever arms or proof masses missing?)")

@@ -25,7 +25,7 @@ PLAN_TOP = {"name", "kind", "protocol", "description", "site", "unit", "segment"
             "sim_table_rate_error", "sim_table_wobble_dps", "sim_table_wobble_hz", "sim_grade",
             "sim_proof_mass_sigma_m", "sim_oversample", "sample_kind",
             "sim_table_encoder_counts", "sim_table_encoder_opr_deg",
-            "sim_table_encoder_opr_phase_deg", "sim_table_rate_scale_error"}
+            "sim_table_encoder_opr_phase_deg", "sim_table_rate_scale_error", "generator"}
 PLAN_SITE = {"latitude_deg", "height_m", "g", "longitude_deg", "name", "allow_any_g"}
 PLAN_UNIT = {"serial", "model", "name", "profile", "accel_range_g", "gyro_range_dps"}
 PLAN_RIMU = {"el0_deg", "az0_deg", "profile"}

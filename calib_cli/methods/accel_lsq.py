@@ -113,10 +113,23 @@ def _finish(method, model, packing, fit, base, rec, st, resid, extra_stats) -> C
 # vector method
 
 
-def fit_vector(rec: Recording, segments=None, screen: bool = True) -> CalibrationResult:
-    """``segments``: a subset of the static segments (the gross-error screen's
+def _with_noise(st: StaticStats, noise) -> StaticStats:
+    """The segment statistics with a stated per-sample noise (experiment design,
+    methods/design.py) instead of the one measured in the recording."""
+    if noise is None:
+        return st
+    from dataclasses import replace
+
+    return replace(st, sigma=np.broadcast_to(np.asarray(noise, float), st.sigma.shape).copy())
+
+
+def fit_vector(rec: Recording, segments=None, screen: bool = True, *, noise=None,
+               strict: bool = True) -> CalibrationResult:
+    """noise: per-sample accel sigma to weight with instead of the measured one;
+    strict=False reports unobservable entries instead of failing (plan check).
+    ``segments``: a subset of the static segments (the gross-error screen's
     leave-one-out refits); ``screen``: run that screen (methods/gross.py)."""
-    st = static_stats(rec, "accel", segments)
+    st = _with_noise(static_stats(rec, "accel", segments), noise)
     m = len(st.segments)
     missing = [s.label for s in st.segments if s.attitude is None]
     if missing:
@@ -163,14 +176,14 @@ def fit_vector(rec: Recording, segments=None, screen: bool = True) -> Calibratio
     if sig_att.any():  # the attitude term depends on K: refit once with the estimate
         W = whiteners(packing.unpack(fit.theta, base)["accel_K"])
         fit = lsq.fit(residual_fn(W), fit.theta, _scales(packing, unit), what="vector fit")
-    if fit.unobservable.any():
+    if fit.unobservable.any() and strict:
         raise EstimationError(
             f"the {m} positions do not determine bias and K: the gravity directions must "
             f"span 3-D (at least 4 positions, e.g. +x, +y, +z up and one more, not all in "
             f"one plane)")
     p = packing.unpack(fit.theta, base)
     resid = st.means - model.predict(p, kin, sensors=("accel",))["accel"]
-    if screen:
+    if screen and strict:
         _screen_vector(rec, st, kin, np.linalg.norm(np.einsum("kij,kj->ki", W, resid), axis=1),
                        np.linalg.norm(resid, axis=1))
     return _finish("vector", model, packing, fit, base, rec, st, resid,
@@ -264,9 +277,11 @@ def ellipsoid_start(means: np.ndarray, g: float) -> tuple[np.ndarray, np.ndarray
     return mu, np.eye(3) * r / g
 
 
-def fit_scalar(rec: Recording, start: str = "ellipsoid") -> CalibrationResult:
-    """start: "ellipsoid" (robust, default) or "identity" (b = 0, K = I)."""
-    st = static_stats(rec, "accel")
+def fit_scalar(rec: Recording, start: str = "ellipsoid", *, noise=None,
+               strict: bool = True) -> CalibrationResult:
+    """start: "ellipsoid" (robust, default) or "identity" (b = 0, K = I).
+    noise, strict: as for fit_vector."""
+    st = _with_noise(static_stats(rec, "accel"), noise)
     m = len(st.segments)
     if m < MIN_SCALAR:
         raise EstimationError(f"the scalar method needs >= {MIN_SCALAR} static positions "
@@ -316,7 +331,7 @@ def fit_scalar(rec: Recording, start: str = "ellipsoid") -> CalibrationResult:
         fit = lsq.fit(residual_fn(sigmas(packing.unpack(theta, base))), theta, scales,
                       what="scalar fit")
         p = packing.unpack(fit.theta, base)
-    if fit.unobservable.any():
+    if fit.unobservable.any() and strict:
         raise EstimationError(
             f"the {m} positions do not determine bias and K by the scalar method: "
             "the unit must be placed in many orientations spread over the sphere "
@@ -326,7 +341,8 @@ def fit_scalar(rec: Recording, start: str = "ellipsoid") -> CalibrationResult:
     return _finish("scalar", model, packing, fit, base, rec, st, resid, {"start": start})
 
 
-def fit_accel(rec: Recording, method: str = "auto") -> CalibrationResult:
+def fit_accel(rec: Recording, method: str = "auto", *, noise=None,
+              strict: bool = True) -> CalibrationResult:
     """The contract's ``fit accel``: auto = vector when every static segment
     has an attitude, else scalar."""
     if rec.layout.redundant:
@@ -337,7 +353,7 @@ def fit_accel(rec: Recording, method: str = "auto") -> CalibrationResult:
     if method == "auto":
         method = "vector" if all(s.attitude is not None for s in statics) else "scalar"
     if method == "vector":
-        return fit_vector(rec)
+        return fit_vector(rec, noise=noise, strict=strict)
     if method == "scalar":
-        return fit_scalar(rec)
+        return fit_scalar(rec, noise=noise, strict=strict)
     raise ValueError(f"unknown method {method!r}")

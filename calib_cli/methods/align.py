@@ -360,7 +360,8 @@ def _euler_cov(C1: Rotation, cov_alpha: np.ndarray, unobs_alpha: np.ndarray):
 
 
 def fit_align(rec: Recording, rotation: str = "auto", gyro: str = "auto",
-              gyro_k_prior: float | None = None, turn_sigma: float = 0.0) -> CalibrationResult:
+              gyro_k_prior: float | None = None, turn_sigma: float = 0.0, *,
+              noise: dict | None = None) -> CalibrationResult:
     """Accelerometer and gyro biases and the attitude of position 1 from >= 2
     static positions (docs/align.md).
 
@@ -368,9 +369,14 @@ def fit_align(rec: Recording, rotation: str = "auto", gyro: str = "auto",
     not usable), "ignore" (accelerometer-only results: biases and tilt).
     gyro_k_prior: 1-sigma of each gyro transfer-error entry (scale factor,
     misalignment), dimensionless; None: 30 ppm when the earth rate is usable,
-    3000 ppm otherwise. turn_sigma: rad, for plan-stated turns."""
+    3000 ppm otherwise. turn_sigma: rad, for plan-stated turns. noise: {"accel":
+    sigma, "gyro": sigma} per sample to weight with instead of the measured noise
+    (experiment design, methods/design.py)."""
     site = rec.site
     inp = collect(rec, rotation, turn_sigma)
+    if noise is not None:
+        inp.sig_a = np.broadcast_to(np.asarray(noise["accel"], float), (3,)).copy()
+        inp.sig_w = np.broadcast_to(np.asarray(noise["gyro"], float), (3,)).copy()
     usable, why = earth_rate_usable(inp)
     if gyro == "ignore":
         use_gyro, why = False, "earth rate not used (--gyro ignore)"

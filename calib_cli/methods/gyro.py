@@ -325,12 +325,16 @@ def _observable_D(prob: _Problem) -> bool:
 
 
 def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
-             g_sensitivity: str = "auto", accel_independent: bool = False) -> CalibrationResult:
+             g_sensitivity: str = "auto", accel_independent: bool = False, *,
+             noise: dict | None = None, strict: bool = True) -> CalibrationResult:
     """The contract's ``fit gyro``. accel: the accelerometer calibration (fitted
     here from the same recording when None). g_sensitivity: auto (fit gyro_D
     when the static positions make it observable), on, off. accel_independent:
     the calibration was fitted on other data, so its errors are independent of
-    this recording's noise and are propagated (``_independent_accel``)."""
+    this recording's noise and are propagated (``_independent_accel``).
+    noise: {"accel": sigma, "gyro": sigma} per sample, to weight with instead of
+    the measured noise; strict=False reports unobservable entries instead of
+    failing (both for experiment design, methods/design.py)."""
     if rec.gyro is None:
         raise EstimationError("the recording has no gyro data")
     if rec.layout.redundant:
@@ -339,7 +343,7 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
     if accel is None:
         from calib_cli.methods.accel_lsq import fit_accel
 
-        accel = fit_accel(rec)
+        accel = fit_accel(rec, noise=None if noise is None else noise["accel"], strict=strict)
     if accel.raw_units.get("accel") != rec.units.get("accel"):
         raise EstimationError(f"the accelerometer calibration was fitted on data in "
                               f"{accel.raw_units.get('accel')}, this recording is in "
@@ -349,6 +353,9 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
                               f"directions); the recording has {len(rec.static_segments())}"
                               f"{too_few_hint(rec, 2)}")
     prob = _Problem(rec, accel)
+    if noise is not None:
+        prob.sig_gyro = np.broadcast_to(np.asarray(noise["gyro"], float), (3,)).copy()
+        prob.sig_f = float(np.sqrt(np.mean(np.asarray(noise["accel"], float) ** 2)))
     if prob.n_rot == 0:
         why = "; ".join(f"{a} -> {b}: {r}" for a, b, r in prob.skipped[:3])
         raise EstimationError(
@@ -381,13 +388,13 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
         theta = fit.theta
     unobs_G = [lab for lab, u in zip(packing.labels(), fit.unobservable, strict=False)
                if u and lab[0] != "gyro_D"]
-    if unobs_G:
+    if unobs_G and strict:
         raise EstimationError(
             f"the rotations do not determine {', '.join(f'{k}[{i}]' for k, i in unobs_G[:4])}: "
             f"the experiment needs rotations about all three axes ({len(prob.transitions)} "
             f"transitions, {len(prob.turns)} turns used)")
     if use_D and g_sensitivity == "auto" and fit.unobservable.any():
-        return fit_gyro(rec, accel, "off", accel_independent)
+        return fit_gyro(rec, accel, "off", accel_independent, noise=noise, strict=strict)
     cross = None
     if accel_independent:
         fit, cross = _independent_accel(prob, model, packing, fit, base, sig, scales, accel)

@@ -257,8 +257,12 @@ def fit_sensor(sensor: str, el0: float, az0: float, means, kin, sig_mean):
 # the whole unit
 
 
-def fit_rimu(rec: Recording) -> CalibrationResult:
-    """The contract's ``fit rimu``: every sensor's b, ks, dEl, dAz with covariance."""
+def fit_rimu(rec: Recording, *, noise: dict | None = None,
+             strict: bool = True) -> CalibrationResult:
+    """The contract's ``fit rimu``: every sensor's b, ks, dEl, dAz with covariance.
+    noise: {"accel": sigma (n,), "gyro": sigma (n,)} per sample to weight with
+    instead of the measured noise; strict=False returns even when no parameter
+    is determined (both for experiment design, methods/design.py)."""
     layout = rec.layout
     if not layout.redundant:
         raise EstimationError("this is not a redundant-unit recording (plan kind \"rimu\" "
@@ -280,6 +284,8 @@ def fit_rimu(rec: Recording) -> CalibrationResult:
     any_estimated = False
     for sensor in sensors:
         means, kin, counts, sig = position_means(rec, sensor, segs)
+        if noise is not None:
+            sig = np.broadcast_to(np.asarray(noise[sensor], float), sig.shape).copy()
         if not np.all(np.isfinite(sig)) or np.any(sig <= 0):
             # too few samples for a noise estimate: fall back to the catalogue's noise floor
             sig = np.where(np.isfinite(sig) & (sig > 0), sig, TYPICAL[sensor][0] * 1e-3)
@@ -322,7 +328,7 @@ def fit_rimu(rec: Recording) -> CalibrationResult:
         stats[f"{sensor}_body_error_input"] = mag
         stats[f"{sensor}_body_error_predicted"] = predicted_body_error(
             tmp, lay, sensor, blocks, mag).tolist()
-    if not any_estimated:
+    if not any_estimated and strict:
         raise EstimationError(
             f"the {len(segs)} positions determine none of the sensors' parameters: the inputs "
             "must point in at least two directions per sensor (e.g. the six-position test, "

@@ -77,6 +77,14 @@ class TurntableOptions:
     accel_skip: float = 0.02  # rad/s^2: with tangential off, blocks accelerating faster are skipped
     history_every: float = 2.0
     noise: dict | None = None  # {"accel": (3,), "gyro": (3,)} per-sample sigma; else from data
+    # the table's angle channel as a measurement: "auto" (where the log has it), "angle", "off"
+    table_encoder: str = "auto"
+    encoder_sigma: float | None = None  # rad per reading; else from the channel's quantum
+    encoder_opr_sigma: float = 2e-3  # rad, prior of the once-per-revolution error terms
+    encoder_clock_sigma: float = 0.02  # s, prior of the encoder's clock offset to the IMU
+    # relative scale error of the encoder's angle: an angle encoder's counts per revolution
+    # are exact; a channel that integrates a rate or logs the setpoint fails the check below
+    encoder_scale_sigma: float = 1e-5
     grade: str = "mems"  # the prior widths of GRADES
     priors: dict | None = None  # {contract key: 1-sigma, SI} overriding the grade's
 
@@ -105,6 +113,7 @@ class _Layout:
     est_s: bool
     est_p: bool
     n_axes: int = 0  # table axes whose tilt from the plan's direction is estimated
+    est_enc: bool = False  # the table's angle encoder: a zero per cycle, once-per-rev, clock
     idx: dict = field(default_factory=dict)
     size: int = 0
 
@@ -123,6 +132,11 @@ class _Layout:
             add("p", 6)
         add("u", 2 * self.n_cycles)
         add("t", 2 * self.n_axes)
+        if self.est_enc:
+            add("ez", self.n_cycles)
+            add("eo", 2)
+            add("ec", 1)
+            add("es", 1)
 
     @property
     def gyro(self) -> np.ndarray:
@@ -192,6 +206,7 @@ class _Blocks:
     qbar: np.ndarray  # (nb, 3, 21) block mean of the cumulative sum
     wg: np.ndarray  # (3, nb, 3, 21) mean dR^T [e_c x] cumulative sum
     wabs: np.ndarray  # (nb,) mean |w|
+    w_start: np.ndarray  # (nb, 3) corrected rate at the first sample of each block
     dw_raw: np.ndarray  # (nb, 3) mean angular acceleration (also with the tangential term off)
     m: int  # samples per block
 
@@ -273,7 +288,8 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
     return _Blocks(t=t[:n:block_n], a_mean=A[:n].reshape(nb, block_n, 3).mean(axis=1),
                    r_mean=r_sum / block_n, r_end=R, cen=cen, dw=dwm, q=q,
                    qbar=qbar / block_n, wg=wg / block_n, dw_raw=dw_raw,
-                   wabs=np.linalg.norm(wb, axis=2).mean(axis=1), m=block_n)
+                   wabs=np.linalg.norm(wb, axis=2).mean(axis=1), m=block_n,
+                   w_start=wb[:, 0].copy())
 
 
 def _rot(phi):
@@ -319,6 +335,89 @@ def _select(rec: Recording) -> list[_Cycle]:
     return out
 
 
+@dataclass(frozen=True)
+class _Encoder:
+    """One cycle's encoder readings at the block starts: z (nb,) the angle since the
+    cycle's first reading times the sign, theta (nb,) the raw angle (for the
+    once-per-revolution terms), ok (nb,) usable readings; sign +-1 against the
+    rotation about table_axis_enu."""
+
+    z: np.ndarray
+    theta: np.ndarray
+    ok: np.ndarray
+    sign: float
+
+
+def _encoder_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
+    """The encoder readings per cycle (None where unusable), their 1-sigma (rad), and
+    notes. The sign against the gyros and a gross scale error are checked per cycle by
+    regressing the encoder's angle on the raw gyros' integrated angle: a slope outside
+    +-(1 +- 5 %) drops that cycle's encoder (never trusted blindly)."""
+    mode = opt.table_encoder
+    if mode not in ("auto", "angle", "off"):
+        raise InputError(f"table_encoder must be auto, angle or off, got {mode!r}")
+    ang = rec.table_angle
+    if mode == "off" or ang is None:
+        if mode == "angle":
+            raise InputError("--table-encoder angle: the recording has no table_angle column")
+        return None, 0.0, []
+    out, notes = [], []
+    interval = rec.sample_kind == "interval-mean"
+    steps = []
+    for cy in cycles:
+        th = ang[cy.sl]
+        if not np.all(np.isfinite(th)) or len(th) < 2 * block_n:
+            if mode == "angle":
+                raise InputError(f"--table-encoder angle: rotating segment "
+                                 f"{rec.segments[cy.seg_index].label!r} has no table angle")
+            out.append(None)
+            notes.append(f"{rec.segments[cy.seg_index].label}: no table angle")
+            continue
+        th = np.unwrap(th)
+        dt = np.diff(rec.time[cy.sl], prepend=rec.time[cy.sl][0])
+        gyro_angle = np.cumsum(rec.gyro[cy.sl] @ cy.a_nom * dt)
+        x_, y_ = gyro_angle - gyro_angle[0], th - th[0]
+        slope = float(x_ @ y_ / max(x_ @ x_, 1e-30))
+        if not 0.95 < abs(slope) < 1.05:
+            out.append(None)
+            notes.append(f"{rec.segments[cy.seg_index].label}: encoder angle / gyro angle "
+                         f"= {slope:.3f}, encoder not used")
+            continue
+        sign = float(np.sign(slope))
+        # the readings must follow the gyros over 2 s windows (rate bias and scale fitted
+        # per cycle): a logged setpoint misses the table's wobble and fails here
+        w = max(2, int(round(2.0 / max(float(np.median(np.diff(rec.time[cy.sl]))), 1e-9))))
+        m = (len(th) - 1) // w
+        if m >= 3:
+            d_enc = np.diff(th[: m * w + 1: w])
+            d_gyr = np.diff(gyro_angle[: m * w + 1: w])
+            A = np.column_stack([d_gyr, np.ones(m)])
+            res = d_enc - A @ np.linalg.lstsq(A, d_enc, rcond=None)[0]
+            rms = float(np.sqrt(np.mean(res**2)))
+            if rms > 5e-3:
+                out.append(None)
+                notes.append(f"{rec.segments[cy.seg_index].label}: the table angle does not "
+                             f"follow the gyros ({rms * 1e3:.1f} mrad RMS over 2 s windows), "
+                             "encoder not used")
+                continue
+        n = (len(th) // block_n) * block_n
+        idx = np.arange(0, n, block_n) - (1 if interval else 0)
+        ok = idx >= 0
+        idx = np.clip(idx, 0, len(th) - 1)
+        out.append(_Encoder(z=sign * (th[idx] - th[0]), theta=th[idx], ok=ok, sign=sign))
+        d = np.abs(np.diff(ang[cy.sl]))
+        d = d[d > 1e-12]
+        if len(d):
+            steps.append(float(np.min(d)))
+    if all(e is None for e in out):
+        return None, 0.0, notes
+    # one reading: the quantum's rounding noise (the smallest step the channel makes),
+    # never below 20 urad
+    q = min(steps) if steps else 0.0
+    sig = opt.encoder_sigma if opt.encoder_sigma else max(q / np.sqrt(12.0), 2e-5)
+    return out, float(sig), notes
+
+
 @dataclass
 class _PassOut:
     theta: np.ndarray
@@ -328,10 +427,12 @@ class _PassOut:
     hist_t: list
     hist_s: list
     lowrate: list
+    enc_innov: list = field(default_factory=list)  # normalized encoder innovations
 
 
 def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: TurntableOptions,
-                 sig_a, sig_g, block_n, s_known, record_history: bool, first: bool) -> _PassOut:
+                 sig_a, sig_g, block_n, s_known, record_history: bool, first: bool,
+                 enc: list | None = None, sig_enc: float = 0.0) -> _PassOut:
     par = _unpack(theta_lin, L, cycles)
     par_lin = _unpack(theta_lin, L, cycles)
     if s_known is not None:
@@ -353,7 +454,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         x[3:] = prior_mean - theta_lin
     P = np.zeros((ns, ns))
     P[3:, 3:] = np.diag(prior_sd**2)
-    innov, nis, hist_t, hist_s, lowrate = [], [], [], [], []
+    innov, nis, hist_t, hist_s, lowrate, enc_innov = [], [], [], [], [], []
     hist_idx = []
     if record_history:
         if L.est_s:
@@ -386,6 +487,13 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             fast = np.linalg.norm(b.dw_raw, axis=1) > opt.accel_skip
             skip = fast | np.roll(fast, 1) | np.roll(fast, -1)
         sA = slice(0, 3)
+        ec = enc[c] if enc is not None else None
+        if ec is not None:
+            iez = 3 + L.idx["ez"][c]
+            ieo = 3 + L.idx["eo"]
+            iec = 3 + L.idx["ec"][0]
+            ies = 3 + L.idx["es"][0]
+            R_ref, psi_ref = Rh.copy(), 0.0
         # fixed index maps of the accelerometer rows of H
         rows3, col_ab = np.arange(3), 3 + L.idx["ab"]
         k_rows = np.array([i for i, _j in K_LOWER])
@@ -463,6 +571,33 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             if b.wabs[j] < np.radians(0.5):
                 fcorr = np.linalg.solve(Kc, b.a_mean[j] - cur["ab"])
                 lowrate.append((np.linalg.norm(b.a_mean[j]), np.linalg.norm(fcorr)))
+            if ec is not None and j >= 1 and ec.ok[j]:
+                # the table's encoder: its angle since the cycle start against the filter's
+                # (the attitude about the table axis since the start attitude), with the
+                # encoder's zero, once-per-revolution error and clock offset as states
+                psi_ref += float(cy.a_enu @ Rotation.from_matrix(Rh @ R_ref.T).as_rotvec())
+                R_ref = Rh
+                cur_e = theta_lin + x[3:]
+                omega = float(a_b @ b.w_start[j])
+                th_abs = ec.theta[j]
+                He = np.zeros(ns)
+                He[:3] = cy.a_enu
+                He[iez] = 1.0
+                He[ieo] = [np.cos(th_abs), np.sin(th_abs)]
+                He[iec] = omega
+                He[ies] = psi_ref
+                he = (psi_ref * (1.0 + cur_e[ies - 3]) + cy.a_enu @ x[:3] + cur_e[iez - 3]
+                      + cur_e[ieo[0] - 3] * np.cos(th_abs) + cur_e[ieo[1] - 3] * np.sin(th_abs)
+                      + omega * cur_e[iec - 3])
+                ve = ec.z[j] - he
+                PHe = P @ He
+                Se = He @ PHe + sig_enc**2
+                Ke = PHe / Se
+                x = x + Ke * ve
+                P = P - np.outer(Ke, PHe)
+                P = 0.5 * (P + P.T)
+                if j >= nb // 2:
+                    enc_innov.append(ve / np.sqrt(Se))
             # reset: absorb phi into the attitude
             Rh = _rot(x[:3]) @ Rh
             x[:3] = 0.0
@@ -483,7 +618,8 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 next_hist = b.t[j] + opt.history_every
     if not first:
         x[3:] += P[3:, 3:] @ ((prior_mean - theta_lin) / prior_sd**2)
-    return _PassOut(theta_lin + x[3:], P[3:, 3:], innov, nis, hist_t, hist_s, lowrate)
+    return _PassOut(theta_lin + x[3:], P[3:, 3:], innov, nis, hist_t, hist_s, lowrate,
+                    enc_innov)
 
 
 def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()) -> CalibrationResult:
@@ -508,9 +644,10 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     elif opt.lever_arm == "off":
         s_known = np.zeros((nc, 3))
     n_axes = 1 + max(cy.axis_group for cy in cycles) if opt.table_tilt_sigma > 0 else 0
-    L = _Layout(nc, opt.lever_arm == "estimate", est_p, n_axes)
     fs = rec.sample_rate
     block_n = max(1, int(round(opt.block_s * fs)))
+    enc, sig_enc, enc_notes = _encoder_setup(rec, cycles, block_n, opt)
+    L = _Layout(nc, opt.lever_arm == "estimate", est_p, n_axes, est_enc=enc is not None)
     on = np.concatenate([np.arange(rec.segments[cy.seg_index].start,
                                    rec.segments[cy.seg_index].stop) for cy in cycles])
     if opt.noise is not None:
@@ -547,28 +684,80 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
         sd[L.idx["p"]] = width["proof_mass_offsets"]
     sd[L.idx["u"]] = np.radians(3.0)
     sd[L.idx["t"]] = opt.table_tilt_sigma
+    if L.est_enc:
+        sd[L.idx["ez"]] = 0.1  # the encoder's zero against the coarse start attitude
+        sd[L.idx["eo"]] = opt.encoder_opr_sigma
+        sd[L.idx["ec"]] = opt.encoder_clock_sigma
+        sd[L.idx["es"]] = opt.encoder_scale_sigma
     # a model that does not explain the data (e.g. lever arms ignored) leaves accelerometer
     # residuals far above the noise and can drag the attitude off; the fit then restarts with
     # the measurement noise widened to the residual level (stats.accel_noise_inflation), so
     # the covariance says how little such a fit is worth
     inflation = 1.0
+    enc_inflation = 1.0
     for _attempt in range(6):
         theta = mean.copy()
         for k in range(max(1, opt.passes)):
             out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation, sig_g,
-                               block_n, s_known, record_history=True, first=k == 0)
+                               block_n, s_known, record_history=True, first=k == 0,
+                               enc=enc, sig_enc=sig_enc * enc_inflation)
             if not np.all(np.isfinite(out.theta)):
                 break
             theta = out.theta
         r = float(np.sqrt(np.mean(np.square(out.innov)))) if out.innov else 1.0
+        r_enc = float(np.sqrt(np.mean(np.square(out.enc_innov)))) if out.enc_innov else 1.0
+        if enc is not None and not (r_enc < 1.5 and r < 1.3):
+            # readings the model does not explain (a scale error of a setpoint log, a slipping
+            # coupling), or accelerometers that disagree with them: the encoder is dropped and
+            # the fit rerun from the IMU alone (it is never trusted blindly)
+            enc_notes.append(f"encoder not used: normalized innovation RMS {r_enc:.1f} "
+                             f"(encoder), {r:.2f} (accelerometers) with it")
+            enc = None
+            continue
         if np.all(np.isfinite(out.theta)) and r < 1.3:
             break
         # widen step by step (a diverged attempt's residuals overstate the mismatch)
         inflation *= min(max(r, 2.0), 10.0) if np.isfinite(r) else 10.0
     if not np.all(np.isfinite(out.theta)):
         raise EstimationError("the turntable filter diverged")
-    return _result(rec, cycles, L, out, opt, s_known, sig_a * inflation, sig_g, block_n,
-                   inflation, sd, width)
+    res = _result(rec, cycles, L, out, opt, s_known, sig_a * inflation, sig_g, block_n,
+                  inflation, sd, width)
+    res.stats["accel_clipped_samples"] = _clipped(rec, cycles)
+    res.stats["table_encoder"] = _encoder_stats(enc, L, out, sig_enc * enc_inflation,
+                                                enc_inflation, enc_notes)
+    return res
+
+
+def _clipped(rec: Recording, cycles) -> list[int]:
+    """Per accelerometer axis, samples of the cycles that sit exactly at the axis's extreme
+    value: a saturated sensor repeats its full-scale reading, noise never does (the
+    centripetal and tangential terms at a large lever arm can exceed the range)."""
+    A = np.concatenate([rec.accel[cy.sl] for cy in cycles])
+    out = []
+    for i in range(A.shape[1]):
+        col = A[:, i]
+        n = int(np.sum(col == col.max())) + int(np.sum(col == col.min()))
+        out.append(n if n > 10 else 0)
+    return out
+
+
+def _encoder_stats(enc, L, out, sig_enc, inflation, notes) -> dict:
+    """What the encoder contributed (stats.table_encoder): mode, cycles used, the estimated
+    once-per-revolution amplitude and clock offset with sigma, the reading noise used."""
+    if enc is None:
+        return {"mode": "off", "notes": notes}
+    P = out.P
+    eo = out.theta[L.idx["eo"]]
+    ec = float(out.theta[L.idx["ec"][0]])
+    return {"mode": "angle", "cycles_used": [e is not None for e in enc],
+            "sign": [None if e is None else e.sign for e in enc],
+            "once_per_rev_mrad": [float(v) * 1e3 for v in eo],
+            "once_per_rev_sigma_mrad": [float(np.sqrt(P[i, i])) * 1e3 for i in L.idx["eo"]],
+            "clock_offset_ms": ec * 1e3,
+            "clock_offset_sigma_ms": float(np.sqrt(P[L.idx["ec"][0], L.idx["ec"][0]])) * 1e3,
+            "reading_sigma_urad": sig_enc * 1e6, "noise_inflation": float(inflation),
+            "normalized_innovation_rms": float(np.sqrt(np.mean(np.square(out.enc_innov))))
+            if out.enc_innov else None, "notes": notes}
 
 
 def _tilts(cycles, L, par, P, prior: float) -> list:

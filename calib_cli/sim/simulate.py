@@ -28,18 +28,18 @@ being a random navigation-grade unit, docs/align.md; "mems" for the MEMS default
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from scipy.spatial.transform import Rotation
-
-from dataclasses import replace
 
 from calib_cli.data import SAMPLE_KINDS, Recording, Segment
 from calib_cli.errors import InputError
 from calib_cli.io.plan import Plan, PlanSegment
 from calib_cli.model import kinematics as kn
-from calib_cli.sim import rate_profiles as rp
 from calib_cli.model.effects import Layout
 from calib_cli.model.frames import attitude_to_rotation, axis_angle, rotation_to_attitude
+from calib_cli.sim import rate_profiles as rp
 from calib_cli.sim.truth import Truth, default_truth
 
 D2R = np.pi / 180.0
@@ -135,6 +135,25 @@ def _table_errors(plan: Plan, tau, theta, rate, accel, rng):
         th = theta[0] + k * (theta - theta[0]) + np.concatenate(
             [[0.0], np.cumsum(((rt - k * rate)[1:] + (rt - k * rate)[:-1]) / 2 * np.diff(tau))])
     return th, rt, ac
+
+
+def _table_channels(plan: Plan, th, rt, theta, rate, rng):
+    """What the table logs in its angle and rate columns. By default the nominal
+    profile (a controller reporting what it was told). With an encoder
+    (``sim_table_encoder_counts``, counts per revolution): the true angle with a
+    once-per-revolution error ``sim_table_encoder_opr_deg`` (amplitude) at phase
+    ``sim_table_encoder_opr_phase_deg`` (default 30; a property of the encoder disk, the
+    same in every cycle), quantised to the counts, and a rate channel that is the true
+    rate times (1 + ``sim_table_rate_scale_error``)."""
+    counts = plan.extra.get("sim_table_encoder_counts")
+    if counts is None:
+        return theta, rate
+    q = 2 * np.pi / float(counts)
+    opr = float(plan.extra.get("sim_table_encoder_opr_deg", 0.0)) * D2R
+    phase = float(plan.extra.get("sim_table_encoder_opr_phase_deg", 30.0)) * D2R
+    ang = th + opr * np.cos(th + phase)
+    ang = np.round(ang / q) * q
+    return ang, rt * (1.0 + float(plan.extra.get("sim_table_rate_scale_error", 0.0)))
 
 
 def _temperature(plan: Plan, t: np.ndarray):
@@ -288,7 +307,8 @@ def _timeline(plan: Plan, fs: float, rng):
             th, rt, ac = _table_errors(plan, t - t_next, theta, rate, acc, rng)
             axis = np.asarray(seg.extra.get("sim_table_axis_enu", seg.table_axis_enu), float)
             kin = kn.table_kinematics(t, axis, th, rt, ac, start, site)
-            add(kin, index, cycle, theta, rate)  # the table's own (nominal) angle and rate
+            angle_ch, rate_ch = _table_channels(plan, th, rt, theta, rate, rng)
+            add(kin, index, cycle, angle_ch, rate_ch)
             current = axis_angle(axis, th[-1] - th[0]) * start
             cycle += 1
         prev_was_turn = kind == "turn"

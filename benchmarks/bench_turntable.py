@@ -1,9 +1,10 @@
 """Benchmark `calib fit turntable`: seconds of fit per hour of data at 100 Hz and 1 kHz.
 
-    python -m calib_cli.bench_turntable [--seconds 200]
+    python -m benchmarks.bench_turntable [--seconds 200]
 
-Simulates three standard cycles (each ``--seconds`` long, lever arms
-estimated, proof masses off, the default two passes) and times the fit. The
+Simulates three standard cycles (each ``--seconds`` long, lever arms and proof
+masses estimated, the default two passes) and times the fit, IMU only and with
+the table's encoder channel (a 2^16-count encoder in the simulated log). The
 baseline, measured in the same run, is one integration of the gyros over the
 same samples with SciPy's Rotation (the least any attitude-propagating method
 must do), so the ratio stays comparable on a slower or busier machine. Also
@@ -23,15 +24,16 @@ def _case(seconds: float, rate: float, seed: int = 0):
     from calib_cli.sim.simulate import simulate
     from calib_cli.sim.turntable_plans import turntable_plan_text
 
-    plan = parse_plan(turntable_plan_text(seed, duration_s=seconds, sample_rate_hz=rate))
-    return simulate(plan, None, seed)
+    text = ("sim_table_encoder_counts = 65536\nsim_table_encoder_opr_deg = 0.05\n"
+            + turntable_plan_text(seed, duration_s=seconds, sample_rate_hz=rate))
+    return simulate(parse_plan(text), None, seed)
 
 
-def _time_fit(rec) -> float:
+def _time_fit(rec, encoder: str = "off") -> float:
     from calib_cli.methods.turntable import TurntableOptions, fit_turntable
 
     t0 = time.perf_counter()
-    fit_turntable(rec, TurntableOptions())
+    fit_turntable(rec, TurntableOptions(table_encoder=encoder))
     return time.perf_counter() - t0
 
 
@@ -53,14 +55,17 @@ def main(argv=None) -> None:
         secs = args.seconds if rate == 100.0 else args.seconds / 4
         rec = _case(secs, rate)
         hours = 3 * secs / 3600.0
-        fit = _time_fit(rec) / hours
         base = _time_baseline(rec) / hours
-        print(f"{f'fit turntable, s per hour of {rate:g} Hz data':60s} {fit:12.4g} {base:12.4g} "
-              f"{fit / base:8.3g}")
+        for enc in ("off", "angle"):
+            fit = _time_fit(rec, enc) / hours
+            name = f"fit turntable ({'encoder' if enc == 'angle' else 'IMU only'}), s per hour at {rate:g} Hz"
+            print(f"{name:60s} {fit:12.4g} {base:12.4g} {fit / base:8.3g}")
     rec = _case(600.0, 100.0)
-    t = _time_fit(rec)
     base = _time_baseline(rec)
-    print(f"{'fit turntable, 3 x 600 s at 100 Hz (s)':60s} {t:12.4g} {base:12.4g} {t / base:8.3g}")
+    for enc in ("off", "angle"):
+        t = _time_fit(rec, enc)
+        name = f"fit turntable ({'encoder' if enc == 'angle' else 'IMU only'}), 3 x 600 s at 100 Hz (s)"
+        print(f"{name:60s} {t:12.4g} {base:12.4g} {t / base:8.3g}")
 
 
 if __name__ == "__main__":
