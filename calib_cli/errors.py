@@ -45,3 +45,11 @@ class FaultDetected(CalibError):
     """A sensor fault was detected (exit 6)."""
 
     exit_code = 6
+
+
+class OutputError(CalibError):
+    """An output that must not or cannot be written: it is an input of the same
+    command, its directory is missing, no permission (exit 2, like a usage
+    error, raised before anything is written)."""
+
+    exit_code = 2

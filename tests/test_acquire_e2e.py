@@ -281,8 +281,10 @@ def test_sigkill_mid_segment_then_recover(tmp_path):
 
 def test_ctrl_c_keeps_valid_file_and_exits_130(tmp_path):
     plan_path = tmp_path / "plan.toml"
-    # positions long enough that the signal lands mid-plan even on a loaded machine
-    plan_path.write_text(plan12(duration=5.0, n=3))
+    # positions so long that the signal lands mid-plan however loaded the machine is
+    # (the signal is sent as soon as 100 rows are in; the plan would take 10 minutes)
+    plan_path.write_text(plan12(duration=200.0, n=3).replace("duration_s = 200.0",
+                                                             "duration_s = 1.0", 1))
     plan = parse_plan(plan_path.read_text())
     em = Emulator(load_imu_profile("generic-bin6"), table_profile(), site=plan.site, rate=1000,
                   link_dir=str(tmp_path)).start()

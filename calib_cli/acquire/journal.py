@@ -31,7 +31,14 @@ META_COLS = ("time", "seq", "segment")
 class JournalWriter:
     def __init__(self, path: str, header: dict, flush_interval: float = 0.5):
         self.path = path
-        self.fh = open(path, "wb")
+        try:  # never truncate an existing journal (a killed recording's data)
+            self.fh = open(path, "xb")
+        except FileExistsError:
+            raise InputError(f"a journal exists (an earlier recording?): recover it with "
+                             f"`calib recover {path} --out FILE.h5`, or pass --force to set "
+                             "it aside", path) from None
+        except OSError as exc:
+            raise InputError(f"cannot create the journal: {exc.strerror}", path) from None
         blob = json.dumps(header).encode()
         self.fh.write(MAGIC + _U32.pack(len(blob)) + blob)
         self.flush_interval = flush_interval
@@ -74,9 +81,49 @@ class JournalWriter:
         self.fh.close()
 
 
+def _valid_at(data: bytes, pos: int, ncols: int):
+    """The end of a whole record with a good CRC starting at ``pos``, or None."""
+    if pos + _HDR.size > len(data):
+        return None
+    kind, ln = _HDR.unpack_from(data, pos)
+    if kind not in (b"S", b"C"):
+        return None
+    end = pos + _HDR.size + ln + 4
+    if end > len(data):
+        return None
+    payload = data[pos + _HDR.size:pos + _HDR.size + ln]
+    if kind == b"S":
+        if ln < 8:
+            return None
+        k, c = struct.unpack_from("<II", payload)
+        if c != ncols or 8 + 8 * k * c != ln:
+            return None
+    if zlib.crc32(payload) != _U32.unpack_from(data, end - 4)[0]:
+        return None
+    return end
+
+
+def _resync(data: bytes, pos: int, ncols: int):
+    """The start of the next valid record after a damaged one, or None."""
+    q = pos + 1
+    while q < len(data):
+        nxt = [i for i in (data.find(b"S", q), data.find(b"C", q)) if i >= 0]
+        if not nxt:
+            return None
+        q = min(nxt)
+        if _valid_at(data, q, ncols) is not None:
+            return q
+        q += 1
+    return None
+
+
 def read_journal(path: str) -> tuple[dict, np.ndarray, dict, bool]:
-    """(header, rows, last counters, complete) from a journal; ``complete`` is
-    False when the file ends in a cut or damaged record (a killed recorder)."""
+    """(header, rows, last counters, complete) from a journal. ``complete`` is
+    True only when the recorder closed it (its last record is the closing
+    counters, which carry ``plan_finished``) and nothing in it is damaged. A
+    damaged record is skipped and reading resynchronises on the next valid
+    one; the counters then hold ``journal_records_skipped`` and
+    ``journal_bytes_skipped``."""
     p = str(path)
     try:
         data = open(p, "rb").read()
@@ -93,28 +140,47 @@ def read_journal(path: str) -> tuple[dict, np.ndarray, dict, bool]:
     except ValueError:
         raise InputError("journal header is damaged", p) from None
     pos += n
-    parts, counters, complete = [], {}, True
+    parts, counters, damaged = [], {}, False
+    closed = False
+    skipped = skipped_bytes = 0
+    if not isinstance(header, dict) or not isinstance(header.get("channels", []), list):
+        raise InputError("journal header is damaged", p)
     ncols = len(META_COLS) + len(header.get("channels", []))
     while pos < len(data):
-        if pos + _HDR.size > len(data):
-            complete = False
-            break
+        end = _valid_at(data, pos, ncols)
+        if end is None:
+            damaged = True
+            nxt = _resync(data, pos, ncols)
+            if nxt is None:  # a cut tail (killed recorder) or damage to the end
+                if pos + _HDR.size <= len(data) and data[pos:pos + 1] in (b"S", b"C") and \
+                        pos + _HDR.size + _HDR.unpack_from(data, pos)[1] + 4 > len(data):
+                    break  # the last record was cut short: not counted as damage
+                skipped += 1
+                skipped_bytes += len(data) - pos
+                break
+            skipped += 1
+            skipped_bytes += nxt - pos
+            pos = nxt
+            continue
         kind, ln = _HDR.unpack_from(data, pos)
-        end = pos + _HDR.size + ln + 4
-        if end > len(data):
-            complete = False
-            break
         payload = data[pos + _HDR.size:pos + _HDR.size + ln]
-        if zlib.crc32(payload) != _U32.unpack_from(data, end - 4)[0]:
-            complete = False
-            break
         if kind == b"S":
             k, c = struct.unpack_from("<II", payload)
-            if c != ncols:
-                raise InputError(f"journal record has {c} columns, header says {ncols}", p)
             parts.append(np.frombuffer(payload, "<f8", k * c, 8).reshape(k, c))
-        elif kind == b"C":
-            counters = json.loads(payload)
+            closed = False
+        else:
+            try:
+                counters = json.loads(payload)
+            except ValueError:
+                counters = {}
+            closed = isinstance(counters, dict) and "plan_finished" in counters
         pos = end
+    complete = closed and not damaged
+    if not isinstance(counters, dict):
+        counters = {}
+    counters = dict(counters)
+    if skipped:
+        counters["journal_records_skipped"] = skipped
+        counters["journal_bytes_skipped"] = skipped_bytes
     rows = np.concatenate(parts) if parts else np.empty((0, ncols))
     return header, rows, counters, complete

@@ -231,10 +231,25 @@ def _channels(fields, path) -> tuple[str, ...]:
 
 
 def parse_imu_profile(text: str, path: str = "<profile>") -> ImuProfile:
+    """Parse and validate an IMU profile (strict keys and values: io/schema.py)."""
+    from calib_cli.io import schema
+
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         _fail(f"not valid TOML: {exc}", path)
+    except RecursionError:
+        _fail("not valid TOML: nested too deeply", path)
+    schema.check_profile_keys(raw, schema.IMU_PROFILE, path)
+    try:
+        prof = _parse_imu_profile(raw, text, path)
+    except (TypeError, ValueError, AttributeError, KeyError, OverflowError) as exc:
+        raise InputError(f"malformed profile: {type(exc).__name__}: {exc}", path) from None
+    schema.check_imu_profile_values(raw, prof, path)
+    return prof
+
+
+def _parse_imu_profile(raw: dict, text: str, path: str) -> ImuProfile:
     fmt = raw.get("format")
     if fmt not in ("binary", "ascii", "can"):
         _fail(f"format must be binary, ascii or can, got {fmt!r}", path)
@@ -367,9 +382,22 @@ def resolve_profile(name: str, kind: str) -> str:
     return str(PROFILE_DIR / kind / f"{name}.toml")
 
 
+def _read_named(name: str, p: str, kind: str) -> str:
+    """The profile text; an unknown shipped name lists the shipped profiles."""
+    try:
+        return _read(p)
+    except InputError as exc:
+        if exc.message == "no such file" and str(p) != str(name):
+            shipped = sorted(x.stem for x in (PROFILE_DIR / kind).glob("*.toml"))
+            raise InputError(f"no {kind} profile named {name!r}; shipped: "
+                             f"{', '.join(shipped) or 'none'} (or give a .toml path)",
+                             name) from None
+        raise
+
+
 def load_imu_profile(path) -> ImuProfile:
     p = resolve_profile(str(path), "imu")
-    return parse_imu_profile(_read(p), p)
+    return parse_imu_profile(_read_named(str(path), p, "imu"), p)
 
 
 # ---------------------------------------------------------------------------
@@ -406,10 +434,27 @@ def _template_axes(tpl: str) -> tuple[str, ...]:
 
 
 def parse_table_profile(text: str, path: str = "<table>") -> TableProfile:
+    """Parse and validate a turntable profile (strict keys, templates: io/schema.py)."""
+    from calib_cli.io import schema
+
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         _fail(f"not valid TOML: {exc}", path)
+    except RecursionError:
+        _fail("not valid TOML: nested too deeply", path)
+    schema.check_profile_keys(raw, schema.TABLE_PROFILE, path)
+    if isinstance(raw.get("commands"), dict):
+        schema.check_table_templates(raw["commands"], path)
+    if "transport" in raw:
+        schema.check_transport(raw["transport"], path)
+    try:
+        return _parse_table_profile(raw, text, path)
+    except (TypeError, ValueError, AttributeError, KeyError, OverflowError) as exc:
+        raise InputError(f"malformed profile: {type(exc).__name__}: {exc}", path) from None
+
+
+def _parse_table_profile(raw: dict, text: str, path: str) -> TableProfile:
     kind = raw.get("kind", "serial")
     if kind not in ("serial", "manual"):
         _fail(f"kind must be serial or manual, got {kind!r}", path)
@@ -450,4 +495,4 @@ def load_table_profile(path) -> TableProfile:
     if str(path) == "manual":
         return TableProfile(name="manual", path="manual", kind="manual")
     p = resolve_profile(str(path), "turntable")
-    return parse_table_profile(_read(p), p)
+    return parse_table_profile(_read_named(str(path), p, "turntable"), p)

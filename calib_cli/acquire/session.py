@@ -94,6 +94,11 @@ class Session:
         self.finished = False
         self.rate_meas = 0.0
         self._rate_hist: list[tuple[float, int]] = []
+        # guard rails (issue 15); the CLI sets them, library users may
+        self.source = "the device"  # named in the no-data message
+        self.no_data_s: float | None = None  # no valid frame this long after start: stop
+        self.gravity_tol_deg: float | None = None  # position check against attitude_deg
+        self._t_open: float | None = None
 
     # -- reader thread -------------------------------------------------------
     def _read_loop(self) -> None:
@@ -137,6 +142,13 @@ class Session:
                              or getattr(self.transport, "channel", None))
         with self._lock:
             batch, self._queue = self._queue, []
+        if not batch and self.n_rows == 0 and self.no_data_s and self._t_open is not None \
+                and time.monotonic() - self._t_open > self.no_data_s:
+            raise InputError(
+                f"no valid frame from {self.source} in {self.no_data_s:g} s "
+                f"({int(self.decoder.garbage_bytes)} bytes not understood): check the port, "
+                "the baud rate or CAN channel, that the unit is powered and streaming, and "
+                f"that the profile {self.prof.name!r} matches its output", None)
         if not batch:
             self._tick()
             return np.empty((0, 2 + self.nch))
@@ -193,6 +205,18 @@ class Session:
         return bool(np.all(a.std(axis=0) < self.cfg.accel_std)
                     and np.all(g.std(axis=0) < self.cfg.gyro_std))
 
+    def _measured_std(self) -> tuple[float, float]:
+        """The largest accel and gyro channel std over the last stillness window."""
+        if not self.recent:
+            return float("nan"), float("nan")
+        rows = np.concatenate(self.recent)
+        rows = rows[rows[:, 0] >= rows[-1, 0] - self.cfg.window_s]
+        n = self.nsens
+        if len(rows) < 2:
+            return float("nan"), float("nan")
+        return (float(rows[:, 2:2 + n].std(axis=0).max()),
+                float(rows[:, 2 + n:2 + 2 * n].std(axis=0).max()))
+
     def _last_time(self) -> float:
         return self.recent[-1][-1, 0] if self.recent else -np.inf
 
@@ -217,9 +241,13 @@ class Session:
         while not self._still(since):
             self.pump()
             if time.monotonic() > t_end:
-                raise InputError(f"the unit did not keep still within {self.cfg.timeout_s:g} s "
-                                 f"(accel std < {self.cfg.accel_std} m/s^2, gyro std < "
-                                 f"{self.cfg.gyro_std} rad/s over {self.cfg.window_s} s)")
+                a_std, g_std = self._measured_std()
+                raise InputError(
+                    f"the unit did not keep still within {self.cfg.timeout_s:g} s: measured "
+                    f"std accel {a_std:.4g} m/s^2 (limit {self.cfg.accel_std:g}, "
+                    f"--accel-still), gyro {g_std:.4g} rad/s (limit {self.cfg.gyro_std:g}, "
+                    f"--gyro-still) over {self.cfg.window_s:g} s; if the unit was still, its "
+                    "noise is above the limits: raise them (or state [noise] in the profile)")
 
     def record_segment(self, index: int, duration: float | None, schedule=None) -> None:
         """Tag the next ``duration`` seconds of samples with plan index ``index``
@@ -238,6 +266,7 @@ class Session:
     # -- the plan ----------------------------------------------------------
     def start(self) -> None:
         self.transport.open()
+        self._t_open = time.monotonic()
         self._reader = threading.Thread(target=self._read_loop, daemon=True)
         self._reader.start()
 
@@ -265,6 +294,7 @@ class Session:
                 table.move(None, seg.label)
             if kind == "static":
                 self.wait_settled()
+                self._check_gravity(seg, table, manual)
                 self.record_segment(i, dur)
             elif kind == "rotating":
                 if table is None or manual:
@@ -299,6 +329,41 @@ class Session:
                 self.seg_index = -1
         self.finished = True
 
+    def measured_gravity_angle(self, seg) -> float | None:
+        """Angle (deg) between the gravity direction measured over the stillness
+        window and the one ``seg.attitude`` implies (a triad only)."""
+        if seg.attitude is None or self.nsens != 3 or not self.recent:
+            return None
+        from calib_cli.model.frames import attitude_to_rotation
+
+        rows = np.concatenate(self.recent)
+        rows = rows[rows[:, 0] >= rows[-1, 0] - self.cfg.window_s]
+        a = rows[:, 2:5].mean(axis=0)
+        if not np.all(np.isfinite(a)) or np.linalg.norm(a) == 0:
+            return None
+        up = attitude_to_rotation(np.asarray(seg.attitude)).inv().apply([0.0, 0.0, 1.0])
+        c = float(np.dot(a, up) / np.linalg.norm(a))
+        return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+    def _check_gravity(self, seg, table, manual: bool) -> None:
+        """Refuse a position whose gravity direction is not the planned one:
+        ask the operator again (manual), or stop (a motorised table)."""
+        if not self.gravity_tol_deg:
+            return
+        while True:
+            ang = self.measured_gravity_angle(seg)
+            if ang is None or ang <= self.gravity_tol_deg:
+                return
+            self.rejected_positions = getattr(self, "rejected_positions", 0) + 1
+            if not manual:
+                raise InputError(f"position {seg.label!r}: the unit measures gravity {ang:.0f} "
+                                 f"deg away from the direction its attitude_deg states (limit "
+                                 f"{self.gravity_tol_deg:g} deg): check the table's mounting "
+                                 "and axes, or the plan", self.plan.path)
+            table.ask(f"[{seg.label}] the unit reads gravity {ang:.0f} deg away from this "
+                      "position: place it as asked, hold it still, then press Enter")
+            self.wait_settled()
+
     def run_free(self, duration: float | None) -> None:
         self.current_label = "log"
         self.record_segment(0, duration)
@@ -323,6 +388,14 @@ class Session:
 def journal_to_recording(path: str) -> Recording:
     """A Recording from a journal (complete, or cut by a killed recorder)."""
     header, rows, counters, complete = read_journal(path)
+    # rows a damaged journal cannot vouch for: non-finite values, time going back
+    n0 = len(rows)
+    rows = rows[np.all(np.isfinite(rows), axis=1)]
+    if len(rows):
+        keep = np.ones(len(rows), bool)
+        keep[1:] = rows[1:, 0] >= np.maximum.accumulate(rows[:, 0])[:-1]
+        rows = rows[keep]
+    dropped = n0 - len(rows)
     if not len(rows):
         raise InputError("the journal holds no samples", str(path))
     plan = parse_plan(header.get("plan_text", ""), header.get("plan_path", str(path)))
@@ -345,9 +418,12 @@ def journal_to_recording(path: str) -> Recording:
             if s.kind == "rotating" and s.table_rate is not None:
                 table_rate[s.slice] = s.table_rate
                 table_angle[s.slice] = s.table_rate * (t[s.slice] - t[s.start])
-    counters = {k: int(v) for k, v in counters.items()}
+    counters = {k: int(v) for k, v in counters.items()
+                if isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)}
     counters["journal_complete"] = int(complete)
     counters["samples"] = len(rows)
+    if dropped:
+        counters["journal_rows_dropped"] = dropped
     return Recording(time=t, accel=data[:, :n], gyro=data[:, n:2 * n],
                      table_angle=table_angle, table_rate=table_rate,
                      segments=tuple(segments), site=plan.site, plan_kind=plan.kind,

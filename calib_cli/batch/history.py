@@ -65,7 +65,15 @@ def scan(directory, serial: str | None = None) -> list[CalEntry]:
                 continue  # not HDF5: not ours
             if serial is not None and ser != serial:
                 continue
-            c = read_calibration(p)
+            try:
+                c = read_calibration(p)
+            except InputError as exc:  # one damaged file must not fail every unit's check
+                from calib_cli.cli.common import Ctx, err_console
+
+                if not Ctx.quiet:
+                    err_console.print(f"calib: warning: skipped {exc.line()}", markup=False,
+                                      soft_wrap=True)
+                continue
             out.append(CalEntry(str(p), p.relative_to(root).as_posix(), ser, c.method, rec, cre,
                                 c.params, c.sigma, c.units))
     return sorted(out, key=lambda e: e.order)

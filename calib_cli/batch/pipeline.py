@@ -111,6 +111,11 @@ def parse_pipeline(text: str, path: str = "<pipeline>") -> Pipeline:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"not valid TOML: {exc}", path) from None
+    except RecursionError:
+        raise InputError("not valid TOML: nested too deeply", path) from None
+    from calib_cli.io.schema import strict_keys
+
+    strict_keys(raw, {"name", "glob", "step", "description"}, path)
     globs = raw.get("glob", list(DEFAULT_GLOB))
     if isinstance(globs, str):
         globs = [globs]
@@ -135,9 +140,9 @@ def parse_pipeline(text: str, path: str = "<pipeline>") -> Pipeline:
         method = e.get("method")
         if method is not None and not isinstance(method, str):
             raise InputError(f"{where}: method must be a string", path)
-        opts = dict(e.get("options", {}))
         if not isinstance(e.get("options", {}), dict):
             raise InputError(f"{where}: options must be a table", path)
+        opts = dict(e.get("options", {}))
         # options may also be written directly in the step table
         opts.update({k: v for k, v in e.items() if k not in ("step", "method", "options",
                                                              "output")})

@@ -178,6 +178,9 @@ def run_chain(task: dict) -> dict:
                 recorded = _attr_of(art["raw"], "recorded_utc") if "raw" in art else None
                 if recorded:  # when the recording was made: orders the unit's history
                     stamp["recorded_utc"] = recorded
+                from calib_cli.io.outpath import check_output
+
+                check_output(out, [src, *inputs.values(), *files])
                 with atomic_path(out) as tmp:
                     run = StepRun(inputs=inputs, out=tmp, options=opts, source=src, stamp=stamp)
                     if d.name == "fit":

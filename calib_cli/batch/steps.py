@@ -28,6 +28,10 @@ def fit_step(run: StepRun, fn) -> None:
     rec = read_raw(run.inputs["raw"])
     extra = {f"{k}_path": v for k, v in run.inputs.items() if k not in ("raw", "source")}
     res = fn(rec, **run.options, **extra)
+    from calib_cli.methods.gross import check_result, screen_fit
+
+    screen_fit(res, rec, lambda r: fn(r, **run.options, **extra))
+    check_result(res, rec)  # an impossible calibration is exit 4, not "done"
     write_calibration(run.out, res, [run.inputs["raw"], *extra.values()])
 
 

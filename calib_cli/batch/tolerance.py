@@ -49,11 +49,20 @@ def load_tolerances(path) -> dict[str, ParamTolerance]:
         raise InputError(f"not valid TOML: {exc}", p) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"cannot read: {exc}", p) from None
+    except RecursionError:
+        raise InputError("not valid TOML: nested too deeply", p) from None
+    from calib_cli.io.schema import closest, known_param_keys, param_shape, strict_keys
+
+    strict_keys(raw, {"param"}, p)
+    known = known_param_keys()
     table = raw.get("param")
     if not isinstance(table, dict) or not table:
         raise InputError("no [param.NAME] tables", p)
     out = {}
     for key, spec in table.items():
+        if key not in known:  # a typo would silently disable the gate
+            raise InputError(f"[param.{key}]: no method reports a parameter {key!r}; did you "
+                             f"mean {closest(key, known)}?", p)
         if not isinstance(spec, dict):
             raise InputError(f"param.{key} must be a table", p)
         lo = hi = change = None
@@ -76,6 +85,18 @@ def load_tolerances(path) -> dict[str, ParamTolerance]:
             else:
                 raise InputError(f"{where}: unknown key (min, max, max_change_sigma, with an "
                                  "optional unit suffix on min/max)", p)
+        shape = param_shape(key)
+        for b, word in ((lo, "min"), (hi, "max")):
+            if b is not None and shape is not None and b.ndim and b.shape != shape:
+                raise InputError(f"param.{key}.{word} has shape {b.shape}, the parameter "
+                                 f"{shape}", p)
+        if lo is not None and hi is not None:
+            try:
+                inverted = np.any(np.asarray(lo > hi))
+            except ValueError:
+                raise InputError(f"param.{key}: min and max have different shapes", p) from None
+            if inverted:
+                raise InputError(f"param.{key}: min is above max", p)
         out[key] = ParamTolerance(key, lo, hi, change)
     return out
 

@@ -66,4 +66,4 @@ def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_
              "estimated, accelerometer biases and tilt only")
     if res.stats.get("observability"):
         info(res.stats["observability"])
-    save(res, raw, out)
+    save(res, raw, out, rec=rec)

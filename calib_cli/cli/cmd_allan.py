@@ -84,6 +84,9 @@ def compute_allan(raw, segment=None, targets=(), stride_div=A.STRIDE_DIV) -> A.A
         if "samples" not in h5 or "time" not in h5["samples"]:
             raise InputError("missing field /samples/time", raw)
         smp = h5["samples"]
+        from calib_cli.io import validate
+
+        validate.check_samples_layout(smp, raw)  # issue 15: shapes before use
         start, stop, label = _span(h5, raw, segment)
         n = stop - start
         sensors = [s for s in ("accel", "gyro") if s in smp]
@@ -115,7 +118,9 @@ def compute_allan(raw, segment=None, targets=(), stride_div=A.STRIDE_DIV) -> A.A
                     raise InputError(f"irregular sampling at t = {tt[bad[0]]:.6g} s (step "
                                      f"{dt[bad[0]]:.3g} s, nominal {tau0:.3g} s): the Allan "
                                      "deviation needs an evenly sampled record without gaps", raw)
-                yield np.column_stack([np.asarray(smp[s][a:b], dtype=float) for s in sensors])
+                block = np.column_stack([np.asarray(smp[s][a:b], dtype=float) for s in sensors])
+                validate.check_finite(block, raw, "/samples/" + "+".join(sensors), a)
+                yield block
 
         feed = chunks()
         if interactive() and n > 8 * CHUNK:  # long records: a progress bar on a terminal

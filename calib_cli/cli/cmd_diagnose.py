@@ -70,9 +70,11 @@ def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir):
     write_diagnosis(out, j, {"time": pb.bin_t, "segment": pb.bin_seg, "count": pb.counts},
                     residuals, d.noise_sigma, [raw], rec.serial)
     if report_dir:
+        from calib_cli.io.outpath import atomic_dir
         from calib_cli.report.diagnose_report import write_report
 
-        write_report(d, report_dir, source=str(raw))
+        with atomic_dir(report_dir) as tmp:
+            write_report(d, tmp, source=str(raw))
         info(f"report -> {report_dir}")
     if as_json:
         print_json(j)

@@ -27,11 +27,12 @@ from calib_cli.cli.main import cli
 @click.option("--attitude-deg", nargs=3, type=float, default=(0.0, 0.0, 0.0),
               help="Initial attitude: roll pitch yaw.")
 @click.option("--speed-dps", type=float, help="Slew speed of the virtual table.")
-@click.option("--corrupt", default=0.0, type=float, help="Fraction of frames with a bad byte.")
+@click.option("--corrupt", default=0.0, type=click.FloatRange(0, 1),
+              help="Fraction of frames with a bad byte.")
 @click.option("--corrupt-where", type=click.Choice(["payload", "anywhere"]), default="payload",
               show_default=True, help="payload: payload/checksum bytes; anywhere: any byte.")
-@click.option("--drop", default=0.0, type=float, help="Fraction of frames dropped.")
-@click.option("--garbage", default=0.0, type=float,
+@click.option("--drop", default=0.0, type=click.FloatRange(0, 1), help="Fraction of frames dropped.")
+@click.option("--garbage", default=0.0, type=click.FloatRange(0, 1),
               help="Fraction of frames preceded by a burst of random bytes.")
 @click.option("--disconnect-at", type=float, help="Close the port S seconds after start ...")
 @click.option("--disconnect-for", default=1.0, show_default=True, type=float,
@@ -63,6 +64,16 @@ def emulate_cmd(imu, table, truth_path, plan_path, rate, seed, duration, attitud
     from calib_cli.sim.truth import load_truth
 
     prof = load_imu_profile(imu)
+    if link_dir:  # the documented example names a directory that does not exist yet
+        import os
+
+        from calib_cli.errors import OutputError
+
+        try:
+            os.makedirs(link_dir, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"cannot create the link directory: {exc.strerror}",
+                              link_dir) from None
     tprof = load_table_profile(table) if table else None
     if tprof is not None and speed_dps:
         tprof = dataclasses.replace(tprof, speed_dps=speed_dps)

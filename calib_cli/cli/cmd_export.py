@@ -46,6 +46,9 @@ def export_cmd(cal, fmt, out, single, prefix, allan_path, raw_path, rostopic, in
     except ValueError as exc:
         raise PrefixError(str(exc)) from None
     c = read_calibration(cal)
+    from calib_cli.io.validate import check_calibration
+
+    check_calibration(c, cal)
     prov = provenance(cal)
     prov["sha256"] = sha256_file(cal)
     source = Path(cal).name

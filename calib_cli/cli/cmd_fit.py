@@ -15,7 +15,10 @@ def fit_group():
     """Fit a calibration to a raw recording."""
 
 
-def save(res, raw, out, extra_inputs=()):
+def save(res, raw, out, extra_inputs=(), rec=None):
+    from calib_cli.methods.gross import check_result
+
+    check_result(res, rec)  # never exit 0 with an impossible calibration (issue 15)
     write_calibration(out, res, [raw, *extra_inputs])
     render_summary(res)
     info(f"-> {out}")
@@ -32,4 +35,4 @@ def fit_accel_cmd(raw, out, method):
 
     rec = read_raw(raw)
     res = fit_accel(rec, method)
-    save(res, raw, out)
+    save(res, raw, out, rec=rec)

@@ -45,7 +45,11 @@ def fit_gyro_cmd(raw, out, accel_path, g_sensitivity):
                                              "into the gyro parameters" if independent else
                                              "from this recording"))
     res = fit_gyro(rec, acc, g_sensitivity, accel_independent=independent)
-    save(res, raw, out, [accel_path] if accel_path else [])
+    from calib_cli.methods.gross import screen_fit
+
+    screen_fit(res, rec, lambda r: fit_gyro(r, acc, g_sensitivity,
+                                            accel_independent=independent))
+    save(res, raw, out, [accel_path] if accel_path else [], rec=rec)
     st = res.stats
     for w in st.get("warnings", []):
         info(f"[yellow]warning:[/] {w}")

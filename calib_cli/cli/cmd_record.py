@@ -95,26 +95,33 @@ def _raise_interrupt(*_):
 @click.option("--keep-journal", is_flag=True, help="Keep the journal after a clean end.")
 @click.option("--settle-window", default=0.5, show_default=True, type=float,
               help="Stillness window, s.")
-@click.option("--accel-still", default=0.05, show_default=True, type=float,
-              help="Stillness: max accel std, m/s^2.")
-@click.option("--gyro-still", default=0.01, show_default=True, type=float,
-              help="Stillness: max gyro std, rad/s.")
+@click.option("--accel-still", type=click.FloatRange(0, min_open=True),
+              help="Stillness: max accel std, m/s^2 (default: 5x the profile's [noise] "
+              "accel_std, at least 0.05).")
+@click.option("--gyro-still", type=click.FloatRange(0, min_open=True),
+              help="Stillness: max gyro std, rad/s (default: 5x the profile's [noise] "
+              "gyro_std, at least 0.01).")
 @click.option("--settle-timeout", default=120.0, show_default=True, type=float,
               help="Give up when the unit has not settled after S seconds.")
 @click.option("--segment-duration", default=10.0, show_default=True, type=float,
               help="Duration of plan segments without duration_s, s.")
 @click.option("--reconnect-timeout", default=30.0, show_default=True, type=float,
               help="How long to wait for a disconnected device, s.")
+@click.option("--gravity-tolerance", default=10.0, show_default=True, type=click.FloatRange(0),
+              help="Refuse a position whose measured gravity direction is further than this "
+              "(deg) from the one its attitude_deg implies, and ask again (0: no check).")
+@click.option("--no-data-timeout", default=3.0, show_default=True, type=click.FloatRange(0),
+              help="Stop when no valid frame arrives within S seconds of the start.")
+@click.option("--force", is_flag=True, help="Replace an existing recording at --out, and set "
+              "an existing journal aside (renamed, never deleted).")
 @click.option("--no-check", is_flag=True, help="Skip the plan check before recording.")
 def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_path, duration,
                rate, out, journal_path, keep_journal, settle_window, accel_still, gyro_still,
-               settle_timeout, segment_duration, reconnect_timeout, no_check):
+               settle_timeout, segment_duration, reconnect_timeout, gravity_tolerance,
+               no_data_timeout, force, no_check):
     """Record an experiment plan (or a free-running log) from an IMU into raw.h5."""
-    from calib_cli.acquire.profile import load_imu_profile, load_table_profile
-    from calib_cli.acquire.session import Session, SettleConfig, free_run_plan, journal_to_recording
-    from calib_cli.acquire.table import ManualTable, SerialTable
-    from calib_cli.acquire.transport import CanTransport, SerialTransport
-    from calib_cli.io.h5 import write_raw
+    from calib_cli.acquire.profile import load_imu_profile
+    from calib_cli.acquire.session import free_run_plan
     from calib_cli.io.plan import load_plan, parse_plan
 
     if plan_path and duration is not None:
@@ -124,14 +131,8 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
         import dataclasses
 
         prof = dataclasses.replace(prof, rate_hz=float(rate))
-    if prof.format == "can":
-        tr = prof.transport
-        transport = CanTransport(can_interface or tr.get("interface", "socketcan"),
-                                 can_channel or tr.get("channel", "can0"), tr.get("bitrate"))
-    else:
-        if not port:
-            raise click.UsageError(f"profile {prof.name!r} is a serial device: give --port")
-        transport = SerialTransport(port, prof.transport)
+    if prof.format != "can" and not port:
+        raise click.UsageError(f"profile {prof.name!r} is a serial device: give --port")
     plan = load_plan(plan_path) if plan_path else parse_plan(free_run_plan(duration), "free-run")
     if plan_path and not no_check:  # issue 20: warn when the plan cannot deliver
         from calib_cli.methods.design import record_warning
@@ -143,6 +144,54 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
     if not os.path.isdir(out_dir):
         raise InputError("output directory does not exist", out)
     journal_path = journal_path or out + ".journal"
+    from calib_cli.acquire.lockfile import hold
+
+    with contextlib.ExitStack() as locks:
+        # one recorder per output and per journal (issue 15): the second exits 3
+        locks.enter_context(hold(out))
+        if os.path.abspath(journal_path) != os.path.abspath(out):
+            locks.enter_context(hold(journal_path))
+        if os.path.exists(out) and not force:
+            raise InputError("a recording exists here; pass --force to replace it, or choose "
+                             "another --out", out)
+        if os.path.exists(journal_path):
+            if not force:
+                raise InputError(f"a journal of an earlier recording exists (killed?): recover "
+                                 f"it with `calib recover {journal_path} --out FILE.h5`, or pass "
+                                 "--force to set it aside", journal_path)
+            aside = f"{journal_path}.{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}.old"
+            os.replace(journal_path, aside)
+            info(f"the earlier journal was set aside as {aside}")
+        return _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
+                       duration, out, journal_path, keep_journal, settle_window, accel_still,
+                       gyro_still, settle_timeout, segment_duration, reconnect_timeout,
+                       gravity_tolerance, no_data_timeout, prof, plan)
+
+
+def _source(prof, transport) -> str:
+    if prof.format == "can":
+        return (f"CAN {getattr(transport, 'interface', '?')}:{getattr(transport, 'channel', '?')}"
+                f" (bitrate {getattr(transport, 'bitrate', None) or 'default'})")
+    baud = (prof.transport or {}).get("baudrate", 115200)
+    return f"serial port {getattr(transport, 'port', '?')} at {baud} baud"
+
+
+def _record(imu, port, can_interface, can_channel, table, table_port, plan_path, duration,
+            out, journal_path, keep_journal, settle_window, accel_still, gyro_still,
+            settle_timeout, segment_duration, reconnect_timeout, gravity_tolerance,
+            no_data_timeout, prof, plan):
+    from calib_cli.acquire.profile import load_table_profile
+    from calib_cli.acquire.session import Session, SettleConfig, journal_to_recording
+    from calib_cli.acquire.table import ManualTable, SerialTable
+    from calib_cli.acquire.transport import CanTransport, SerialTransport
+    from calib_cli.io.h5 import write_raw
+
+    if prof.format == "can":
+        tr = prof.transport
+        transport = CanTransport(can_interface or tr.get("interface", "socketcan"),
+                                 can_channel or tr.get("channel", "can0"), tr.get("bitrate"))
+    else:
+        transport = SerialTransport(port, prof.transport)
     display = LiveDisplay(len(plan.segments))
 
     def ask(msg: str) -> str:
@@ -158,6 +207,16 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
         driver = ManualTable(ask)  # no motor: the operator places the unit
     else:
         driver = None
+    import tomllib
+
+    try:
+        noise = tomllib.loads(prof.raw_text or "").get("noise", {})
+    except (tomllib.TOMLDecodeError, RecursionError):
+        noise = {}
+    if accel_still is None:  # from the unit's profile noise where it states it
+        accel_still = max(0.05, 5.0 * float(noise.get("accel_std", 0.0)))
+    if gyro_still is None:
+        gyro_still = max(0.01, 5.0 * float(noise.get("gyro_std", 0.0)))
     cfg = SettleConfig(window_s=settle_window, accel_std=accel_still, gyro_std=gyro_still,
                        timeout_s=settle_timeout, default_duration_s=segment_duration,
                        reconnect_s=reconnect_timeout)
@@ -165,6 +224,9 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
                       display=display,
                       header_extra={"imu_profile_path": prof.path,
                                     "table_profile": tprof.name if tprof else None})
+    session.source = _source(prof, transport)
+    session.no_data_s = no_data_timeout
+    session.gravity_tol_deg = gravity_tolerance
     old_term = signal.signal(signal.SIGTERM, _raise_interrupt)
     interrupted = False
     try:
@@ -177,6 +239,16 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
         interrupted = True
         if not plan_path and duration is None:
             session.finished = True  # an open-ended log ends with Ctrl-C
+        if not session.n_rows:  # nothing recorded: no stale journal, and say why
+            display.close()
+            with contextlib.suppress(Exception):
+                session.close()
+            with contextlib.suppress(OSError):
+                os.unlink(journal_path)
+            raise InputError(f"interrupted before any valid frame arrived from "
+                             f"{session.source}; nothing was recorded (check the port, the "
+                             "baud rate or CAN channel, and that the unit is streaming)",
+                             journal_path) from None
     except BaseException:
         display.close()
         with contextlib.suppress(Exception):

@@ -20,6 +20,13 @@ def recover_cmd(journal, out):
     rec = journal_to_recording(journal)
     write_raw(out, rec, [journal])
     c = rec.counters
-    state = "complete" if c.get("journal_complete") else "cut short (recorder killed)"
+    state = ("complete (the recorder closed it)" if c.get("journal_complete") else
+             "not closed by its recorder (cut short: killed, crashed or power lost)")
+    skipped = c.get("journal_records_skipped", 0)
+    if skipped:
+        state += (f"; {skipped} damaged record{'s' * (skipped > 1)} skipped "
+                  f"({c.get('journal_bytes_skipped', 0)} bytes)")
+    if c.get("journal_rows_dropped"):
+        state += f"; {c['journal_rows_dropped']} rows with non-finite values or time going back dropped"
     info(f"recovered {len(rec)} samples, {len(rec.segments)} segments from a journal "
          f"{state} -> {out}")

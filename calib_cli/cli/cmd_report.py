@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
-import tempfile
 from pathlib import Path
 
 import click
@@ -59,19 +57,11 @@ def report_cmd(cal, raw, out_dir):
     sections = build_report(ctx)
     title = f"Calibration report: {c.serial or 'unit'} ({c.method}), {Path(cal).name}"
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise InputError("exists and is not a directory", out_dir)
-    parent = out.parent if str(out.parent) else Path(".")
-    if not parent.is_dir():
-        raise InputError("parent directory does not exist", out_dir)
-    # build in a temporary directory beside it, then move the files in: no partial report
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=parent))
-    try:
-        manifest = write_report(sections, title, tmp)
-        out.mkdir(exist_ok=True)
-        for f in sorted(tmp.iterdir()):
-            f.replace(out / f.name)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    # built in a temporary directory beside it that then replaces it whole: no
+    # partial report, and no figure of an older report survives
+    from calib_cli.io.outpath import atomic_dir
+
+    with atomic_dir(out) as tmp:
+        manifest = write_report(sections, title, Path(tmp))
     info(f"report with {len(manifest['figures'])} figures -> {out / 'report.html'}")
     return 0

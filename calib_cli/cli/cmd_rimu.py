@@ -28,7 +28,10 @@ def fit_rimu_cmd(raw, out):
         raise InputError("not a redundant-unit recording (plan kind \"rimu\" with a [rimu] "
                          "geometry)", raw)
     res = fit_rimu(rec)
-    save(res, raw, out)
+    from calib_cli.methods.gross import screen_fit
+
+    screen_fit(res, rec, fit_rimu)  # a misplaced position is named (exit 4)
+    save(res, raw, out, rec=rec)
 
 
 def _render_report(s: dict) -> None:

@@ -97,6 +97,9 @@ def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis
     if res.stats.get("accel_noise_inflation", 1.0) > 1.0:
         info(f"[yellow]the model does not explain the accelerometer data:[/] noise widened "
              f"x{res.stats['accel_noise_inflation']:.1f} (lever arms or proof masses missing?)")
+    from calib_cli.methods.gross import check_result
+
+    check_result(res, rec)  # an impossible calibration is exit 4 (issue 15)
     if as_json:
         from calib_cli.cli.cmd_show import calibration_json
         from calib_cli.cli.common import print_json

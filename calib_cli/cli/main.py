@@ -28,6 +28,10 @@ class _Commands(click.Group):
             if not _load_one(name):
                 _register()
             cmd = super().get_command(ctx, name)
+        if cmd is not None:  # output-path and number guards (issue 15), lazily loaded too
+            from calib_cli.cli.guard import guard_one
+
+            guard_one(cmd)
         return cmd
 
     def list_commands(self, ctx):
@@ -86,9 +90,19 @@ import calib_cli.cli as _pkg  # noqa: E402
 if not getattr(_pkg, "LAZY_COMMANDS", False):
     _register()
 
+from calib_cli.cli.guard import guard_all  # noqa: E402
+
+guard_all(cli)
+
 
 def main(argv=None) -> None:
     """Entry point: run the command, map failures to the contract's exit codes."""
+    import warnings
+
+    if not (Ctx.debug or "--debug" in (argv or sys.argv)):
+        # numpy's RuntimeWarning text (with source lines) is not for users: a bad
+        # value is reported as an error naming the file (issue 15)
+        warnings.simplefilter("ignore", RuntimeWarning)
     try:
         rv = cli.main(args=argv, prog_name="calib", standalone_mode=False)
         sys.exit(rv if isinstance(rv, int) else 0)
@@ -103,6 +117,16 @@ def main(argv=None) -> None:
     except KeyboardInterrupt:
         err_console.print("calib: interrupted", markup=False)
         sys.exit(130)
+    except click.UsageError as exc:  # one line, with where to look for help
+        msg = exc.format_message()
+        if isinstance(exc, click.BadParameter) and "is a directory" in msg:
+            # a directory where a file is expected: bad input (exit 3)
+            err_console.print(f"calib: error: {msg}", markup=False, soft_wrap=True)
+            sys.exit(3)
+        where = exc.ctx.command_path if exc.ctx is not None else "calib"
+        err_console.print(f"calib: error: {msg} (see {where} --help)", markup=False,
+                          soft_wrap=True)
+        sys.exit(exc.exit_code)
     except click.ClickException as exc:
         exc.show()
         sys.exit(exc.exit_code)
@@ -112,6 +136,18 @@ def main(argv=None) -> None:
         raise
     except BrokenPipeError:
         sys.exit(0)
+    except (OSError, MemoryError, RecursionError) as exc:  # an input the OS or numpy refused
+        if Ctx.debug:
+            traceback.print_exc()
+        where = getattr(exc, "filename", None)
+        what = getattr(exc, "strerror", None) or type(exc).__name__
+        if isinstance(exc, MemoryError):
+            what = "input too large for memory"
+        elif isinstance(exc, RecursionError):
+            what = "input nested too deeply"
+        err_console.print(f"calib: error: {where + ': ' if where else ''}{what}", markup=False,
+                          soft_wrap=True)
+        sys.exit(3)
     except Exception as exc:  # a bug: one line, traceback only with --debug
         if Ctx.debug or "--debug" in (argv or sys.argv):
             traceback.print_exc()

@@ -12,7 +12,6 @@ import hashlib
 import json
 import os
 import sys
-import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -22,6 +21,7 @@ import numpy as np
 from calib_cli import __version__
 from calib_cli.data import SAMPLE_KINDS, CalibrationResult, Recording, Segment
 from calib_cli.errors import InputError
+from calib_cli.io import validate
 from calib_cli.io.escape import line_text
 from calib_cli.model.earth import Site
 from calib_cli.model.effects import Layout
@@ -62,20 +62,12 @@ def write_provenance(h5: h5py.File, kind: str, inputs=(), serial: str | None = N
 @contextlib.contextmanager
 def atomic_path(path):
     """Yield a temporary path beside ``path``; rename onto it on success,
-    delete it on any failure, so a failed command leaves nothing behind."""
-    path = Path(path)
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise InputError("output directory does not exist", str(path))
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent)
-    os.close(fd)
-    try:
+    delete it on any failure, so a failed command leaves nothing behind
+    (calib_cli/io/outpath.py: umask, stale temp files, OS errors -> exit 2)."""
+    from calib_cli.io.outpath import atomic_file
+
+    with atomic_file(path) as tmp:
         yield tmp
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
 
 
 def open_checked(path, kinds) -> h5py.File:
@@ -88,19 +80,25 @@ def open_checked(path, kinds) -> h5py.File:
     try:
         h5 = h5py.File(p, "r")
     except OSError:
-        raise InputError("not an HDF5 file (or damaged)", p) from None
+        hint = ""
+        if Path(p).suffix.lower() in (".csv", ".txt", ".log", ".dat", ".tsv"):
+            hint = ("; a text log is imported first: calib import csv FILE --plan PLAN.toml "
+                    "--out raw.h5 (or calib import text, docs/import.md)")
+        raise InputError(f"not an HDF5 file (or damaged){hint}", p) from None
     kind = _attr_str(h5, "kind")
     if kind not in kinds:
         h5.close()
         what = f"a {kind!r} file" if kind else "not a calib file (no 'kind' attribute)"
         raise InputError(f"{what}; expected {' or '.join(repr(k) for k in kinds)}", p)
-    ver = h5.attrs.get("format_version")
-    if ver is None or int(ver) > FORMAT_VERSION or int(ver) < 1:
-        h5.close()
-        raise InputError(f"unsupported format version {ver!r} (this calib reads "
-                         f"version {FORMAT_VERSION})", p)
     try:
         check_untrusted_h5(h5, p)
+        # calib_cli/io/validate.py (issue 15): version parsed, each dataset's declared size
+        validate.format_version(h5, p, FORMAT_VERSION)
+        validate.check_declared_sizes(h5, p)
+    except (KeyError, RuntimeError, OSError, ValueError, TypeError) as exc:
+        h5.close()  # HDF5 refuses its own damaged metadata this way: bad input, not a bug
+        raise InputError(f"damaged HDF5 structure ({str(exc).split('(')[0].strip()})",
+                         p) from None
     except BaseException:
         h5.close()
         raise
@@ -290,11 +288,12 @@ def read_segments(h5, path) -> tuple[Segment, ...]:
 def _write_params_group(h5, name, params: dict) -> None:
     g = h5.create_group(name)
     for k, v in params.items():
-        g[k] = np.asarray(v, dtype=float)
+        v = np.asarray(v, dtype=float)
+        g.create_dataset(k, data=v, fletcher32=bool(v.ndim and v.size))
 
 
 def _read_params_group(g) -> dict:
-    return {k: np.asarray(g[k][()], dtype=float) for k in g}
+    return {k: np.asarray(validate.load(g[k], g.file.filename), dtype=float) for k in g}
 
 
 def write_site_layout(h5, site: Site, layout: Layout) -> None:
@@ -326,21 +325,25 @@ def read_site_layout(h5, path) -> tuple[Site, Layout]:
 
 
 def write_raw(path, rec: Recording, inputs=(), kind: str = "raw") -> None:
-    """Write a recording atomically (kind "raw", or "corrected" for apply's output)."""
+    """Write a recording atomically (kind "raw", or "corrected" for apply's output).
+    Its content is validated first (io/validate.py): a NaN, a time going back
+    is an error naming the input it came from."""
+    validate.check_recording(rec, str(inputs[0]) if inputs else str(path))
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
         write_provenance(h5, kind, inputs, rec.serial, {"plan_kind": rec.plan_kind})
         smp = h5.create_group("samples")
         chunks = (min(len(rec.time), 65536),) if len(rec.time) else None
-        smp.create_dataset("time", data=rec.time, chunks=chunks)
+        ck = chunks is not None  # Fletcher-32 checksums on every chunked dataset
+        smp.create_dataset("time", data=rec.time, chunks=chunks, fletcher32=ck)
         for name in ("accel", "gyro"):
             arr = getattr(rec, name)
             if arr is not None:
                 smp.create_dataset(name, data=arr, chunks=(chunks[0], arr.shape[1])
-                                   if chunks else None)
+                                   if chunks else None, fletcher32=ck)
         for name in SAMPLE_FIELDS:
             arr = getattr(rec, name)
             if arr is not None:
-                smp.create_dataset(name, data=arr, chunks=chunks)
+                smp.create_dataset(name, data=arr, chunks=chunks, fletcher32=ck)
         smp.attrs["accel_units"] = rec.units.get("accel", "m/s^2")
         smp.attrs["gyro_units"] = rec.units.get("gyro", "rad/s")
         smp.attrs["sample_kind"] = rec.sample_kind
@@ -367,10 +370,13 @@ def read_raw(path, kinds=("raw", "corrected")) -> Recording:
     with open_checked(p, kinds) as h5:
         try:
             smp = _need(h5, "samples", p)
-            time = np.asarray(_need(smp, "time", p)[()], dtype=float)
-            accel = np.asarray(_need(smp, "accel", p)[()], dtype=float)
-            gyro = np.asarray(smp["gyro"][()], dtype=float) if "gyro" in smp else None
-            opt = {k: np.asarray(smp[k][()], dtype=float) if k in smp else None
+            n = validate.check_samples_layout(smp, p)
+            validate.check_segments_layout(h5, p, n)
+            time = np.asarray(validate.load(smp["time"], p), dtype=float)
+            accel = np.asarray(validate.load(smp["accel"], p), dtype=float)
+            gyro = (np.asarray(validate.load(smp["gyro"], p), dtype=float) if "gyro" in smp
+                    else None)
+            opt = {k: np.asarray(validate.load(smp[k], p), dtype=float) if k in smp else None
                    for k in SAMPLE_FIELDS}
             units = {"accel": _attr_str(smp, "accel_units", "m/s^2"),
                      "gyro": _attr_str(smp, "gyro_units", "rad/s")}
@@ -391,7 +397,7 @@ def read_raw(path, kinds=("raw", "corrected")) -> Recording:
                                    if k.startswith("noise_")},
                          "attitudes": t["attitudes"][()] if "attitudes" in t else None,
                          "effects": json.loads(_attr_str(t, "effects", "[]"))}
-        except (KeyError, ValueError, TypeError) as exc:
+        except (KeyError, ValueError, TypeError, IndexError, OverflowError) as exc:
             raise InputError(f"malformed raw file: {exc}", p) from None
         n = len(time)
         if accel.ndim != 2 or accel.shape[0] != n or (gyro is not None and gyro.shape[0] != n):
@@ -399,11 +405,13 @@ def read_raw(path, kinds=("raw", "corrected")) -> Recording:
         for s in segments:
             if not (0 <= s.start <= s.stop <= n):
                 raise InputError(f"segment {s.label!r} points outside the samples", p)
-        return Recording(time=time, accel=accel, gyro=gyro, segments=segments, site=site,
+        rec = Recording(time=time, accel=accel, gyro=gyro, segments=segments, site=site,
                          plan_kind=_attr_str(h5, "plan_kind", "static"), plan_text=plan_text,
                          serial=_attr_str(h5, "unit_serial") or None, units=units,
                          layout=layout, truth=truth, counters=counters,
                          sample_kind=sample_kind, **opt)
+    validate.check_recording(rec, p)
+    return rec
 
 
 # ---------------------------------------------------------------------------
@@ -463,10 +471,11 @@ def read_calibration(path) -> CalibrationResult:
             _, layout = read_site_layout(h5, p) if "site" in h5 else (None, Layout())
             raw_units = json.loads(_attr_str(h5, "raw_units", "{}")) or {
                 "accel": "m/s^2", "gyro": "rad/s"}
-        except (KeyError, ValueError, TypeError) as exc:
+            cov = validate.load(_need(c, "matrix", p), p)
+        except (KeyError, ValueError, TypeError, IndexError, OverflowError) as exc:
             raise InputError(f"malformed calibration file: {exc}", p) from None
         return CalibrationResult(method=_attr_str(h5, "method"), params=params, sigma=sigma,
-                                 units=units, covariance=c["matrix"][()], cov_order=order,
+                                 units=units, covariance=cov, cov_order=order,
                                  stats=stats, residuals=residuals, tables=tables, model=model,
                                  raw_units=raw_units, layout=layout,
                                  serial=_attr_str(h5, "unit_serial") or None)

@@ -154,6 +154,11 @@ def parse_plan(text: str, path: str = "<plan>") -> Plan:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"not valid TOML: {exc}", path) from None
+    except RecursionError:
+        raise InputError("not valid TOML: nested too deeply", path) from None
+    from calib_cli.io.schema import check_plan_values  # issue 15: range checks
+
+    check_plan_values(raw, path)
     kind = raw.get("kind")
     if kind not in KINDS:
         raise InputError(f"unknown plan kind {kind!r}; expected one of {', '.join(KINDS)}", path)
@@ -217,4 +222,10 @@ def load_plan(path) -> Plan:
         raise InputError("no such file", p) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"cannot read: {exc}", p) from None
+    from calib_cli.io.schema import check_plan_keys  # issue 15: typos are exit 3
+
+    try:
+        check_plan_keys(tomllib.loads(text), p)
+    except (tomllib.TOMLDecodeError, RecursionError):
+        pass  # parse_plan says what is wrong
     return parse_plan(text, p)

@@ -66,7 +66,12 @@ def load_rimu_profile(name, plan_path: str = "<plan>") -> dict:
         raw = tomllib.loads(found.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise InputError(f"cannot read rimu profile: {exc}", str(found)) from None
+    from calib_cli.io.schema import RIMU_PROFILE, strict_keys  # issue 15: strict
+
+    strict_keys(raw, RIMU_PROFILE[""] | {"rimu"}, str(found))
     table = raw.get("rimu", raw)
+    if isinstance(table, dict) and table is not raw:
+        strict_keys(table, RIMU_PROFILE[""], str(found), "[rimu] ")
     if not isinstance(table, dict) or "el0_deg" not in table or "az0_deg" not in table:
         raise InputError("a rimu profile needs el0_deg and az0_deg lists", str(found))
     return {"el0_deg": table["el0_deg"], "az0_deg": table["az0_deg"]}

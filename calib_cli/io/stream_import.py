@@ -68,8 +68,9 @@ class _Sink:
             shape = (0,) if width is None else (0, width)
             maxshape = (None,) if width is None else (None, width)
             chunks = (CHUNK_ROWS,) if width is None else (CHUNK_ROWS, width)
+            # Fletcher-32 on every chunk: a damaged file is an error, not data (issue 15)
             self.ds[name] = self.smp.create_dataset(name, shape=shape, maxshape=maxshape,
-                                                    chunks=chunks, dtype="f8")
+                                                    chunks=chunks, dtype="f8", fletcher32=True)
         return self.ds[name]
 
     def append(self, name, arr):

@@ -123,10 +123,13 @@ def _with_noise(st: StaticStats, noise) -> StaticStats:
     return replace(st, sigma=np.broadcast_to(np.asarray(noise, float), st.sigma.shape).copy())
 
 
-def fit_vector(rec: Recording, *, noise=None, strict: bool = True) -> CalibrationResult:
+def fit_vector(rec: Recording, segments=None, screen: bool = True, *, noise=None,
+               strict: bool = True) -> CalibrationResult:
     """noise: per-sample accel sigma to weight with instead of the measured one;
-    strict=False reports unobservable entries instead of failing (plan check)."""
-    st = _with_noise(static_stats(rec, "accel"), noise)
+    strict=False reports unobservable entries instead of failing (plan check).
+    ``segments``: a subset of the static segments (the gross-error screen's
+    leave-one-out refits); ``screen``: run that screen (methods/gross.py)."""
+    st = _with_noise(static_stats(rec, "accel", segments), noise)
     m = len(st.segments)
     missing = [s.label for s in st.segments if s.attitude is None]
     if missing:
@@ -180,8 +183,47 @@ def fit_vector(rec: Recording, *, noise=None, strict: bool = True) -> Calibratio
             f"one plane)")
     p = packing.unpack(fit.theta, base)
     resid = st.means - model.predict(p, kin, sensors=("accel",))["accel"]
+    if screen and strict:
+        _screen_vector(rec, st, kin, np.linalg.norm(np.einsum("kij,kj->ki", W, resid), axis=1),
+                       np.linalg.norm(resid, axis=1))
     return _finish("vector", model, packing, fit, base, rec, st, resid,
                    {"attitude_sigma_used": bool(sig_att.any())})
+
+
+def _screen_vector(rec, st, kin, z, rnorm) -> None:
+    """Gross-error screen of the vector fit (methods/gross.py): leave-one-out
+    refits where at least one residual degree of freedom remains (12
+    unknowns, 3 equations per position: >= 5 positions after leaving one out)."""
+    from calib_cli.methods import gross
+
+    segs = list(st.segments)
+    unit = _unit_scale(st, rec.site.gravity)  # 1 for SI data, counts per m/s^2 otherwise
+    big_thr = gross.BIG_G * rec.site.gravity * unit
+
+    def without(k):
+        rest = segs[:k] + segs[k + 1:]
+        if 3 * len(rest) <= 12:
+            return None
+        st2 = static_stats(rec, "accel", rest)
+        rots = attitude_to_rotation(np.array([s.attitude for s in rest]))
+        kin2 = from_attitude(np.zeros(len(rest)), rots, rec.site)
+        try:
+            r2 = fit_vector(rec, rest, screen=False)
+        except EstimationError:
+            return None
+        model = accel_model("full")
+        resid = st2.means - model.predict(r2.params, kin2, sensors=("accel",))["accel"]
+        L = np.linalg.cholesky(st2.mean_cov())
+        zr = np.linalg.norm(np.linalg.solve(L, resid[..., None])[..., 0], axis=1)
+        return zr, np.linalg.norm(resid, axis=1) > big_thr
+
+    def describe(k):
+        a, f = st.means[k], kin.f[k]
+        c = float(np.dot(a, f) / (np.linalg.norm(a) * np.linalg.norm(f) or 1.0))
+        return (f"the gravity direction it measured is {np.degrees(np.arccos(np.clip(c, -1, 1))):.0f}"
+                " deg from the one its attitude_deg states")
+
+    gross.screen(z, rnorm > big_thr, st.labels, without, "position", describe)
 
 
 # ---------------------------------------------------------------------------
@@ -303,11 +345,11 @@ def fit_accel(rec: Recording, method: str = "auto", *, noise=None,
               strict: bool = True) -> CalibrationResult:
     """The contract's ``fit accel``: auto = vector when every static segment
     has an attitude, else scalar."""
+    if rec.layout.redundant:
+        raise EstimationError("this is a redundant-unit recording: use `calib fit rimu`")
     statics = rec.static_segments()
     if not statics:
         raise EstimationError("the recording has no static segments to fit")
-    if rec.layout.redundant:
-        raise EstimationError("this is a redundant-unit recording: use `calib fit rimu`")
     if method == "auto":
         method = "vector" if all(s.attitude is not None for s in statics) else "scalar"
     if method == "vector":

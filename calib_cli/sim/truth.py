@@ -146,6 +146,11 @@ def load_truth(path, layout: Layout) -> Truth:
         raise InputError("no such file", p) from None
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise InputError(f"cannot read truth file: {exc}", p) from None
+    except RecursionError:
+        raise InputError("cannot read truth file: nested too deeply", p) from None
+    from calib_cli.io.schema import check_truth_keys  # issue 15: typos are exit 3
+
+    check_truth_keys(raw, p)
     return truth_from_dict(raw, layout, p)
 
 

@@ -1,0 +1,206 @@
+"""Output path safety (issue 15): every file or directory a command writes.
+
+- An output that resolves to an input of the same command (the same path, a
+  symlink to it, a hard link: compared by ``st_dev``/``st_ino``) is a usage
+  error (exit 2) raised before anything is written.
+- An output that cannot be written (missing directory, no permission, a
+  read-only or special file system such as /proc) is exit 2, one line.
+- A directory where a file is expected is exit 3.
+- Temporary files are named ``.NAME.calib-PID.tmp`` (directories
+  ``.NAME.calib-PID.tmpdir``) beside the output; a later run writing the same
+  output removes those whose process no longer runs (a killed run's leftovers).
+- Written files follow the umask (``mkstemp`` alone would make them 0600).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import re
+import shutil
+from pathlib import Path
+
+from calib_cli.errors import InputError, OutputError
+
+_TMP_RE = re.compile(r"^\.(?P<name>.+)\.calib-(?P<pid>\d+)(?:-\d+)?\.tmp(?:dir)?$")
+# temp names of earlier calib versions: .NAME.XXXXXXXX.tmp (mkstemp) / .NAME.XXXXXXXX (mkdtemp)
+_OLD_TMP_RE = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}(?:\.tmp)?$")
+_OLD_TMP_AGE_S = 6 * 3600.0
+_seq = 0
+
+
+def current_umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def follow_umask(path, directory: bool = False) -> None:
+    """Give ``path`` the mode a plain ``open()``/``mkdir()`` would have."""
+    base = 0o777 if directory else 0o666
+    with contextlib.suppress(OSError):
+        os.chmod(path, base & ~current_umask())
+
+
+def _same_file(a: os.stat_result, b: os.stat_result) -> bool:
+    return a.st_dev == b.st_dev and a.st_ino == b.st_ino
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True
+    return True
+
+
+def clean_stale_temps(path) -> list[str]:
+    """Remove the temp files/directories a killed run left beside ``path``."""
+    import time
+
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    removed = []
+    try:
+        entries = list(os.scandir(parent))
+    except OSError:
+        return removed
+    for e in entries:
+        m = _TMP_RE.match(e.name)
+        stale = False
+        if m and m.group("name") == path.name:
+            stale = not _pid_alive(int(m.group("pid")))
+        else:
+            m = _OLD_TMP_RE.match(e.name)
+            if m and m.group("name") == path.name:
+                with contextlib.suppress(OSError):
+                    stale = time.time() - e.stat(follow_symlinks=False).st_mtime > _OLD_TMP_AGE_S
+        if stale:
+            with contextlib.suppress(OSError):
+                if e.is_dir(follow_symlinks=False):
+                    shutil.rmtree(e.path, ignore_errors=True)
+                else:
+                    os.unlink(e.path)
+                removed.append(e.path)
+    return removed
+
+
+def temp_name(path, directory: bool = False) -> Path:
+    global _seq
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    _seq += 1
+    return parent / f".{path.name}.calib-{os.getpid()}-{_seq}.tmp{'dir' if directory else ''}"
+
+
+def check_output(out, inputs=(), directory: bool = False) -> None:
+    """Refuse an output that is an input (exit 2), that cannot be written
+    (exit 2), or that is a directory where a file is expected (exit 3)."""
+    if out is None or str(out) in ("", "-"):
+        return
+    p = Path(out)
+    try:
+        st_out = os.stat(p)
+    except OSError:
+        st_out = None
+    if st_out is not None:
+        for i in inputs:
+            if i is None or str(i) in ("", "-"):
+                continue
+            try:
+                st_in = os.stat(i)
+            except OSError:
+                continue
+            if _same_file(st_out, st_in):
+                same = "is" if os.path.abspath(i) == os.path.abspath(p) else "resolves to"
+                raise OutputError(f"the output {same} the input {i}: choose another --out "
+                                  "(nothing was written)", str(out))
+        import stat as _stat
+
+        if _stat.S_ISDIR(st_out.st_mode) and not directory:
+            raise InputError("is a directory; give a file name for the output", str(out))
+        if not _stat.S_ISDIR(st_out.st_mode) and directory:
+            raise InputError("exists and is not a directory", str(out))
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise OutputError(f"cannot write: the directory {parent} does not exist", str(out))
+    probe = temp_name(p)
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise OutputError(f"cannot write here: {exc.strerror or exc}", str(out)) from None
+
+
+@contextlib.contextmanager
+def atomic_file(path):
+    """A temporary path beside ``path``, renamed onto it on success and
+    removed on any failure; the file follows the umask. OS errors while
+    writing are exit 2 naming the output (a full disk says so)."""
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise InputError("is a directory; give a file name for the output", str(path))
+    if not parent.is_dir():
+        raise OutputError(f"cannot write: the directory {parent} does not exist", str(path))
+    clean_stale_temps(path)
+    tmp = temp_name(path)
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        os.close(fd)
+    except OSError as exc:
+        raise OutputError(f"cannot write here: {exc.strerror or exc}", str(path)) from None
+    try:
+        yield str(tmp)
+        follow_umask(tmp)
+        os.replace(tmp, path)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        if exc.errno == errno.ENOSPC or "No space" in str(exc):
+            raise OutputError("disk full while writing; nothing was left behind",
+                              str(path)) from None
+        if exc.errno in (errno.EACCES, errno.EROFS, errno.EPERM, errno.EDQUOT):
+            raise OutputError(f"cannot write: {exc.strerror}", str(path)) from None
+        raise
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+@contextlib.contextmanager
+def atomic_dir(path):
+    """A temporary directory beside ``path`` that replaces ``path`` whole on
+    success (an older report's files do not survive), removed on failure."""
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    if path.exists() and not path.is_dir():
+        raise InputError("exists and is not a directory", str(path))
+    if not parent.is_dir():
+        raise OutputError(f"cannot write: the directory {parent} does not exist", str(path))
+    clean_stale_temps(path)
+    tmp = temp_name(path, directory=True)
+    try:
+        os.mkdir(tmp)
+    except OSError as exc:
+        raise OutputError(f"cannot write here: {exc.strerror or exc}", str(path)) from None
+    try:
+        yield tmp
+        follow_umask(tmp, directory=True)
+        old = None
+        if path.exists():
+            old = temp_name(path, directory=True)
+            os.replace(path, old)
+        os.replace(tmp, path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
