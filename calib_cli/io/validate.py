@@ -209,17 +209,31 @@ def _expected_shapes(key: str, n: int, redundant: bool):
     return None  # any shape (thermal terms, lever arms, ...)
 
 
+def _spec_shapes(c) -> dict:
+    """Parameter shapes from the calibration's own model (the effect catalogue's specs:
+    a temperature polynomial of order N has (3, N)); empty where the model cannot be
+    built (the heuristic shapes apply then)."""
+    try:
+        from calib_cli.methods.apply import model_of
+
+        return {sp.key: tuple(sp.shape) for sp in model_of(c).specs()}
+    except Exception:  # a malformed model description: checked by the heuristic below
+        return {}
+
+
 def check_calibration(c, path: str) -> None:
     """A calibration's parameters before apply or export use them."""
     if not c.params:
         raise InputError("the calibration holds no parameters (empty /params)", path)
     n = c.layout.n if c.layout is not None else 3
     redundant = bool(c.layout is not None and c.layout.redundant)
+    specs = _spec_shapes(c)
     for k, v in c.params.items():
         v = np.asarray(v, dtype=float)
         if not np.all(np.isfinite(v)):
             raise InputError(f"parameter {k} holds a NaN or infinite value", path)
-        want = _expected_shapes(k, n, redundant and not k.endswith("_K"))
+        want = ({specs[k]} if k in specs and k not in ("lever_arm",) else
+                _expected_shapes(k, n, redundant and not k.endswith("_K")))
         if want is not None and v.shape not in want:
             raise InputError(f"parameter {k} has shape {v.shape}, expected "
                              f"{' or '.join(str(w) for w in sorted(want))}", path)
