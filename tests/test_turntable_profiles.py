@@ -7,7 +7,6 @@ tests/test_turntable_profiles_slow.py (make validate K=turntable).
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from calib_cli.io.plan import parse_plan
 from calib_cli.methods.turntable import TurntableOptions, fit_turntable
@@ -39,10 +38,10 @@ def test_interval_mean_samples_within_sigma():
     assert 0.5 < np.sqrt(np.mean(allz**2)) < 1.6
 
 
-@pytest.mark.xfail(strict=True, reason="known limitation (docs/turntable.md): on some noise "
-                   "realisations one cycle's gyro scale factor is biased by several sigma; the "
-                   "bias depends on the order of the cycles")
 def test_noise_realisation_bias_seed4():
+    """A noise realisation that left G_yy 7.5 sigma off (the order-dependent wander of the
+    running estimate, docs/turntable.md); within sigma since later passes start from the
+    previous pass's information."""
     rec, truth = profile_record(4, "s-curve", "instant", duration_s=300.0, wobble=True,
                                 wide=False)
     res = fit_turntable(rec, TurntableOptions())

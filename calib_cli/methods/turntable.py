@@ -59,7 +59,7 @@ class TurntableOptions:
     stats.unobservable), "estimate" (the same), "off" (held at 0, reported
     with sigma null).
     tangential: include dw/dt x r. block_s: measurement block (s).
-    passes: filter passes (>= 2 recommended). axis_sigma: how well the table
+    passes: filter passes (>= 3 recommended: see _START_DATA_FRACTION). axis_sigma: how well the table
     axis stays fixed (rad, 1-sigma per block). history_every: sigma history
     sample interval (s)."""
 
@@ -67,7 +67,7 @@ class TurntableOptions:
     proof_mass: str = "auto"
     tangential: bool = True
     block_s: float = 0.2
-    passes: int = 2
+    passes: int = 3
     axis_sigma: float = 1e-3
     # prior 1-sigma (rad) of each table axis's tilt from the plan's direction (estimated);
     # 0: the plan's axis is exact. The tilt out of the horizontal is pinned by the data
@@ -103,6 +103,14 @@ GRADES = {
                    "lever_arm": 0.1, "proof_mass_offsets": 0.02},
 }
 PRIOR_KEYS = tuple(GRADES["mems"])
+# Later passes start from the prior plus this fraction of the previous pass's data information
+# (removed again exactly at the end, the pass being linear in the parameter error). Started
+# from the prior alone, a direction that one cycle leaves undetermined (in cycle y the scale
+# G_yy is seen only as G_yy + 0.008 G_yz, G_yz still at its 5 % prior) lets the running
+# estimate wander far along it; the cycle that resolves it later transfers that wander back
+# through the correlation, and any small inconsistency there came out as a 7-60 sigma error
+# of one diagonal gyro scale factor (issue 14). docs/turntable.md
+_START_DATA_FRACTION = 1.0
 
 
 @dataclass
@@ -474,7 +482,8 @@ class _PassOut:
 
 def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: TurntableOptions,
                  sig_a, sig_g, block_n, s_known, record_history: bool, first: bool,
-                 enc: list | None = None, sig_enc: float = 0.0) -> _PassOut:
+                 enc: list | None = None, sig_enc: float = 0.0,
+                 start_info: np.ndarray | None = None) -> _PassOut:
     par = _unpack(theta_lin, L, cycles)
     par_lin = _unpack(theta_lin, L, cycles)
     if s_known is not None:
@@ -494,7 +503,12 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
     # For the linearised problem the start mean enters the final estimate as
     # P_f P_0^-1 (m - theta_lin), added at the end.
     P = np.zeros((ns, ns))
-    P[3:, 3:] = np.diag(prior_sd**2)
+    # start_info (later passes): the information the pass starts from, in units of the
+    # prior sigma (identity = the prior); see _START_DATA_FRACTION
+    if start_info is None:
+        P[3:, 3:] = np.diag(prior_sd**2)
+    else:
+        P[3:, 3:] = _scaled_inv(start_info) * np.outer(prior_sd, prior_sd)
     innov, nis, hist_t, hist_s, lowrate, enc_innov = [], [], [], [], [], []
     hist_idx = []
     if record_history:
@@ -657,9 +671,33 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 hist_t.append(b.t[j])
                 hist_s.append(np.sqrt(np.diag(P)[hist_idx]))
                 next_hist = b.t[j] + opt.history_every
-    x[3:] += P[3:, 3:] @ ((prior_mean - theta_lin) / prior_sd**2)
+    if start_info is None:
+        x[3:] += P[3:, 3:] @ ((prior_mean - theta_lin) / prior_sd**2)
+    else:
+        # the pass is linear in the parameter error: its final information is the start's
+        # plus the data's. Replace the start (mean theta_lin, information start_info) by the
+        # prior (mean prior_mean, identity), in units of the prior sigma
+        lam_f = _scaled_inv(P[3:, 3:] / np.outer(prior_sd, prior_sd))
+        lam = lam_f - start_info + np.eye(n)
+        try:
+            np.linalg.cholesky(0.5 * (lam + lam.T))
+        except np.linalg.LinAlgError:  # the passes' information disagree: not linear enough
+            raise _StartInfoError() from None
+        rhs = lam_f @ (x[3:] / prior_sd) + (prior_mean - theta_lin) / prior_sd
+        x[3:] = np.linalg.solve(lam, rhs) * prior_sd
+        P[3:, 3:] = _scaled_inv(lam) * np.outer(prior_sd, prior_sd)
     return _PassOut(theta_lin + x[3:], P[3:, 3:], innov, nis, hist_t, hist_s, lowrate,
                     enc_innov)
+
+
+class _StartInfoError(Exception):
+    pass
+
+
+def _scaled_inv(A: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive-definite matrix, symmetrised."""
+    Ai = np.linalg.inv(0.5 * (A + A.T))
+    return 0.5 * (Ai + Ai.T)
 
 
 def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()) -> CalibrationResult:
@@ -746,13 +784,27 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     enc_inflation = 1.0
     for _attempt in range(6):
         theta = start.copy()
+        info_start = None
+        hist = None
         for k in range(max(1, opt.passes)):
-            out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation, sig_g,
-                               block_n, s_known, record_history=True, first=k == 0,
-                               enc=enc, sig_enc=sig_enc * enc_inflation)
+            kw = dict(record_history=k == 0, enc=enc, sig_enc=sig_enc * enc_inflation)
+            try:
+                out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation,
+                                   sig_g, block_n, s_known, first=k == 0,
+                                   start_info=info_start, **kw)
+            except _StartInfoError:  # fall back to a pass started from the prior alone
+                kw["record_history"] = False
+                out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation,
+                                   sig_g, block_n, s_known, first=False, **kw)
             if not np.all(np.isfinite(out.theta)):
                 break
+            if hist is None:  # the sigma history is the first pass's (it starts from the prior)
+                hist = (out.hist_t, out.hist_s)
+            out.hist_t, out.hist_s = hist
             theta = out.theta
+            # the next pass starts from the prior plus this pass's data information
+            lam = _scaled_inv(out.P / np.outer(sd, sd))
+            info_start = np.eye(L.size) + _START_DATA_FRACTION * (lam - np.eye(L.size))
         r = float(np.sqrt(np.mean(np.square(out.innov)))) if out.innov else 1.0
         r_enc = float(np.sqrt(np.mean(np.square(out.enc_innov)))) if out.enc_innov else 1.0
         if enc is not None and not (r_enc < 1.5 and r < 1.3):
