@@ -321,12 +321,8 @@ def test_manual_table_prompts():
     assert said == ["[y-up] put +y up, hold it still, then press Enter"]
 
 
-def test_rotating_segment_commands_table_rate(tmp_path):
-    prof = load_imu_profile("generic-bin6")
-    plan = parse_plan('name = "rot"\nkind = "turntable"\n[site]\nlatitude_deg = 45\n'
-                      '[[segment]]\nlabel = "still"\nattitude_deg = [0, 0, 0]\nduration_s = 0.3\n'
-                      '[[segment]]\nlabel = "spin"\nattitude_deg = [0, 0, 0]\n'
-                      'table_axis_enu = [0, 0, 1]\ntable_rate_dps = 90\nduration_s = 0.5\n')
+def _record_with_table(prof, plan, tmp_path):
+    """Run the plan against the emulator's IMU and motorised table; the recovered recording."""
     tab = table_profile()
     em = Emulator(prof, tab, site=plan.site, rate=1000, link_dir=str(tmp_path)).start()
     try:
@@ -338,7 +334,16 @@ def test_rotating_segment_commands_table_rate(tmp_path):
         s.close()
     finally:
         em.stop()
-    rec = journal_to_recording(str(tmp_path / "j.journal"))
+    return journal_to_recording(str(tmp_path / "j.journal"))
+
+
+def test_rotating_segment_commands_table_rate(tmp_path):
+    prof = load_imu_profile("generic-bin6")
+    plan = parse_plan('name = "rot"\nkind = "turntable"\n[site]\nlatitude_deg = 45\n'
+                      '[[segment]]\nlabel = "still"\nattitude_deg = [0, 0, 0]\nduration_s = 0.3\n'
+                      '[[segment]]\nlabel = "spin"\nattitude_deg = [0, 0, 0]\n'
+                      'table_axis_enu = [0, 0, 1]\ntable_rate_dps = 90\nduration_s = 0.5\n')
+    rec = _record_with_table(prof, plan, tmp_path)
     spin = rec.segments[1]
     assert spin.kind == "rotating" and abs(spin.n - 500) <= 1
     gz = rec.gyro[spin.slice, 2].mean()
@@ -464,18 +469,7 @@ def test_rotating_segment_without_rate_runs_its_profile(tmp_path):
                       'rate_profile = [[0, 0], [0.2, 0], [0.2, 90], [0.5, 90], [0.5, 0], [0.8, 0]]\n')
     dur, sched = rate_schedule(plan.segments[0])
     assert dur == pytest.approx(0.8) and [r for _t, r in sched] == pytest.approx([np.pi / 2, 0.0])
-    tab = table_profile()
-    em = Emulator(prof, tab, site=plan.site, rate=1000, link_dir=str(tmp_path)).start()
-    try:
-        s = Session(prof, SerialTransport(em.paths["imu"], prof.transport), plan,
-                    str(tmp_path / "j.journal"), table=SerialTable(tab, em.paths["table"]),
-                    settle=SETTLE)
-        s.start()
-        s.run_plan()
-        s.close()
-    finally:
-        em.stop()
-    rec = journal_to_recording(str(tmp_path / "j.journal"))
+    rec = _record_with_table(prof, plan, tmp_path)
     cyc = rec.segments[0]
     assert cyc.kind == "rotating" and abs(cyc.n - 800) <= 5
     gz = rec.gyro[cyc.slice, 2]
