@@ -25,7 +25,8 @@ def _allan_for(raw: str, kind: str):
     from calib_cli.cli.cmd_allan import compute_allan
 
     try:
-        res = compute_allan(raw)
+        res = compute_allan(raw, hint="`calib allan RAW --segment LABEL --out ALLAN.h5`, then "
+                            "`calib report CAL ALLAN.h5`")
     except CalibError as exc:
         return None, f"No Allan deviation of {Path(raw).name}: {exc.message}"
     if res.duration < MIN_ALLAN_S:
