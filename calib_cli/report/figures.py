@@ -9,13 +9,37 @@ from __future__ import annotations
 
 import io
 
+import matplotlib
 import numpy as np
+from cycler import cycler
 from matplotlib.figure import Figure
 
 from calib_cli.io.escape import mpl_text
 from calib_cli.methods.allan import ARW_TAU, BI_FACTOR, RRW_TAU, AllanResult
 
 DPI = 100
+
+# Okabe & Ito's colour-blind-safe palette (Color Universal Design): every report
+# figure cycles through it; lines beyond 8 also change their dash pattern, so
+# no two curves of one axis share a look.
+BLUE, VERMILION, GREEN, ORANGE = "#0072B2", "#D55E00", "#009E73", "#E69F00"
+SKY, PURPLE, YELLOW, BLACK = "#56B4E9", "#CC79A7", "#F0E442", "#000000"
+OKABE_ITO = [BLUE, VERMILION, GREEN, ORANGE, SKY, PURPLE, BLACK, YELLOW]
+LINESTYLES = ["-", "--", ":", "-."]
+
+
+def use_palette() -> None:
+    """Make the Okabe-Ito colours the default cycle (figures made after this)."""
+    matplotlib.rcParams["axes.prop_cycle"] = cycler(color=OKABE_ITO)
+
+
+def line_style(k: int) -> dict:
+    """Colour and dash of the k-th curve of an axis with many curves."""
+    return {"color": OKABE_ITO[k % len(OKABE_ITO)],
+            "ls": LINESTYLES[(k // len(OKABE_ITO)) % len(LINESTYLES)]}
+
+
+use_palette()
 
 
 def png_bytes(fig: Figure) -> bytes:

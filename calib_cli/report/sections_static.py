@@ -8,6 +8,7 @@ from matplotlib.figure import Figure
 
 from calib_cli.io.escape import mpl_text
 from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
+from calib_cli.report.figures import BLUE, VERMILION
 
 MG = 1e3 / 9.80665  # m/s^2 -> mg
 
@@ -19,11 +20,11 @@ def g_figure(labels, before, after, sigma_after, g_ref) -> Figure:
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
     x = np.arange(len(labels))
     if before is not None and np.any(np.isfinite(before)):
-        ax1.plot(x, before, "o", color="tab:red", label="before (raw)")
-        ax1.axhline(np.nanmean(before), color="tab:red", ls=":", lw=1,
+        ax1.plot(x, before, "o", color=VERMILION, label="before (raw)")
+        ax1.axhline(np.nanmean(before), color=VERMILION, ls=":", lw=1,
                     label=f"mean before {np.nanmean(before):.5f}")
-    ax1.plot(x, after, "s", color="tab:blue", label="after correction")
-    ax1.axhline(np.mean(after), color="tab:blue", ls=":", lw=1,
+    ax1.plot(x, after, "s", color=BLUE, label="after correction")
+    ax1.axhline(np.mean(after), color=BLUE, ls=":", lw=1,
                 label=f"mean after {np.mean(after):.5f}")
     ax1.axhline(g_ref, color="k", lw=1, label=f"reference g {g_ref:.5f}")
     ax1.set_ylabel("|mean specific force| (m/s^2)")
@@ -31,7 +32,7 @@ def g_figure(labels, before, after, sigma_after, g_ref) -> Figure:
     ax1.legend(fontsize=8, ncol=2)
     ax1.grid(alpha=0.3)
     ax1.ticklabel_format(axis="y", useOffset=False)
-    ax2.errorbar(x, (after - g_ref) * MG, yerr=sigma_after * MG, fmt="s", color="tab:blue",
+    ax2.errorbar(x, (after - g_ref) * MG, yerr=sigma_after * MG, fmt="s", color=BLUE,
                  capsize=3, label="after - g (bars: 1 sigma noise floor)")
     ax2.axhline(0, color="k", lw=1)
     ax2.set_ylabel("|f| - g after correction (mg)")
