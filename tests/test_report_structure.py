@@ -110,6 +110,20 @@ def test_report_structure(reports, method):
     assert re.search(r"^Verdict: (PASS|FAIL|not determined)", md, re.M), "no verdict line"
     for item in ("unit serial", "calibrated (UTC)", "report made (UTC)", "SHA-256"):
         assert item in md, item
+    assert "![" in md, "no figure"
+
+
+def test_gyro_and_turntable_reports_have_residual_figures(reports):
+    gyro = (reports["gyro"] / "report.md").read_text()
+    assert "gyro-residuals" in gyro
+    tt = (reports["turntable"] / "report.md").read_text()
+    assert "residuals-time" in tt and "residuals-rate" in tt
+
+
+def test_allan_section_in_deg_per_hour(reports):
+    md = (reports["accel"] / "report.md").read_text()
+    assert "## Allan deviation" in md
+    assert "deg/h" in md and "deg/sqrt(h)" in md
 
 
 def test_diagnose_report_structure(reports):

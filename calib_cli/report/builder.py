@@ -287,18 +287,19 @@ def generic_sections(ctx: ReportContext) -> list[Section]:
 def allan_section(ctx: ReportContext) -> Section | None:
     if ctx.allan is None:
         return None
-    from calib_cli.methods.allan import CONFIDENCE, TERM_NAMES, term_units
+    from calib_cli.methods.allan import CONFIDENCE, TERM_NAMES
     from calib_cli.report.figures import allan_figure
+    from calib_cli.report.format import allan_display, num
 
     res = ctx.allan
     rows = []
     for i, c in enumerate(res.channels):
-        tu = term_units(res.units[i])
+        _, _, tu = allan_display(res.units[i])
         row = [c]
         for k in TERM_NAMES:
-            v, lo, hi = (res.terms[k][f][i] for f in ("value", "lo", "hi"))
+            v, lo, hi = (res.terms[k][f][i] * tu[k][0] for f in ("value", "lo", "hi"))
             row.append("not visible" if not np.isfinite(v) else
-                       f"{v:.3g} [{lo:.3g}, {hi:.3g}] {tu[k]}")
+                       f"{num(v, 3)} [{num(lo, 3)}, {num(hi, 3)}] {tu[k][1]}")
         at = res.averaging_time[i]
         row.append(f"{at:.3g} s" if np.isfinite(at) else
                    ("not reached" if np.isfinite(res.target[i]) else "no target"))

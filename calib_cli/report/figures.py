@@ -60,32 +60,39 @@ def allan_figure(res: AllanResult, title: str = "Allan deviation") -> Figure:
     """One log-log axis per sensor: every channel's overlapping Allan
     deviation with its confidence band, and the IEEE 952 lines (-1/2 slope
     through N at 1 s, the 0.664 B floor, +1/2 slope through K at 3 s)."""
+    from calib_cli.report.format import allan_display
+
     groups = _groups(res.channels)
     fig = Figure(figsize=(6.4 * len(groups), 4.8), layout="constrained")
     axes = fig.subplots(1, len(groups), squeeze=False)[0]
     t = res.tau
     for ax, (sensor, idx) in zip(axes, groups.items(), strict=True):
-        for i in idx:
-            line, = ax.loglog(t, res.adev[:, i], marker="o", ms=3,
-                              label=mpl_text(res.channels[i]))
-            ax.fill_between(t, res.adev_lo[:, i], res.adev_hi[:, i], color=line.get_color(),
+        c, unit, _ = allan_display(res.units[idx[0]])
+        for k, i in enumerate(idx):
+            col = OKABE_ITO[k % len(OKABE_ITO)]
+            ax.loglog(t, res.adev[:, i] * c, marker="o", ms=3, color=col,
+                      label=mpl_text(res.channels[i]))
+            ax.fill_between(t, res.adev_lo[:, i] * c, res.adev_hi[:, i] * c, color=col,
                             alpha=0.15, lw=0)
-            col = line.get_color()
             N = res.terms["random_walk"]["value"][i]
             B = res.terms["bias_instability"]["value"][i]
             K = res.terms["rate_random_walk"]["value"][i]
             if np.isfinite(N):
-                ax.loglog(t, N * np.sqrt(ARW_TAU / t), ls="--", lw=0.8, color=col)
+                ax.loglog(t, c * N * np.sqrt(ARW_TAU / t), ls="--", lw=0.8, color=col)
             if np.isfinite(B):
-                ax.axhline(BI_FACTOR * B, ls=":", lw=0.8, color=col)
+                ax.axhline(c * BI_FACTOR * B, ls=":", lw=0.8, color=col)
             if np.isfinite(K):
-                ax.loglog(t, K * np.sqrt(t / RRW_TAU), ls="-.", lw=0.8, color=col)
-        lo = np.nanmin(res.adev_lo[:, idx])
-        hi = np.nanmax(res.adev_hi[:, idx])
+                ax.loglog(t, c * K * np.sqrt(t / RRW_TAU), ls="-.", lw=0.8, color=col)
+        lo = np.nanmin(res.adev_lo[:, idx]) * c
+        hi = np.nanmax(res.adev_hi[:, idx]) * c
         ax.set_ylim(lo / 2, hi * 2)
         ax.set_xlabel("averaging time tau (s)")
-        ax.set_ylabel(f"Allan deviation ({res.units[idx[0]]})")
+        ax.set_ylabel(f"Allan deviation ({unit})")
         ax.set_title(mpl_text(f"{title}: {sensor}"))
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8, title="-- N (-1/2)  : 0.664B  -. K (+1/2)", title_fontsize=7)
+        # what the thin lines are, in words, beside the channels
+        ax.plot([], [], "k--", lw=0.8, label="white noise (slope -1/2)")
+        ax.plot([], [], "k:", lw=0.8, label="bias instability floor")
+        ax.plot([], [], "k-.", lw=0.8, label="rate random walk (slope +1/2)")
+        ax.legend(fontsize=7)
     return fig

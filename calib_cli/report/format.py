@@ -125,3 +125,24 @@ def _render(key, v, factor, unit, top=False) -> str:
         return str(v)
     t = num(x)
     return t + (f" {unit}" if unit and t != ND and top else "")
+
+
+def allan_display(unit: str) -> tuple[float, str, dict]:
+    """Display of an Allan analysis of a channel in SI ``unit``: (factor of the
+    deviation, its unit, {term: (factor, unit)}). Gyros in deg/h with the random
+    walk in deg/sqrt(h); accelerometers in ug with the random walk in
+    ug/sqrt(Hz); anything else (counts) unchanged."""
+    from calib_cli.methods.allan import term_units
+
+    if unit == "rad/s":
+        return DPH, "deg/h", {"quantization": (DEG * 3600.0, "arcsec"),
+                              "random_walk": (DSH, "deg/sqrt(h)"),
+                              "bias_instability": (DPH, "deg/h"),
+                              "rate_random_walk": (DPH * 60.0, "deg/h/sqrt(h)")}
+    if unit == "m/s^2":
+        return UG, "ug", {"quantization": (1e3, "mm/s"),
+                          "random_walk": (UG, "ug/sqrt(Hz)"),
+                          "bias_instability": (UG, "ug"),
+                          "rate_random_walk": (UG, "ug/sqrt(s)")}
+    tu = term_units(unit)
+    return 1.0, unit, {k: (1.0, u) for k, u in tu.items()}

@@ -54,7 +54,7 @@ def residual_figure(labels, resid, scale: float = MG, unit: str = "mg", what: st
         w = 0.8 / r.shape[1]
         for j in range(r.shape[1]):
             ax.bar(x + (j - (r.shape[1] - 1) / 2) * w, r[:, j], w, label=f"{'xyz'[j]} axis"
-                   if r.shape[1] == 3 else f"channel {j}")
+                   if r.shape[1] == 3 else f"sensor {j}")
         ax.set_title(f"{what}Residuals of the fit per axis and position (measured - model)")
     else:
         ax.bar(x, r, 0.6, label="|f| - g")
