@@ -135,3 +135,9 @@ def test_checker_catches_a_planted_problem(tmp_path):
     (tmp_path / "r.md").write_text("# r\n\nnoise floor nan mg\n\n![x](missing.png)\n")
     problems = check_markdown(tmp_path / "r.md")
     assert any("missing" in p for p in problems) and any("'nan'" in p for p in problems)
+
+
+def test_detect_plot(tmp_path):
+    csv = Path(__file__).resolve().parents[1] / "sample_data" / "twelve_position.csv"
+    _run("detect", csv, "--plot", tmp_path / "det.png")
+    _decodes((tmp_path / "det.png").read_bytes())

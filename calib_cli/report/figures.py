@@ -96,3 +96,49 @@ def allan_figure(res: AllanResult, title: str = "Allan deviation") -> Figure:
         ax.plot([], [], "k-.", lw=0.8, label="rate random walk (slope +1/2)")
         ax.legend(fontsize=7)
     return fig
+
+
+def detection_figure(t, accel, gyro, rep, title: str = "Static detection") -> Figure:
+    """The signal with the detected static intervals shaded and numbered, and
+    the detector's own statistic: the moving standard deviation of each axis
+    over the window, in multiples of its noise floor (worst axis), against the
+    threshold. A dip that stays above the line, or one shorter than the
+    minimum duration, is an interval not found."""
+    from calib_cli.methods.static_detect import moving_std
+
+    t = np.asarray(t, float)
+    accel = np.asarray(accel, float)
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    w = max(3, int(round(rep.window_s / dt)))
+    stat = np.max(moving_std(accel, w) / rep.floor_accel, axis=1)
+    if gyro is not None and rep.floor_gyro is not None:
+        stat = np.maximum(stat, np.max(moving_std(gyro, w) / rep.floor_gyro, axis=1))
+    step = max(1, len(t) // 20000)  # plot at most ~20k points per curve
+    ts = t[::step] - t[0]
+    rows = 3 if gyro is not None else 2
+    fig = Figure(figsize=(11, 2.6 * rows + 0.6), layout="constrained")
+    axs = fig.subplots(rows, 1, sharex=True)
+    series = [("accelerometer (m/s^2)", accel)] + ([("gyro (rad/s)", np.asarray(gyro, float))]
+                                                   if gyro is not None else [])
+    for ax, (lab, x) in zip(axs, series, strict=False):
+        for j in range(x.shape[1]):
+            ax.plot(ts, x[::step, j], lw=0.7, color=OKABE_ITO[j % len(OKABE_ITO)],
+                    label="xyz"[j] if x.shape[1] == 3 else str(j))
+        ax.set_ylabel(lab)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.005, 1.0), borderaxespad=0)
+    axs[-1].semilogy(ts, stat[::step], lw=0.7, color=BLACK, label="moving std / floor")
+    axs[-1].axhline(rep.multiplier, color=VERMILION, ls="--", lw=1,
+                    label=f"threshold {rep.multiplier:g}x")
+    axs[-1].set_ylabel(f"moving std over {rep.window_s:g} s\n(multiples of the floor)")
+    axs[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.005, 1.0), borderaxespad=0)
+    for k, (a, b) in enumerate(rep.intervals):
+        for ax in axs:
+            ax.axvspan(t[a] - t[0], t[b - 1] - t[0], color=GREEN, alpha=0.18, lw=0)
+        axs[0].annotate(str(k + 1), ((t[a] + t[b - 1]) / 2 - t[0], 1.0),
+                        xycoords=("data", "axes fraction"), ha="center", va="bottom",
+                        fontsize=7)
+    axs[-1].set_xlabel("time from the start (s); green: detected static intervals, numbered")
+    axs[0].set_title(mpl_text(f"{title}: {len(rep.intervals)} intervals (window "
+                              f"{rep.window_s:g} s, threshold {rep.multiplier:g}x, min "
+                              f"{rep.min_duration_s:g} s)"), pad=14)
+    return fig
