@@ -15,8 +15,20 @@ def fit_group():
     """Fit a calibration to a raw recording."""
 
 
-def save(res, raw, out, extra_inputs=()):
+json_option = click.option(
+    "--json", "as_json", is_flag=True,
+    help="Print the calibration as `calib show --json` does (docs/contract.md section 5) on "
+         "stdout and nothing else there (status stays on stderr).")
+
+
+def save(res, raw, out, extra_inputs=(), as_json: bool = False):
     write_calibration(out, res, [raw, *extra_inputs])
+    if as_json:
+        from calib_cli.cli.cmd_show import calibration_json
+        from calib_cli.cli.common import print_json
+
+        print_json(calibration_json(out))
+        return
     render_summary(res)
     info(f"-> {out}")
 
@@ -26,10 +38,11 @@ def save(res, raw, out, extra_inputs=()):
 @click.option("--out", required=True, type=click.Path(dir_okay=False))
 @click.option("--method", type=click.Choice(["auto", "vector", "scalar"]), default="auto",
               show_default=True, help="vector: known attitudes; scalar: |a| = g.")
-def fit_accel_cmd(raw, out, method):
+@json_option
+def fit_accel_cmd(raw, out, method, as_json):
     """Static multi-position accelerometer fit: A = b + K f."""
     from calib_cli.methods.accel_lsq import fit_accel
 
     rec = read_raw(raw)
     res = fit_accel(rec, method)
-    save(res, raw, out)
+    save(res, raw, out, as_json=as_json)
