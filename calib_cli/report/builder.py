@@ -358,7 +358,7 @@ def _md_table(t: Table) -> list[str]:
 
 
 CSS = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
-table{border-collapse:collapse;margin:.5em 0 1.5em}td,th{border:1px solid #bbb;
+table{border-collapse:collapse;margin:.5em 0 1.5em;min-width:60%}td,th{border:1px solid #bbb;
 padding:2px 8px;font-size:90%;text-align:left}th{background:#eee}img{max-width:100%}
 figcaption{font-size:90%;color:#444;margin-bottom:1.5em}caption{text-align:left;
 font-style:italic;margin-bottom:.3em}.verdict{font-weight:bold;padding:.4em .6em;

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.patches import Patch
 
 from calib_cli.io.escape import mpl_text
 from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
@@ -25,17 +26,17 @@ def angle_residual_figure(tr_labels, tr, turn_labels, turn, noise=None) -> Figur
     ax = fig.subplots()
     x = np.arange(len(labels))
     ax.bar(x, vals, 0.6, color=colors)
-    ax.bar([], [], color=BLUE, label="transition between static positions")
-    ax.bar([], [], color=VERMILION, label="turn of known angle")
+    handles = [Patch(color=BLUE, label="transition between static positions"),
+               Patch(color=VERMILION, label="turn of known angle")]
     if noise is not None and np.isfinite(noise):
-        ax.axhline(noise * ARCSEC, color="k", ls="--", lw=1,
-                   label=f"RMS of all ({noise * ARCSEC:.3g} arcsec)")
+        handles.append(ax.axhline(noise * ARCSEC, color="k", ls="--", lw=1,
+                                  label=f"RMS of all ({noise * ARCSEC:.3g} arcsec)"))
     ax.set_ylabel("angle residual (arcsec)")
     ax.set_xlabel("segment")
     ax.set_xticks(x, [mpl_text(s) for s in labels], rotation=45, ha="right", fontsize=8)
     ax.set_title("Gyro fit: angle the calibrated gyros miss, per transition and turn")
     ax.grid(alpha=0.3, axis="y")
-    ax.legend(fontsize=8)
+    ax.legend(handles=handles, fontsize=8)
     return fig
 
 

@@ -54,16 +54,21 @@ def residual_figure(labels, resid, scale: float = MG, unit: str = "mg", what: st
         w = 0.8 / r.shape[1]
         for j in range(r.shape[1]):
             ax.bar(x + (j - (r.shape[1] - 1) / 2) * w, r[:, j], w, label=f"{'xyz'[j]} axis"
-                   if r.shape[1] == 3 else f"sensor {j}")
-        ax.set_title(f"{what}Residuals of the fit per axis and position (measured - model)")
+                   if r.shape[1] == 3 else f"sensor {j}",
+                   hatch="//" if j >= 8 else None)  # beyond the palette's 8 colours
+        per = "axis" if r.shape[1] == 3 else "sensor"
+        ax.set_title(f"{what}residuals per {per} and position (measured - model)", fontsize=10)
     else:
         ax.bar(x, r, 0.6, label="|f| - g")
-        ax.set_title("Residuals of the fit per position (|K^-1 (A - b)| - g)")
+        ax.set_title("Residuals of the fit per position (|K^-1 (A - b)| - g)", fontsize=10)
     ax.axhline(0, color="k", lw=1)
     ax.set_ylabel(f"residual ({unit})")
     ax.set_xlabel("static position")
     ax.set_xticks(x, [mpl_text(s) for s in labels], rotation=45, ha="right", fontsize=8)
-    ax.legend(fontsize=8)
+    if r.ndim == 2 and r.shape[1] > 3:  # many sensors: the legend beside the axes
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+    else:
+        ax.legend(fontsize=8)
     ax.grid(alpha=0.3, axis="y")
     return fig
 

@@ -10,7 +10,7 @@ from matplotlib.figure import Figure
 from calib_cli.io.escape import mpl_text
 from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
 from calib_cli.report.figures import line_style
-from calib_cli.report.format import DPH, MG
+from calib_cli.report.format import DPH, MG, value_text
 
 BLOCK_S = 0.5  # residuals are shown as means over blocks of this length
 
@@ -167,7 +167,8 @@ def turntable_sections(ctx: ReportContext):
     cal, st = ctx.cal, ctx.cal.stats
     text = [f"{st.get('n_cycles', '?')} rotation cycles ({', '.join(st.get('cycles', []))}); "
             f"lever arms: {st.get('lever_arm_mode', '?')}, proof masses: "
-            f"{st.get('proof_mass_mode', '?')}, tangential term: {st.get('tangential', '?')}."]
+            f"{st.get('proof_mass_mode', '?')}, tangential term: "
+            f"{value_text('tangential', st.get('tangential'))}."]
     if st.get("accel_noise_inflation", 1.0) > 1.0:
         text.append(f"The model did not explain the accelerometer data: noise widened "
                     f"x{st['accel_noise_inflation']:.1f} (lever arms or proof masses missing?).")
@@ -185,8 +186,9 @@ def turntable_sections(ctx: ReportContext):
     if cal.tables.get("sigma_history_labels") is not None and len(cal.tables["sigma_history_labels"]):
         figs.append(FigureItem(
             "sigma-history", sigma_history_figure(cal),
-            "1-sigma of each lever-arm component (solid) and proof-mass offset (dashed) over "
-            "the record, mm, log scale. What to look for: each curve drops when its cycle "
+            "1-sigma of each lever-arm component (lever_arm[cycle].axis) and proof-mass offset "
+            "(p_ij) over the record, mm, log scale; every curve has its own colour and dash. "
+            "What to look for: each curve drops when its cycle "
             "excites it (rotation about the orthogonal axis); a curve that stays high was not "
             "excited by the experiment."))
     res = cycle_residuals(ctx) if ctx.raw_kind in ("raw", "corrected") else []
