@@ -141,3 +141,24 @@ def test_detect_plot(tmp_path):
     csv = Path(__file__).resolve().parents[1] / "sample_data" / "twelve_position.csv"
     _run("detect", csv, "--plot", tmp_path / "det.png")
     _decodes((tmp_path / "det.png").read_bytes())
+
+
+def test_verdict_against_tolerances(reports, tmp_path):
+    cal = reports["accel"].parent / "accel.cal.h5"
+    tol = tmp_path / "tol.toml"
+    tol.write_text("[param.accel_bias]\nmin_mg = -0.001\nmax_mg = 0.001\n")
+    _run("report", cal, "--out", tmp_path / "fail", "--tolerances", tol)
+    md = (tmp_path / "fail" / "report.md").read_text()
+    assert re.search(r"^Verdict: FAIL against the tolerances", md, re.M)
+    assert 'class="verdict fail"' in (tmp_path / "fail" / "report.html").read_text()
+    tol.write_text("[param.accel_bias]\nmin_mg = -100\nmax_mg = 100\n")
+    _run("report", cal, "--out", tmp_path / "pass", "--tolerances", tol)
+    md = (tmp_path / "pass" / "report.md").read_text()
+    assert re.search(r"^Verdict: PASS against the tolerances", md, re.M)
+    r = CliRunner().invoke(cli, ["report", str(cal), "--out", str(tmp_path / "x"),
+                                 "--tolerances", str(tmp_path / "missing.toml")])
+    from calib_cli.errors import InputError
+
+    # main() maps InputError to exit 3 with one line; nothing is left behind
+    assert isinstance(r.exception, InputError) and r.exception.exit_code == 3
+    assert not (tmp_path / "x").exists()
