@@ -4,7 +4,7 @@ VENV    := .venv
 BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 
-.PHONY: install demo test validate lint bench clean
+.PHONY: install demo test validate lint bench clean screenshots
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -19,6 +19,13 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m pytest -q
+
+# the HTML report of every method rendered by headless Chromium -> docs/figures/report-*.png;
+# installs the distribution's chromium package where it is missing (needs root or sudo)
+screenshots: $(STAMP)
+	command -v chromium >/dev/null 2>&1 || command -v chromium-browser >/dev/null 2>&1 || \
+	  { $$(command -v sudo) apt-get update && $$(command -v sudo) apt-get install -y --no-install-recommends chromium; }
+	PATH=$(CURDIR)/$(BIN):$$PATH MPLBACKEND=Agg bash sample_data/screenshots.sh
 
 # make validate K=turntable: one method's part alone (pytest -k)
 validate: $(STAMP)

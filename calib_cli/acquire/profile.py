@@ -379,7 +379,10 @@ def resolve_profile(name: str, kind: str) -> str:
     p = Path(name)
     if p.exists() or p.suffix == ".toml" or "/" in name:
         return str(p)
-    return str(PROFILE_DIR / kind / f"{name}.toml")
+    from calib_cli.io.profiles import find_profile
+
+    found = find_profile(name, kind)  # $CALIB_PROFILE_PATH, ~/.config/calib/profiles, shipped
+    return str(found or PROFILE_DIR / kind / f"{name}.toml")
 
 
 def _read_named(name: str, p: str, kind: str) -> str:

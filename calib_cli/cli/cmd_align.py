@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from calib_cli.cli.cmd_fit import fit_group, save
+from calib_cli.cli.cmd_fit import fit_group, json_option, save
 from calib_cli.cli.common import info
 from calib_cli.io.h5 import read_raw
 
@@ -32,7 +32,9 @@ from calib_cli.io.h5 import read_raw
                    "that bend the integrated turn [default: 30, or 3000 without earth rate].")
 @click.option("--turn-sigma-deg", type=float, default=0.0, show_default=True,
               help="1-sigma error per axis of a plan-stated turn (with --rotation plan).")
-def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_deg):
+@json_option
+def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_deg,
+                  as_json):
     """Accelerometer and gyro biases and the attitude of the first position from
     two (or more) static positions related by a known rotation."""
     import numpy as np
@@ -66,4 +68,4 @@ def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_
              "estimated, accelerometer biases and tilt only")
     if res.stats.get("observability"):
         info(res.stats["observability"])
-    save(res, raw, out, rec=rec)
+    save(res, raw, out, rec=rec, as_json=as_json)

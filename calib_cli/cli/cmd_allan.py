@@ -38,8 +38,9 @@ def channel_names(prefix: str, n: int) -> list[str]:
         f"{prefix}_{i}" for i in range(n)]
 
 
-def _span(h5, path, segment):
-    """(start, stop, label) of the samples to analyse."""
+def _span(h5, path, segment, hint="--segment"):
+    """(start, stop, label) of the samples to analyse; ``hint``: how the user names a
+    segment (`calib report` has no --segment: it points to `calib allan`)."""
     n = h5["samples"]["time"].shape[0]
     segs = read_segments(h5, path) if "segments" in h5 else ()
     if segment is not None:
@@ -53,11 +54,11 @@ def _span(h5, path, segment):
     statics = [s for s in segs if s.kind == "static"]
     if not statics:
         raise EstimationError("the record has no static segment (the Allan deviation needs "
-                              "the unit at rest); name a segment with --segment", path)
+                              "the unit at rest); name a segment with " + hint, path)
     best = max(statics, key=lambda s: s.n)
     if len(segs) > 1:
         info(f"{path}: {len(segs)} segments; using the longest static one, {best.label!r} "
-             "(choose with --segment)")
+             f"(choose with {hint})")
     return best.start, best.stop, best.label
 
 
@@ -78,7 +79,8 @@ def _parse_targets(targets, units_by_sensor, path):
     return out
 
 
-def compute_allan(raw, segment=None, targets=(), stride_div=A.STRIDE_DIV) -> A.AllanResult:
+def compute_allan(raw, segment=None, targets=(), stride_div=A.STRIDE_DIV,
+                  hint="--segment") -> A.AllanResult:
     """Read RAW chunk-wise and run the Allan analysis (used by `allan` and `report`)."""
     with open_checked(raw, ("raw", "corrected")) as h5:
         if "samples" not in h5 or "time" not in h5["samples"]:
@@ -87,7 +89,7 @@ def compute_allan(raw, segment=None, targets=(), stride_div=A.STRIDE_DIV) -> A.A
         from calib_cli.io import validate
 
         validate.check_samples_layout(smp, raw)  # issue 15: shapes before use
-        start, stop, label = _span(h5, raw, segment)
+        start, stop, label = _span(h5, raw, segment, hint)
         n = stop - start
         sensors = [s for s in ("accel", "gyro") if s in smp]
         units = {s: _attr_str(smp, f"{s}_units", "m/s^2" if s == "accel" else "rad/s")

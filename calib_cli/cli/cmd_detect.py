@@ -1,4 +1,4 @@
-"""calib detect RAW.h5|LOG.csv: show the static intervals the detector finds."""
+"""calib detect RAW.h5|LOG.csv [--plot PNG]: show the static intervals the detector finds."""
 
 from __future__ import annotations
 
@@ -54,8 +54,11 @@ def _load(path: str, gyro_path=None, text_opts=None):
 @click.option("--expect", type=int, help="The number of static positions you expect: say which "
               "threshold finds it.")
 @click.option("--json", "as_json", is_flag=True, help="One JSON object on stdout.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False),
+              help="PNG of the signal with the detected intervals marked and the detector's "
+                   "statistic against the threshold.")
 def detect_cmd(file, gyro, columns, gyro_columns, rate, time_unit, window_s, multiplier,
-               min_static_s, expect, as_json):
+               min_static_s, expect, as_json, plot_path):
     """Static-interval detection as `import` does it, without importing: the
     intervals, the noise floors, and how many intervals other thresholds find.
     FILE is a raw.h5, a contract CSV, or a text log (with an optional GYRO file
@@ -70,6 +73,16 @@ def detect_cmd(file, gyro, columns, gyro_columns, rate, time_unit, window_s, mul
              "duration": float(t[b - 1] - t[a] + np.median(np.diff(t)))}
             for a, b in rep.intervals]
     explain = rep.explain(expect)
+    if plot_path:
+        from pathlib import Path
+
+        from calib_cli.io.h5 import atomic_path
+        from calib_cli.report.figures import detection_figure, png_bytes
+
+        data = png_bytes(detection_figure(t, accel, gyro_data, rep, f"Static detection of "
+                                                                    f"{Path(file).name}"))
+        with atomic_path(plot_path) as tmp:
+            Path(tmp).write_bytes(data)
     if as_json:
         print_json({"file": file, "intervals": rows, "threshold": multiplier,
                     "window_s": window_s, "min_static_s": min_static_s,

@@ -50,7 +50,7 @@ def _render(j: dict) -> None:
               help="Noise floor: hf = white noise from the high-frequency content; auto = the "
                    "same, raised to the within-segment scatter of 0.5 s means where that is "
                    "significantly larger (coloured or drifting noise).")
-@click.option("--json", "as_json", is_flag=True, help="One JSON object (contract section 5).")
+@click.option("--json", "as_json", is_flag=True, help="One JSON object (docs/contract.md section 5).")
 @click.option("--report", "report_dir", type=click.Path(file_okay=False),
               help="Write PNG plots and summary.md to this directory.")
 def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir):

@@ -10,13 +10,15 @@ import sys
 import click
 import numpy as np
 
-from calib_cli.cli.common import info, to_jsonable
+from calib_cli.cli.common import complete_profile, info, to_jsonable
 from calib_cli.cli.main import cli
 
 
 @cli.command("emulate")
-@click.option("--imu", "imu", required=True, help="IMU profile: a .toml path or a shipped name.")
-@click.option("--table", "table", help="Turntable profile of the virtual table.")
+@click.option("--imu", "imu", required=True, shell_complete=complete_profile("imu"),
+              help="IMU profile: a .toml path or a profile name (`calib profiles`).")
+@click.option("--table", "table", shell_complete=complete_profile("turntable"),
+              help="Turntable profile of the virtual table.")
 @click.option("--truth", "truth_path", type=click.Path(dir_okay=False),
               help="Truth model TOML (docs/simulate.md); default: a random unit (--seed).")
 @click.option("--plan", "plan_path", type=click.Path(dir_okay=False),

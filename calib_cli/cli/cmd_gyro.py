@@ -6,7 +6,7 @@ import json
 
 import click
 
-from calib_cli.cli.cmd_fit import fit_group, save
+from calib_cli.cli.cmd_fit import fit_group, json_option, save
 from calib_cli.cli.common import info
 from calib_cli.io.h5 import read_calibration, read_raw
 
@@ -20,7 +20,8 @@ from calib_cli.io.h5 import read_calibration, read_raw
 @click.option("--g-sensitivity", type=click.Choice(["auto", "on", "off"]), default="auto",
               show_default=True, help="Fit gyro_D (auto: when the static positions make it "
                                       "observable).")
-def fit_gyro_cmd(raw, out, accel_path, g_sensitivity):
+@json_option
+def fit_gyro_cmd(raw, out, accel_path, g_sensitivity, as_json):
     """Gyro bias, scale factors and misalignments (and g-sensitivity) from the
     rotations between static positions and turns of known angle (docs/gyro.md)."""
     from calib_cli.methods.gyro import fit_gyro
@@ -49,7 +50,7 @@ def fit_gyro_cmd(raw, out, accel_path, g_sensitivity):
 
     screen_fit(res, rec, lambda r: fit_gyro(r, acc, g_sensitivity,
                                             accel_independent=independent))
-    save(res, raw, out, [accel_path] if accel_path else [], rec=rec)
+    save(res, raw, out, [accel_path] if accel_path else [], rec=rec, as_json=as_json)
     st = res.stats
     for w in st.get("warnings", []):
         info(f"[yellow]warning:[/] {w}")

@@ -12,7 +12,7 @@ import click
 from rich.live import Live
 from rich.table import Table
 
-from calib_cli.cli.common import Ctx, err_console, info, interactive
+from calib_cli.cli.common import Ctx, complete_profile, err_console, info, interactive
 from calib_cli.cli.main import cli
 from calib_cli.errors import InputError
 
@@ -78,11 +78,13 @@ def _raise_interrupt(*_):
 
 
 @cli.command("record")
-@click.option("--imu", "imu", required=True, help="IMU profile: a .toml path or a shipped name.")
+@click.option("--imu", "imu", required=True, shell_complete=complete_profile("imu"),
+              help="IMU profile: a .toml path or a profile name (`calib profiles`).")
 @click.option("--port", help="Serial port of the IMU (serial profiles).")
 @click.option("--can-interface", help="python-can interface (default: the profile's).")
 @click.option("--can-channel", help="CAN channel (default: the profile's).")
-@click.option("--table", "table", help="Turntable profile (path, shipped name, or 'manual').")
+@click.option("--table", "table", shell_complete=complete_profile("turntable"),
+              help="Turntable profile (path, shipped name, or 'manual').")
 @click.option("--table-port", help="Serial port of the turntable.")
 @click.option("--plan", "plan_path", type=click.Path(dir_okay=False), help="Experiment plan.")
 @click.option("--duration", type=float, help="Free-running log of S seconds (no plan); "

@@ -23,7 +23,8 @@ def _allan_for(raw: str, kind: str):
     from calib_cli.cli.cmd_allan import compute_allan
 
     try:
-        res = compute_allan(raw)
+        res = compute_allan(raw, hint="`calib allan RAW --segment LABEL --out ALLAN.h5`, then "
+                            "`calib report CAL ALLAN.h5`")
     except CalibError as exc:
         return None, f"No Allan deviation of {Path(raw).name}: {exc.message}"
     if res.duration < MIN_ALLAN_S:
@@ -37,7 +38,10 @@ def _allan_for(raw: str, kind: str):
 @click.argument("raw", required=False, type=click.Path(dir_okay=False))
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
               help="Directory for report.md, report.html, the PNG figures (created).")
-def report_cmd(cal, raw, out_dir):
+@click.option("--tolerances", "tol_path", type=click.Path(dir_okay=False),
+              help="Tolerance file (as for `calib batch`): the verdict checks the parameters "
+                   "against it instead of against the noise floor.")
+def report_cmd(cal, raw, out_dir, tol_path):
     """Markdown and self-contained HTML report of a calibration, with plots.
 
     RAW (optional): a free-running raw record (or an 'allan' file) adds the
@@ -46,6 +50,10 @@ def report_cmd(cal, raw, out_dir):
 
     c = read_calibration(cal)
     ctx = ReportContext(cal=c, cal_path=cal, prov=provenance(cal))
+    if tol_path:
+        from calib_cli.batch.tolerance import load_tolerances
+
+        ctx.tolerances, ctx.tolerances_path = load_tolerances(tol_path), tol_path
     if raw:
         kind = file_kind(raw)
         if kind not in ("raw", "corrected", "allan"):

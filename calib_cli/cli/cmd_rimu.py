@@ -6,7 +6,7 @@ import click
 import numpy as np
 from rich.table import Table
 
-from calib_cli.cli.cmd_fit import fit_group, save
+from calib_cli.cli.cmd_fit import fit_group, json_option, save
 from calib_cli.cli.common import Ctx, err_console, out_console, print_json
 from calib_cli.cli.main import cli
 from calib_cli.errors import FaultDetected, InputError
@@ -19,7 +19,8 @@ _SHOW = {"accel": (1e3 / 9.80665, "mg"), "gyro": (R2D, "deg/s")}
 @fit_group.command("rimu")
 @click.argument("raw", type=click.Path(dir_okay=False))
 @click.option("--out", required=True, type=click.Path(dir_okay=False))
-def fit_rimu_cmd(raw, out):
+@json_option
+def fit_rimu_cmd(raw, out, as_json):
     """Redundant unit: per sensor bias, scale error, dEl, dAz (docs/rimu.md)."""
     from calib_cli.methods.rimu import fit_rimu
 
@@ -31,7 +32,7 @@ def fit_rimu_cmd(raw, out):
     from calib_cli.methods.gross import screen_fit
 
     screen_fit(res, rec, fit_rimu)  # a misplaced position is named (exit 4)
-    save(res, raw, out, rec=rec)
+    save(res, raw, out, rec=rec, as_json=as_json)
 
 
 def _render_report(s: dict) -> None:

@@ -90,7 +90,7 @@ def _render_raw(path):
 
 @cli.command("show")
 @click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
-@click.option("--json", "as_json", is_flag=True, help="One JSON object (contract section 5).")
+@click.option("--json", "as_json", is_flag=True, help="One JSON object (docs/contract.md section 5).")
 @click.option("--covariance", is_flag=True, help="Include the covariance matrix.")
 def show_cmd(files, as_json, covariance):
     """Summarise a calib HDF5 file (raw, calibration, corrected, ...).

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import click
 
-from calib_cli.cli.cmd_fit import fit_group, save
+from calib_cli.cli.cmd_fit import fit_group, json_option, save
 from calib_cli.cli.common import info
 from calib_cli.io.h5 import read_calibration, read_raw
 
@@ -25,7 +25,8 @@ THERMAL_EFFECTS = ("thermal_lag",)
               help="A room-temperature calibration whose K (and gyro G) are held.")
 @click.option("--with", "with_", default="",
               help="Extra catalogue effects: thermal_lag (first-order lag, tau estimated).")
-def fit_thermal_cmd(raw, out, order, temp_ref, sensor, base_path, with_):
+@json_option
+def fit_thermal_cmd(raw, out, order, temp_ref, sensor, base_path, with_, as_json):
     """Bias and scale factor polynomial in temperature on top of the static
     model, from soak steps and/or ramps in known positions (docs/thermal.md)."""
     from calib_cli.errors import InputError
@@ -46,7 +47,7 @@ def fit_thermal_cmd(raw, out, order, temp_ref, sensor, base_path, with_):
     sensors = ("accel", "gyro") if sensor == "both" else (sensor,)
     res = fit_thermal(rec, order=order, temp_ref=temp_ref, sensors=sensors, base=base,
                       lag="thermal_lag" in effects)
-    save(res, raw, out, [base_path] if base_path else [])
+    save(res, raw, out, [base_path] if base_path else [], as_json=as_json)
     st = res.stats
     info(f"order {st['temp_order']} (T_ref {st['temp_ref_degC']:g} degC, range "
          f"{st['temp_range_degC'][0]:.1f}..{st['temp_range_degC'][1]:.1f} degC)")

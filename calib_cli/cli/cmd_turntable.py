@@ -46,7 +46,7 @@ from calib_cli.io.h5 import read_raw
               help="The table's angle channel as a measurement (zero, once-per-revolution error "
                    "and clock offset estimated): auto uses it where the log has it.")
 @click.option("--json", "as_json", is_flag=True,
-              help="Print the result as JSON (contract section 5) on stdout.")
+              help="Print the result as JSON (docs/contract.md section 5) on stdout.")
 @click.option("--plot", type=click.Path(dir_okay=False),
               help="Write the sigma history of the lever arms and proof-mass offsets (PNG).")
 def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis_sigma_mrad,

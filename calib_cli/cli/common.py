@@ -50,3 +50,18 @@ def to_jsonable(x):
 
 def print_json(obj) -> None:
     sys.stdout.write(json.dumps(to_jsonable(obj), indent=2) + "\n")
+
+
+def complete_profile(kind: str):
+    """A click shell_complete callback: the profile names of KIND."""
+
+    def complete(ctx, param, incomplete):
+        from click.shell_completion import CompletionItem
+
+        from calib_cli.io.profiles import all_profiles
+
+        return [CompletionItem(p["name"], help=p["description"])
+                for p in all_profiles((kind,))
+                if not p["shadowed"] and p["name"].startswith(incomplete)]
+
+    return complete

@@ -38,6 +38,20 @@ class _Commands(click.Group):
         _register()
         return super().list_commands(ctx)
 
+    def parse_args(self, ctx, args):
+        """`-q`/`--quiet` (and `--debug`) are accepted at any position, e.g.
+        `calib fit accel raw.h5 --out cal.h5 -q`: moved before the subcommand
+        (not after a `--`, which ends the options)."""
+        args = list(args)
+        end = args.index("--") if "--" in args else len(args)
+        moved = [a for a in args[:end] if a in GLOBAL_FLAGS]
+        if moved:
+            args = moved + [a for a in args[:end] if a not in GLOBAL_FLAGS] + args[end:]
+        return super().parse_args(ctx, args)
+
+
+GLOBAL_FLAGS = ("-q", "--quiet", "--debug")
+
 
 @click.group(cls=_Commands, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="calib")

@@ -5,8 +5,10 @@ its own ``el0_deg``/``az0_deg`` lists. The name is looked up as
 
 1. a path (absolute, or relative to the plan file's directory), when it
    names an existing file or ends in ``.toml``;
-2. ``rimu/NAME.toml`` in the shipped profiles (``shipped_profiles()``: the
-   repository's top-level ``profiles`` directory, or where a wheel installed it).
+2. ``rimu/NAME.toml`` along the profile search path (``profile_dirs()``:
+   ``$CALIB_PROFILE_PATH``, ``~/.config/calib/profiles``, then the shipped
+   profiles -- the repository's top-level ``profiles`` directory, or where a
+   wheel installed them).
 
 A profile file holds ``el0_deg`` and ``az0_deg`` (degrees, one entry per
 sensor, taken modulo 360) and optional ``name``/``description``/``sensors``.
@@ -33,6 +35,67 @@ def shipped_profiles() -> Path:
 
 PROFILE_DIR = shipped_profiles() / "rimu"
 
+KINDS = ("imu", "turntable", "rimu")
+USER_DIR = Path("~/.config/calib/profiles")
+
+
+def profile_dirs() -> list[tuple[str, Path]]:
+    """Where a profile NAME is looked up, first match wins: each directory of
+    ``$CALIB_PROFILE_PATH`` (os.pathsep-separated), then
+    ``~/.config/calib/profiles``, then the shipped profiles. Each holds
+    ``imu/``, ``turntable/`` and ``rimu/`` subdirectories of ``NAME.toml``."""
+    import os
+
+    out = [("CALIB_PROFILE_PATH", Path(d).expanduser())
+           for d in os.environ.get("CALIB_PROFILE_PATH", "").split(os.pathsep) if d.strip()]
+    out.append(("user", USER_DIR.expanduser()))
+    out.append(("shipped", shipped_profiles()))
+    return out
+
+
+def find_profile(name: str, kind: str) -> Path | None:
+    """The first ``KIND/NAME.toml`` along ``profile_dirs()``, or None."""
+    for _, d in profile_dirs():
+        f = d / kind / f"{name}.toml"
+        if f.is_file():
+            return f
+    return None
+
+
+def describe(path: Path) -> str:
+    """A profile's one-line description: its ``description`` key, else its first
+    comment line."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return "(unreadable)"
+    try:
+        raw = tomllib.loads(text)
+        d = raw.get("description") or (raw.get("rimu") or {}).get("description")
+        if isinstance(d, str) and d.strip():
+            return " ".join(d.split())
+    except tomllib.TOMLDecodeError:
+        return "(not valid TOML)"
+    for line in text.splitlines():
+        if line.startswith("#") and line.strip("# ").strip():
+            return line.strip("# ").strip()
+    return ""
+
+
+def all_profiles(kinds=KINDS) -> list[dict]:
+    """Every profile along the search path: {kind, name, source, path,
+    description, shadowed} (shadowed: an earlier directory has the same name)."""
+    seen = set()
+    out = []
+    for source, d in profile_dirs():
+        for kind in kinds:
+            for f in sorted((d / kind).glob("*.toml")) if (d / kind).is_dir() else []:
+                key = (kind, f.stem)
+                out.append({"kind": kind, "name": f.stem, "source": source, "path": str(f),
+                            "description": describe(f), "shadowed": key in seen})
+                seen.add(key)
+    return out
+
 
 def _candidates(name: str, plan_path: str) -> list[Path]:
     out = []
@@ -40,7 +103,7 @@ def _candidates(name: str, plan_path: str) -> list[Path]:
     p = Path(name)
     out.append(p if p.is_absolute() else base / p)
     if not name.endswith(".toml") and "/" not in name and "\\" not in name:
-        out.append(PROFILE_DIR / f"{name}.toml")
+        out.append(find_profile(name, "rimu") or PROFILE_DIR / f"{name}.toml")
     return out
 
 

@@ -482,6 +482,9 @@ def _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D, cr
         "static_residual_rms": float(np.sqrt(np.mean(r_static**2))) if n else None,
         "n_positions": n, "n_transitions": ntr, "n_turns": len(prob.turns),
         "transitions_skipped": [f"{a} -> {b}: {r}" for a, b, r in prob.skipped],
+        # names of the entries of residuals transition_angle (the report's figure)
+        "transitions_used": [f"{prob.statics[k].label} -> {prob.statics[k + 1].label}"
+                             for k, _, _ in prob.transitions],
         "turn_angles_deg": {s.label: ang for s, ang in zip(prob.turns, turn_angles, strict=False)},
         "gyro_noise_sigma": prob.sig_gyro.tolist(),
         "g_sensitivity": bool(use_D),

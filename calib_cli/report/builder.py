@@ -73,6 +73,8 @@ class ReportContext:
     raw_kind: str | None = None
     allan: object | None = None
     notes: list = field(default_factory=list)
+    tolerances: dict | None = None  # batch.tolerance.load_tolerances(), for the verdict
+    tolerances_path: str | None = None
     _recording: object | None = None
 
     def recording(self):
@@ -117,15 +119,14 @@ def _load_section_modules() -> None:
 
 
 def _fmt(x) -> str:
-    if x is None:
-        return "null"
-    if isinstance(x, float):
-        return "NaN" if not np.isfinite(x) else f"{x:.6g}"
-    return str(x)
+    from calib_cli.report.format import num
+
+    return num(x, 6)
 
 
 def parameter_table(cal: CalibrationResult) -> Table:
     from calib_cli.cli.render import display_of  # display units only
+    from calib_cli.report.format import ND
 
     rows = []
     for key, val in cal.params.items():
@@ -135,41 +136,148 @@ def parameter_table(cal: CalibrationResult) -> Table:
         for idx in np.ndindex(val.shape):
             name = f"{key}[{','.join(map(str, idx))}]" if val.ndim else key
             s = sig[idx]
-            st = "unobservable" if not np.isfinite(s) else ("fixed" if s == 0 else
-                                                             f"{s * factor:.3g}")
-            rows.append([name, f"{val[idx] * factor:.9g}", st, unit or cal.units.get(key, "")])
+            st = (f"{ND} (unobservable)" if not np.isfinite(s) else
+                  ("fixed" if s == 0 else f"{s * factor:.3g}"))
+            v = val[idx] * factor
+            rows.append([name, f"{v:.9g}" if np.isfinite(v) else ND, st,
+                         unit or cal.units.get(key, "") or "-"])
     return Table("Parameters with their 1-sigma uncertainty (display units; files hold SI).",
                  ["parameter", "value", "1 sigma", "unit"], rows)
 
 
+# a normalized residual (residual RMS / noise) above this fails the noise-floor verdict
+NORMALIZED_LIMIT = 1.5
+# |g| error RMS after correction above this multiple of its noise floor fails
+G_FLOOR_LIMIT = 2.0
+
+
+def verdict(ctx: ReportContext) -> tuple[str, str]:
+    """("pass"|"fail"|"undecided", one line): against the tolerances when the
+    report was given some, else against the noise floor -- the |g| error after
+    correction versus its floor (fits of the accelerometers), the normalized
+    residual (residual RMS in units of the noise) for the others."""
+    from calib_cli.report.format import MG
+
+    cal, st = ctx.cal, ctx.cal.stats
+    if ctx.tolerances is not None:
+        from calib_cli.batch.history import CalEntry
+        from calib_cli.batch.tolerance import check
+
+        entry = CalEntry(ctx.cal_path, ctx.cal_path, cal.serial or "", cal.method, "", "",
+                         cal.params, cal.sigma, cal.units)
+        res = check(entry, [], ctx.tolerances)
+        checked = [k for k in ctx.tolerances if k in cal.params]
+        if res["failures"]:
+            return "fail", (f"FAIL against the tolerances ({len(res['failures'])} failing): "
+                            + "; ".join(res["failures"][:5])
+                            + ("; ..." if len(res["failures"]) > 5 else ""))
+        return "pass", (f"PASS against the tolerances ({len(checked)} parameters checked: "
+                        f"{', '.join(checked) or 'none reported by this method'}).")
+    crit = []  # (ok, text)
+    ga, gf = st.get("g_error_rms_after"), st.get("g_error_floor")
+    if ga is not None and gf is not None and np.isfinite(ga) and np.isfinite(gf) and gf > 0:
+        crit.append((ga <= G_FLOOR_LIMIT * gf,
+                     f"|g| error RMS after correction {ga * MG:.4g} mg vs its noise floor "
+                     f"{gf * MG:.4g} mg (limit {G_FLOOR_LIMIT:g}x)"))
+    r = None
+    if st.get("normalized_innovation_rms") is not None:
+        r, what = float(st["normalized_innovation_rms"]), "normalized innovation RMS"
+    elif st.get("chi2_dof") is not None:
+        r, what = float(np.sqrt(max(float(st["chi2_dof"]), 0.0))), "normalized residual"
+    else:
+        chi = [np.asarray(st.get(f"{s}_chi2", []), float) for s in ("accel", "gyro")]
+        dof = [np.asarray(st.get(f"{s}_dof", []), float) for s in ("accel", "gyro")]
+        c, d = sum(float(np.nansum(x)) for x in chi), sum(float(np.nansum(x)) for x in dof)
+        if d > 0:
+            r, what = float(np.sqrt(c / d)), "normalized residual (all sensors)"
+    if r is not None and np.isfinite(r):
+        crit.append((r <= NORMALIZED_LIMIT,
+                     f"{what} {r:.3g} (residual RMS / noise; limit {NORMALIZED_LIMIT:g})"))
+    if not crit:
+        return "undecided", ("not determined: no tolerances given and the calibration holds "
+                             "no noise-floor statistic (pass --tolerances TOL.toml).")
+    ok = all(c for c, _ in crit)
+    return ("pass" if ok else "fail"), (
+        ("PASS" if ok else "FAIL") + " against the noise floor: "
+        + "; ".join(t for _, t in crit) + ".")
+
+
+def header_section(ctx: ReportContext) -> Section:
+    """Unit, method, dates, inputs with their SHA-256, and the verdict."""
+    import datetime as _dt
+
+    from calib_cli.report.format import value_text
+
+    cal, prov = ctx.cal, ctx.prov
+    _, line = verdict(ctx)
+    rows = [["unit serial", cal.serial or "not recorded"],
+            ["method", cal.method + (f" ({cal.stats['method']})" if isinstance(
+                cal.stats.get("method"), str) and cal.stats["method"] != cal.method else "")],
+            ["calibration file", Path(ctx.cal_path).name],
+            ["calibrated (UTC)", str(prov.get("created_utc") or "not recorded")],
+            ["report made (UTC)",
+             _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")]]
+    hashes = prov.get("input_sha256")
+    if isinstance(hashes, str):
+        try:
+            hashes = json.loads(hashes)
+        except ValueError:
+            hashes = {"input": hashes}
+    for name, h in (hashes or {}).items():
+        rows.append([f"input {name}", f"SHA-256 {value_text('sha256', h)}"])
+    if ctx.raw_path:
+        from calib_cli.io.h5 import sha256_file
+
+        rows.append([f"report input {Path(ctx.raw_path).name}",
+                     f"SHA-256 {sha256_file(ctx.raw_path)}"])
+    if ctx.tolerances_path:
+        rows.append(["tolerances", Path(ctx.tolerances_path).name])
+    return Section("Verdict", text=[f"Verdict: {line}"],
+                   tables=[Table("Unit, method, dates and inputs.", ["item", "value"], rows)])
+
+
+def _maybe_json(v):
+    if isinstance(v, str) and v[:1] in "[{":
+        try:
+            return json.loads(v)
+        except ValueError:
+            pass
+    return v
+
+
 def generic_sections(ctx: ReportContext) -> list[Section]:
+    from calib_cli.report.format import MG, num, value_text
+
     cal, prov = ctx.cal, ctx.prov
     st = cal.stats
-    summary = [f"Method: {cal.method}. Unit serial: {cal.serial or 'unknown'}."]
+    summary = [f"Method: {cal.method}. Unit serial: {cal.serial or 'not recorded'}."]
     if st.get("g_error_rms_after") is not None:
         b = st.get("g_error_rms_before")
+        fl = st.get("g_error_floor")
         summary.append("|g| error RMS over the static positions: before "
-                       f"{'n/a (counts)' if b is None else f'{b * 1e3 / 9.80665:.4f} mg'}, "
-                       f"after {st['g_error_rms_after'] * 1e3 / 9.80665:.4f} mg "
-                       f"(noise floor {st.get('g_error_floor', float('nan')) * 1e3 / 9.80665:.4f}"
-                       " mg).")
+                       f"{'not determined (counts)' if b is None else num(b * MG) + ' mg'}, "
+                       f"after {num(st['g_error_rms_after'] * MG)} mg"
+                       + (f" (noise floor {num(fl * MG)} mg)." if fl is not None
+                          and np.isfinite(fl) else "."))
     if st.get("g_norm_std_after") is not None:
         from calib_cli.units import g_figures_line
 
         summary.append(g_figures_line(st) + " (Avrutov et al.'s figures of merit).")
     if st.get("unobservable"):
         summary.append("Unobservable from this data: " + ", ".join(st["unobservable"]) + ".")
-    if st.get("sigma_inflation", 1.0) not in (1.0, None):
-        summary.append(f"Sigma inflated by sqrt({st['sigma_inflation']:.3g}): the residuals "
+    infl = st.get("sigma_inflation", 1.0)
+    if infl not in (1.0, None) and np.isfinite(infl):
+        summary.append(f"Sigma inflated by sqrt({infl:.3g}): the residuals "
                        "scatter more than the noise explains.")
     summary += ctx.notes
-    stats = Table("Fit statistics (SI units).", ["statistic", "value"],
-                  [[k, _fmt(v) if not isinstance(v, (list, dict)) else json.dumps(v)[:120]]
-                   for k, v in st.items()])
+    stats = Table("Fit statistics in display units (accelerometer mg, gyro deg/h, noise "
+                  "densities ug/sqrt(Hz) and deg/sqrt(h), angles deg; files hold SI).",
+                  ["statistic", "value"],
+                  [[k, value_text(k, v)] for k, v in st.items()])
     keys = ("kind", "format_version", "tool_version", "created_utc", "unit_serial", "command",
             "input_sha256")
     provt = Table("Provenance of the calibration file.", ["attribute", "value"],
-                  [[k, str(prov.get(k, ""))] for k in keys if k in prov])
+                  [[k, value_text(k, _maybe_json(prov.get(k)))] for k in keys if k in prov])
     return [Section("Summary", text=summary),
             Section("Parameters", tables=[parameter_table(cal)]),
             Section("Statistics", tables=[stats]),
@@ -179,18 +287,19 @@ def generic_sections(ctx: ReportContext) -> list[Section]:
 def allan_section(ctx: ReportContext) -> Section | None:
     if ctx.allan is None:
         return None
-    from calib_cli.methods.allan import CONFIDENCE, TERM_NAMES, term_units
+    from calib_cli.methods.allan import CONFIDENCE, TERM_NAMES
     from calib_cli.report.figures import allan_figure
+    from calib_cli.report.format import allan_display, num
 
     res = ctx.allan
     rows = []
     for i, c in enumerate(res.channels):
-        tu = term_units(res.units[i])
+        _, _, tu = allan_display(res.units[i])
         row = [c]
         for k in TERM_NAMES:
-            v, lo, hi = (res.terms[k][f][i] for f in ("value", "lo", "hi"))
+            v, lo, hi = (res.terms[k][f][i] * tu[k][0] for f in ("value", "lo", "hi"))
             row.append("not visible" if not np.isfinite(v) else
-                       f"{v:.3g} [{lo:.3g}, {hi:.3g}] {tu[k]}")
+                       f"{num(v, 3)} [{num(lo, 3)}, {num(hi, 3)}] {tu[k][1]}")
         at = res.averaging_time[i]
         row.append(f"{at:.3g} s" if np.isfinite(at) else
                    ("not reached" if np.isfinite(res.target[i]) else "no target"))
@@ -231,7 +340,8 @@ def build_report(ctx: ReportContext) -> list[Section]:
             continue
         specific += out if isinstance(out, list) else [out]
     allan = allan_section(ctx)
-    return [generic[0], *specific, generic[1], *([allan] if allan else []), *generic[2:]]
+    return [header_section(ctx), generic[0], *specific, generic[1],
+            *([allan] if allan else []), *generic[2:]]
 
 
 # ---------------------------------------------------------------------------
@@ -248,10 +358,12 @@ def _md_table(t: Table) -> list[str]:
 
 
 CSS = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
-table{border-collapse:collapse;margin:.5em 0 1.5em}td,th{border:1px solid #bbb;
+table{border-collapse:collapse;margin:.5em 0 1.5em;min-width:60%}td,th{border:1px solid #bbb;
 padding:2px 8px;font-size:90%;text-align:left}th{background:#eee}img{max-width:100%}
 figcaption{font-size:90%;color:#444;margin-bottom:1.5em}caption{text-align:left;
-font-style:italic;margin-bottom:.3em}"""
+font-style:italic;margin-bottom:.3em}.verdict{font-weight:bold;padding:.4em .6em;
+border-left:6px solid #999}.verdict.pass{border-color:#009E73;background:#e6f5ef}
+.verdict.fail{border-color:#D55E00;background:#fbece3}td{word-break:break-word}"""
 
 
 def write_report(sections: list[Section], title: str, out_dir) -> dict:
@@ -270,7 +382,12 @@ def write_report(sections: list[Section], title: str, out_dir) -> dict:
         body.append(f"<h2>{html_text(sec.title)}</h2>")
         for p in sec.text:
             md += [md_text(p), ""]
-            body.append(f"<p>{html_text(p)}</p>")
+            cls = ""
+            if p.startswith("Verdict: "):
+                word = p.split()[1] if len(p.split()) > 1 else ""
+                cls = ' class="verdict {}"'.format(
+                    {"PASS": "pass", "FAIL": "fail"}.get(word, "undecided"))
+            body.append(f"<p{cls}>{html_text(p)}</p>")
         for fi in sec.figures:
             k += 1
             fname = f"fig-{k:02d}-{fi.name}.png"

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib_cli.io.escape import md_text
+from calib_cli.io.escape import md_text, mpl_text
 from calib_cli.methods.diagnose import WANDERS, Diagnosis
 from calib_cli.methods.diagnose_candidates import effect_key
 from calib_cli.methods.diagnose_fit import predict_bins
@@ -100,6 +100,12 @@ def _disagreement(d: Diagnosis, path: Path):
             ax.plot(x, z, ".", ms=3, label=name, alpha=0.7)
         ax.axhline(1.0, color="k", lw=0.8, ls="--")
         ax.set_xlabel(lab)
+        if lab == "segment":  # the plan's labels, not raw indices
+            segs = np.unique(pb.bin_seg)
+            names = [str(pb.seg_labels[int(i)]) if 0 <= int(i) < len(pb.seg_labels)
+                     else str(int(i)) for i in segs]
+            ax.set_xticks(segs.astype(float), [mpl_text(n) for n in names], rotation=45,
+                          ha="right", fontsize=7)
         ax.set_ylabel("RMS resid. / noise")
     np.atleast_1d(axes)[0].legend(loc="upper right")
     np.atleast_1d(axes)[0].set_title("Where the model and the data disagree (bin RMS over "

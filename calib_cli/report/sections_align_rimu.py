@@ -94,7 +94,7 @@ def _sensor_figure(cal, sensor: str) -> Figure:
     fig = Figure(figsize=(7.0, 5.0), layout="constrained")
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
     ks = np.asarray(cal.params[f"{sensor}_scale_error"], float)
-    x = np.arange(1, len(ks) + 1)
+    x = np.arange(len(ks))  # 0-based, as the tables, the residual legend and rimu-check
     s_ks = np.asarray(cal.sigma.get(f"{sensor}_scale_error", ks * np.nan), float)
     ax1.errorbar(x, ks * 1e6, yerr=np.nan_to_num(s_ks) * 1e6, fmt="o", capsize=3)
     ax1.set_ylabel("scale error (ppm)")
@@ -104,7 +104,7 @@ def _sensor_figure(cal, sensor: str) -> Figure:
         s = np.asarray(cal.sigma.get(f"{sensor}_{name}", v * np.nan), float) * 1e3
         ax2.errorbar(x + off, v, yerr=np.nan_to_num(s), fmt=mark, capsize=3, label=name)
     ax2.set_ylabel("installation error (mrad)")
-    ax2.set_xlabel("sensor")
+    ax2.set_xlabel("sensor (0-based, as in rimu-check)")
     ax2.set_xticks(x)
     ax2.legend(fontsize=8)
     for ax in (ax1, ax2):

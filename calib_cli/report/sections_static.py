@@ -8,6 +8,7 @@ from matplotlib.figure import Figure
 
 from calib_cli.io.escape import mpl_text
 from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
+from calib_cli.report.figures import BLUE, VERMILION
 
 MG = 1e3 / 9.80665  # m/s^2 -> mg
 
@@ -19,11 +20,11 @@ def g_figure(labels, before, after, sigma_after, g_ref) -> Figure:
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
     x = np.arange(len(labels))
     if before is not None and np.any(np.isfinite(before)):
-        ax1.plot(x, before, "o", color="tab:red", label="before (raw)")
-        ax1.axhline(np.nanmean(before), color="tab:red", ls=":", lw=1,
+        ax1.plot(x, before, "o", color=VERMILION, label="before (raw)")
+        ax1.axhline(np.nanmean(before), color=VERMILION, ls=":", lw=1,
                     label=f"mean before {np.nanmean(before):.5f}")
-    ax1.plot(x, after, "s", color="tab:blue", label="after correction")
-    ax1.axhline(np.mean(after), color="tab:blue", ls=":", lw=1,
+    ax1.plot(x, after, "s", color=BLUE, label="after correction")
+    ax1.axhline(np.mean(after), color=BLUE, ls=":", lw=1,
                 label=f"mean after {np.mean(after):.5f}")
     ax1.axhline(g_ref, color="k", lw=1, label=f"reference g {g_ref:.5f}")
     ax1.set_ylabel("|mean specific force| (m/s^2)")
@@ -31,7 +32,7 @@ def g_figure(labels, before, after, sigma_after, g_ref) -> Figure:
     ax1.legend(fontsize=8, ncol=2)
     ax1.grid(alpha=0.3)
     ax1.ticklabel_format(axis="y", useOffset=False)
-    ax2.errorbar(x, (after - g_ref) * MG, yerr=sigma_after * MG, fmt="s", color="tab:blue",
+    ax2.errorbar(x, (after - g_ref) * MG, yerr=sigma_after * MG, fmt="s", color=BLUE,
                  capsize=3, label="after - g (bars: 1 sigma noise floor)")
     ax2.axhline(0, color="k", lw=1)
     ax2.set_ylabel("|f| - g after correction (mg)")
@@ -53,16 +54,21 @@ def residual_figure(labels, resid, scale: float = MG, unit: str = "mg", what: st
         w = 0.8 / r.shape[1]
         for j in range(r.shape[1]):
             ax.bar(x + (j - (r.shape[1] - 1) / 2) * w, r[:, j], w, label=f"{'xyz'[j]} axis"
-                   if r.shape[1] == 3 else f"channel {j}")
-        ax.set_title(f"{what}Residuals of the fit per axis and position (measured - model)")
+                   if r.shape[1] == 3 else f"sensor {j}",
+                   hatch="//" if j >= 8 else None)  # beyond the palette's 8 colours
+        per = "axis" if r.shape[1] == 3 else "sensor"
+        ax.set_title(f"{what}residuals per {per} and position (measured - model)", fontsize=10)
     else:
         ax.bar(x, r, 0.6, label="|f| - g")
-        ax.set_title("Residuals of the fit per position (|K^-1 (A - b)| - g)")
+        ax.set_title("Residuals of the fit per position (|K^-1 (A - b)| - g)", fontsize=10)
     ax.axhline(0, color="k", lw=1)
     ax.set_ylabel(f"residual ({unit})")
     ax.set_xlabel("static position")
     ax.set_xticks(x, [mpl_text(s) for s in labels], rotation=45, ha="right", fontsize=8)
-    ax.legend(fontsize=8)
+    if r.ndim == 2 and r.shape[1] > 3:  # many sensors: the legend beside the axes
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+    else:
+        ax.legend(fontsize=8)
     ax.grid(alpha=0.3, axis="y")
     return fig
 

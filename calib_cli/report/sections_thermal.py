@@ -10,6 +10,7 @@ from matplotlib.figure import Figure
 
 from calib_cli.model.effects import temp_poly
 from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
+from calib_cli.report.figures import BLUE, ORANGE, VERMILION
 
 MG = 1e3 / 9.80665
 RAMP = 0.1 / 60.0  # degC/s: heating / cooling blocks (methods/thermal.py RAMP_RATE)
@@ -118,10 +119,10 @@ def g_figure(cal) -> Figure | None:
                                                                             25.0))))
     fig = Figure(figsize=(6.4, 4.0), layout="constrained")
     ax = fig.subplots()
-    ax.plot(T, (np.linalg.norm(A, axis=1) - g) * MG, ".", ms=3, color="tab:red", label="raw")
-    ax.plot(T, (np.linalg.norm(f0, axis=1) - g) * MG, ".", ms=3, color="tab:orange",
+    ax.plot(T, (np.linalg.norm(A, axis=1) - g) * MG, ".", ms=3, color=VERMILION, label="raw")
+    ax.plot(T, (np.linalg.norm(f0, axis=1) - g) * MG, ".", ms=3, color=ORANGE,
             label="static correction only (T_ref)")
-    ax.plot(T, (np.linalg.norm(f, axis=1) - g) * MG, ".", ms=3, color="tab:blue",
+    ax.plot(T, (np.linalg.norm(f, axis=1) - g) * MG, ".", ms=3, color=BLUE,
             label="with the thermal terms")
     ax.axhline(0, color="k", lw=1)
     ax.set_xlabel("temperature (degC)")

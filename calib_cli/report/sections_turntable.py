@@ -9,6 +9,10 @@ from matplotlib.figure import Figure
 
 from calib_cli.io.escape import mpl_text
 from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
+from calib_cli.report.figures import line_style
+from calib_cli.report.format import DPH, MG, value_text
+
+BLOCK_S = 0.5  # residuals are shown as means over blocks of this length
 
 
 def sigma_history_figure(res, title: str | None = None) -> Figure:
@@ -20,14 +24,15 @@ def sigma_history_figure(res, title: str | None = None) -> Figure:
     fig = Figure(figsize=(9, 4.8), layout="constrained")
     ax = fig.subplots()
     for k, lab in enumerate(labels):
-        style = "-" if lab.startswith("lever") else "--"
-        ax.semilogy(t - (t[0] if len(t) else 0.0), sig[:, k] * 1e3, style, lw=1.0, label=mpl_text(lab))
+        ax.semilogy(t - (t[0] if len(t) else 0.0), sig[:, k] * 1e3, lw=1.0,
+                    label=mpl_text(lab), **line_style(k))
     ax.set_xlabel("time from the first cycle's start (s)")
     ax.set_ylabel("1-sigma (mm)")
     ax.set_title(title or "turntable fit: sigma history of lever arms and proof-mass offsets")
     ax.grid(True, which="both", alpha=0.3)
-    if labels:
-        ax.legend(fontsize=6, ncol=3, loc="upper right")
+    if labels:  # beside the axes, never over the data
+        ax.legend(fontsize=6, ncol=1 + len(labels) // 16, loc="upper left",
+                  bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     return fig
 
 
@@ -36,12 +41,134 @@ def sigma_history_plot(res, path, title: str | None = None) -> None:
     sigma_history_figure(res, title).savefig(path, dpi=110)
 
 
+def cycle_residuals(ctx: ReportContext):
+    """Per rotating segment (cycle): block means of the corrected data's
+    residuals, from the raw record and the calibration through the ordinary
+    correction (methods.apply.apply_triad) and the rigid-body terms of the
+    model (model.kinematics.rigid_body_accel):
+
+    - accel: |f - w x (w x r_i) - dw x r_i| - g, with r_i = s + p_i the proof
+      mass of accelerometer i (lever arm of the cycle plus its offset): the
+      gravity the corrected accelerometers leave after the table's motion;
+    - gyro: w . a - (table rate + earth rate along the table axis), a the
+      table axis in body axes found by the fit; only where the record carries
+      the table rate (or angle).
+
+    Returns a list of dicts {label, t, rate, accel, gyro} (time s from the
+    record's start, table rate deg/s, accel mg, gyro deg/h or None)."""
+    from calib_cli.methods.apply import apply_triad
+    from calib_cli.model.kinematics import rigid_body_accel
+
+    rec = ctx.recording()
+    cal, st = ctx.cal, ctx.cal.stats
+    if rec is None or rec.gyro is None or rec.layout.redundant:
+        return []
+    f, w = apply_triad(cal, rec.accel, rec.gyro)
+    g = float(st.get("g_reference") or rec.site.gravity)
+    s_all = np.asarray(cal.params.get("lever_arm", np.zeros((0, 3))), float).reshape(-1, 3)
+    P = np.asarray(cal.params.get("proof_mass_offsets", np.zeros((3, 3))), float)
+    P = np.nan_to_num(P)
+    axes_body = np.asarray(st.get("table_axis_body") or [], float).reshape(-1, 3)
+    we_enu = np.asarray(rec.site.earth_rate_enu, float)
+    rate_rec = rec.table_rate
+    if rate_rec is None and rec.table_angle is not None:
+        rate_rec = np.gradient(np.unwrap(rec.table_angle), rec.time)
+    out = []
+    cycles = [s for s in rec.segments if s.kind == "rotating"]
+    for k, seg in enumerate(cycles):
+        sl = seg.slice
+        t = rec.time[sl]
+        if len(t) < 4:
+            continue
+        ws, fs = w[sl], f[sl]
+        dw = np.gradient(ws, t, axis=0)
+        s = s_all[k] if k < len(s_all) else np.zeros(3)
+        fc = np.empty_like(fs)
+        for i in range(3):
+            fc[:, i] = fs[:, i] - rigid_body_accel(ws, dw, s + P[i])[:, i]
+        ra = np.linalg.norm(fc, axis=1) - g
+        a = axes_body[k] if k < len(axes_body) else None
+        if a is None or not np.all(np.isfinite(a)):
+            a = ws.mean(axis=0) / max(np.linalg.norm(ws.mean(axis=0)), 1e-12)
+        a = a / np.linalg.norm(a)
+        along = ws @ a
+        rg = None
+        if rate_rec is not None and seg.table_axis_enu is not None:
+            ax_enu = np.asarray(seg.table_axis_enu, float)
+            ax_enu = ax_enu / np.linalg.norm(ax_enu)
+            want = rate_rec[sl] + float(we_enu @ ax_enu)
+            # the axis found by the fit may point either way along the table axis
+            sign = 1.0 if np.sum(along * want) >= 0 else -1.0
+            rg = sign * along - want
+        n = max(int(round(BLOCK_S / np.median(np.diff(t)))), 1)
+        m = len(t) // n
+        out.append({"label": seg.label, "t": _blk(t - rec.time[0], m, n),
+                    "rate": np.degrees(np.abs(_blk(along, m, n))), "accel": _blk(ra, m, n) * MG,
+                    "gyro": None if rg is None else _blk(rg, m, n) * DPH})
+    return out
+
+
+def _blk(x, m: int, n: int) -> np.ndarray:
+    """Means of m consecutive blocks of n samples."""
+    return x[: m * n].reshape(m, n).mean(axis=1)
+
+
+def residual_time_figure(res) -> Figure:
+    """Accel and gyro residuals against time, a colour per cycle, cycle boundaries."""
+    has_g = any(r["gyro"] is not None for r in res)
+    fig = Figure(figsize=(10, 6.0 if has_g else 3.6), layout="constrained")
+    axs = np.atleast_1d(fig.subplots(2 if has_g else 1, 1, sharex=True))
+    for k, r in enumerate(res):
+        sty = line_style(k)
+        axs[0].plot(r["t"], r["accel"], ".", ms=2, color=sty["color"], label=mpl_text(r["label"]))
+        if has_g and r["gyro"] is not None:
+            axs[1].plot(r["t"], r["gyro"], ".", ms=2, color=sty["color"])
+        for ax in axs:
+            ax.axvline(r["t"][0], color="0.6", lw=0.6)
+    axs[0].set_ylabel("|g| residual (mg)")
+    axs[0].set_title(f"Turntable fit: residuals of the corrected data against time "
+                     f"({BLOCK_S:g} s means)")
+    if has_g:
+        axs[1].set_ylabel("rate residual along\nthe table axis (deg/h)")
+    axs[-1].set_xlabel("time from the record's start (s); grey lines: cycle starts")
+    for ax in axs:
+        ax.axhline(0, color="k", lw=0.8)
+        ax.grid(alpha=0.3)
+    axs[0].legend(fontsize=7, markerscale=4, loc="upper left", bbox_to_anchor=(1.01, 1.0),
+                  borderaxespad=0, title="cycle", title_fontsize=7)
+    return fig
+
+
+def residual_rate_figure(res) -> Figure:
+    """The same residuals against the table rate, a colour per cycle."""
+    has_g = any(r["gyro"] is not None for r in res)
+    fig = Figure(figsize=(10, 6.0 if has_g else 3.6), layout="constrained")
+    axs = np.atleast_1d(fig.subplots(2 if has_g else 1, 1, sharex=True))
+    for k, r in enumerate(res):
+        sty = line_style(k)
+        axs[0].plot(r["rate"], r["accel"], ".", ms=2, color=sty["color"], label=mpl_text(r["label"]))
+        if has_g and r["gyro"] is not None:
+            axs[1].plot(r["rate"], r["gyro"], ".", ms=2, color=sty["color"])
+    axs[0].set_ylabel("|g| residual (mg)")
+    axs[0].set_title("Turntable fit: residuals against the table rate, per cycle")
+    if has_g:
+        axs[1].set_ylabel("rate residual along\nthe table axis (deg/h)")
+    axs[-1].set_xlabel("table rate (deg/s)")
+    for ax in axs:
+        ax.axhline(0, color="k", lw=0.8)
+        ax.grid(alpha=0.3)
+    axs[0].legend(fontsize=7, markerscale=4, loc="upper left", bbox_to_anchor=(1.01, 1.0),
+                  borderaxespad=0, title="cycle", title_fontsize=7)
+    return fig
+
+
 @register("turntable")
 def turntable_sections(ctx: ReportContext):
     cal, st = ctx.cal, ctx.cal.stats
     text = [f"{st.get('n_cycles', '?')} rotation cycles ({', '.join(st.get('cycles', []))}); "
             f"lever arms: {st.get('lever_arm_mode', '?')}, proof masses: "
-            f"{st.get('proof_mass_mode', '?')}, tangential term: {st.get('tangential', '?')}."]
+            f"{st.get('proof_mass_mode', '?')}, tangential term: "
+            f"{value_text('tangential', st.get('tangential'))}."]
     if st.get("accel_noise_inflation", 1.0) > 1.0:
         text.append(f"The model did not explain the accelerometer data: noise widened "
                     f"x{st['accel_noise_inflation']:.1f} (lever arms or proof masses missing?).")
@@ -59,8 +186,29 @@ def turntable_sections(ctx: ReportContext):
     if cal.tables.get("sigma_history_labels") is not None and len(cal.tables["sigma_history_labels"]):
         figs.append(FigureItem(
             "sigma-history", sigma_history_figure(cal),
-            "1-sigma of each lever-arm component (solid) and proof-mass offset (dashed) over "
-            "the record, mm, log scale. What to look for: each curve drops when its cycle "
+            "1-sigma of each lever-arm component (lever_arm[cycle].axis) and proof-mass offset "
+            "(p_ij) over the record, mm, log scale; every curve has its own colour and dash. "
+            "What to look for: each curve drops when its cycle "
             "excites it (rotation about the orthogonal axis); a curve that stays high was not "
             "excited by the experiment."))
+    res = cycle_residuals(ctx) if ctx.raw_kind in ("raw", "corrected") else []
+    if res:
+        figs.append(FigureItem(
+            "residuals-time", residual_time_figure(res),
+            f"Residuals of the corrected record against time ({BLOCK_S:g} s means), one colour "
+            "per cycle. Top: |f| - g after removing the centripetal and tangential terms of "
+            "each proof mass (mg). Bottom (where the record carries the table rate): the "
+            "corrected rate along the fitted table axis minus the table rate and the earth "
+            "rate (deg/h). What to look for: flat bands around zero of the width of the "
+            "noise; a step at a rate change points to a time offset, a slope within a cycle "
+            "to drift, a cycle offset from the others to a wrong lever arm or axis."))
+        figs.append(FigureItem(
+            "residuals-rate", residual_rate_figure(res),
+            "The same residuals against the table rate (deg/s), one colour per cycle. What "
+            "to look for: no trend with rate; a parabola in the |g| residual is a lever arm "
+            "or proof-mass offset the model got wrong (w^2 r), a straight line in the rate "
+            "residual a gyro scale error."))
+    elif ctx.raw_path is None:
+        text.append("Give the raw record as second argument (calib report CAL RAW --out DIR) "
+                    "for the residuals against time and rate.")
     return Section("Rotating-table calibration", text=text, tables=tables, figures=figs)
