@@ -6,6 +6,7 @@ import click
 
 from calib_cli.cli.common import info
 from calib_cli.cli.main import cli
+from calib_cli.errors import InputError
 from calib_cli.io.csvlog import write_csv
 from calib_cli.io.h5 import write_raw
 from calib_cli.io.plan import load_plan
@@ -24,7 +25,11 @@ def simulate_cmd(plan, out, seed, truth_path):
     """Simulate the experiment of PLAN from a truth model, with noise."""
     p = load_plan(plan)
     truth = load_truth(truth_path, plan_layout(p)) if truth_path else None
-    rec = simulate(p, truth, seed)
+    try:
+        rec = simulate(p, truth, seed)
+    except InputError as exc:  # a bad simulation key: the line names the plan
+        exc.path = exc.path or plan
+        raise
     inputs = [plan] + ([truth_path] if truth_path else [])
     if out.lower().endswith(".csv"):
         write_csv(out, rec)
@@ -48,13 +53,19 @@ def range_warnings(plan, rec) -> list[str]:
     unit = tomllib.loads(plan.text).get("unit", {}) if plan.text else {}
     unit = unit if isinstance(unit, dict) else {}
     out = []
-    a_rng = float(unit.get("accel_range_g", 16.0))
+    def rng_key(key, default):
+        v = unit.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+            raise InputError(f"[unit] {key} must be a positive number, got {v!r}", plan.path)
+        return float(v)
+
+    a_rng = rng_key("accel_range_g", 16.0)
     peak_a = float(np.max(np.abs(rec.accel))) / 9.80665 if len(rec.accel) else 0.0
     if peak_a > a_rng:
         out.append(f"the accelerometers would read up to {peak_a:.1f} g, beyond the unit's range "
                    f"+-{a_rng:g} g (gravity plus the centripetal and tangential terms at the lever "
                    "arms): lower the table rate, the ramp rate or the lever arm")
-    g_rng = float(unit.get("gyro_range_dps", 2000.0))
+    g_rng = rng_key("gyro_range_dps", 2000.0)
     if rec.gyro is not None and len(rec.gyro):
         peak_g = float(np.degrees(np.max(np.abs(rec.gyro))))
         if peak_g > g_rng:

@@ -97,7 +97,8 @@ def _rate_profile(seg: PlanSegment, fs: float, t0: float):
         knots = np.asarray(rate_profile(seg.duration or DEFAULT_ROTATING_S), dtype=float)
         kt, kr = knots[:, 0], knots[:, 1] * D2R
     shape = seg.extra.get("rate_shape", "linear")
-    jerk = float(seg.extra.get("rate_jerk_dps3", 1000.0)) * D2R
+    jerk = _num_key(seg.extra, "rate_jerk_dps3", 1000.0, f"segment {seg.label!r}",
+                    positive=True) * D2R
     try:
         pieces = rp.knot_pieces(kt, kr, shape, jerk)
     except ValueError as exc:
@@ -121,7 +122,14 @@ def _table_errors(plan: Plan, tau, theta, rate, accel, rng):
     k = 1.0 + scale_sd * rng.standard_normal()
     th, rt, ac = theta * k, rate * k, accel * k
     if wobble > 0:
-        f_lo, f_hi = (float(v) for v in plan.extra.get("sim_table_wobble_hz", (0.05, 0.5)))
+        band = plan.extra.get("sim_table_wobble_hz", (0.05, 0.5))
+        try:
+            f_lo, f_hi = (float(v) for v in band)
+        except (TypeError, ValueError):
+            f_lo = f_hi = float("nan")
+        if not (0 < f_lo <= f_hi < np.inf):
+            raise InputError(f"sim_table_wobble_hz must be [low, high] in Hz, got {band!r}",
+                             plan.path)
         freqs = rng.uniform(f_lo, f_hi, 3)
         phases = rng.uniform(0, 2 * np.pi, 3)
         amp = wobble / np.sqrt(3)
@@ -146,15 +154,24 @@ def _table_channels(plan: Plan, th, rt, theta, rate, rng):
     ``sim_table_encoder_opr_phase_deg`` (default 30; a property of the encoder disk, the
     same in every cycle), quantised to the counts, and a rate channel that is the true
     rate times (1 + ``sim_table_rate_scale_error``)."""
-    counts = plan.extra.get("sim_table_encoder_counts")
-    if counts is None:
+    if plan.extra.get("sim_table_encoder_counts") is None:
         return theta, rate
-    q = 2 * np.pi / float(counts)
-    opr = float(plan.extra.get("sim_table_encoder_opr_deg", 0.0)) * D2R
-    phase = float(plan.extra.get("sim_table_encoder_opr_phase_deg", 30.0)) * D2R
+    q = 2 * np.pi / _num_key(plan.extra, "sim_table_encoder_counts", 0, "plan", positive=True)
+    opr = _num_key(plan.extra, "sim_table_encoder_opr_deg", 0.0, "plan") * D2R
+    phase = _num_key(plan.extra, "sim_table_encoder_opr_phase_deg", 30.0, "plan") * D2R
     ang = th + opr * np.cos(th + phase)
     ang = np.round(ang / q) * q
-    return ang, rt * (1.0 + float(plan.extra.get("sim_table_rate_scale_error", 0.0)))
+    return ang, rt * (1.0 + _num_key(plan.extra, "sim_table_rate_scale_error", 0.0, "plan"))
+
+
+def _num_key(table: dict, key: str, default: float, where: str, positive: bool = False) -> float:
+    """A numeric simulation key; a bad value is one line naming the key (exit 3)."""
+    v = table.get(key, default)
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+    if not ok or (positive and v <= 0):
+        raise InputError(f"{where}: {key} must be a {'positive ' if positive else ''}number, "
+                         f"got {v!r}")
+    return float(v)
 
 
 def _temperature(plan: Plan, t: np.ndarray):
@@ -198,7 +215,7 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
     else:
         # interval-mean: each sample is the mean over [t_k - 1/fs, t_k], from the forward
         # model evaluated at n_sub points per period (trapezoid rule), stamped at t_k
-        n_sub = int(plan.extra.get("sim_oversample", 16))
+        n_sub = int(_num_key(plan.extra, "sim_oversample", 16, "plan", positive=True))
         kin_hi, seg_hi, true_att, angle_hi, rate_hi = _timeline(plan, fs * n_sub, rng)
         out_hi = truth.model.predict(truth.params, kin_hi)
         stamps = np.arange(n_sub, len(kin_hi), n_sub)
