@@ -16,7 +16,7 @@ import contextlib  # noqa: E402
 import io  # noqa: E402
 import json  # noqa: E402
 
-from calib_cli.batch.archive import make_archive  # noqa: E402
+from calib_cli.validation.archive import make_archive  # noqa: E402
 from calib_cli.cli.main import main  # noqa: E402
 
 

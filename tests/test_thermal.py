@@ -20,7 +20,7 @@ from calib_cli.methods.thermal import fit_thermal
 from calib_cli.model.effects import Layout, lag_temperature, make_effect, temp_poly
 from calib_cli.model.imu_model import ImuModel
 from calib_cli.model.kinematics import Kinematics
-from calib_cli.sim import thermal_cases as TC
+from calib_cli.validation import thermal_cases as TC
 from calib_cli.sim.simulate import simulate
 from calib_cli.sim.truth import effect_from_description
 

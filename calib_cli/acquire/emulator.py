@@ -34,7 +34,7 @@ from calib_cli.model import kinematics as kn
 from calib_cli.model.earth import Site
 from calib_cli.model.effects import Layout
 from calib_cli.model.frames import attitude_to_rotation, rotation_to_attitude
-from calib_cli.sim.truth import Truth, default_truth
+from calib_cli.model.truth import Truth, default_truth
 
 D2R = np.pi / 180.0
 NP_TYPES = {"u8": "u1", "i8": "i1", "u16": "u2", "i16": "i2", "u32": "u4", "i32": "i4",

@@ -28,7 +28,7 @@ from calib_cli.errors import InputError
 from calib_cli.io.csvlog import segments_from_column
 from calib_cli.io.plan import Plan, parse_plan
 from calib_cli.model.effects import Layout
-from calib_cli.sim.simulate import plan_layout
+from calib_cli.plan import plan_layout
 
 
 @dataclass

@@ -97,16 +97,15 @@ def fit_auto_step(rec, **options):
 
 def apply_step(run: StepRun) -> None:
     """cal.h5 + raw.h5 -> corrected.h5: exactly `calib apply` (chunked)."""
-    from calib_cli.cli.cmd_apply import apply_cmd
+    from calib_cli.io.apply_file import apply_file
 
-    apply_cmd.callback(run.inputs["calibration"], run.inputs["raw"], run.out)
+    apply_file(run.inputs["calibration"], run.inputs["raw"], run.out)
 
 
 def export_step(run: StepRun) -> None:
     """cal.h5 -> the contract's JSON object (as `calib show --json`), plus a
     "batch" key with the provenance the up-to-date check reads back."""
-    from calib_cli.cli.cmd_show import calibration_json
-    from calib_cli.cli.common import to_jsonable
+    from calib_cli.io.contract_json import calibration_json, to_jsonable
 
     obj = calibration_json(run.inputs["calibration"], bool(run.options.get("covariance")))
     obj["batch"] = dict(run.stamp)

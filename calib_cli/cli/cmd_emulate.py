@@ -60,10 +60,10 @@ def emulate_cmd(imu, table, truth_path, plan_path, rate, seed, duration, attitud
     from calib_cli.acquire.profile import load_imu_profile, load_table_profile
     from calib_cli.errors import InputError
     from calib_cli.io.plan import load_plan
+    from calib_cli.io.truth import load_truth
     from calib_cli.model.earth import Site
     from calib_cli.model.effects import Layout
-    from calib_cli.sim.simulate import plan_layout
-    from calib_cli.sim.truth import load_truth
+    from calib_cli.plan import plan_layout
 
     prof = load_imu_profile(imu)
     if link_dir:  # the documented example names a directory that does not exist yet

@@ -39,7 +39,7 @@ def plan_group():
 
 
 def _noise(plan, like, accel_noise, gyro_noise, rate, truth=None):
-    from calib_cli.methods.design import Noise, default_noise, noise_like
+    from calib_cli.design import Noise, default_noise, noise_like
 
     if like and (accel_noise or gyro_noise or rate):
         raise click.UsageError("--like takes the noise and rate from the recording: give "
@@ -124,10 +124,10 @@ def plan_check_cmd(plan, like, accel_noise, gyro_noise, rate, truth_path, method
                    no_suggest, as_json):
     """Predict the 1-sigma of every parameter PLAN's fit will report, the
     unobservable ones, and the additions that help most."""
+    from calib_cli.design import check
     from calib_cli.io.plan import load_plan
-    from calib_cli.methods.design import check
-    from calib_cli.sim.simulate import plan_layout
-    from calib_cli.sim.truth import load_truth
+    from calib_cli.io.truth import load_truth
+    from calib_cli.plan import plan_layout
 
     if rate is not None and rate <= 0:
         raise click.BadParameter("--rate must be positive")
@@ -257,11 +257,11 @@ def plan_optimize_cmd(plan, targets, max_duration, out, like, accel_noise, gyro_
     every --target."""
     import tomllib
 
+    from calib_cli import design
     from calib_cli.io.plan import load_plan
-    from calib_cli.methods import design
+    from calib_cli.io.truth import load_truth
+    from calib_cli.plan import plan_layout
     from calib_cli.sim import plan_make as pm
-    from calib_cli.sim.simulate import plan_layout
-    from calib_cli.sim.truth import load_truth
 
     try:
         tg = [design.parse_target(t) for t in targets]

@@ -137,7 +137,7 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
         raise click.UsageError(f"profile {prof.name!r} is a serial device: give --port")
     plan = load_plan(plan_path) if plan_path else parse_plan(free_run_plan(duration), "free-run")
     if plan_path and not no_check:  # issue 20: warn when the plan cannot deliver
-        from calib_cli.methods.design import record_warning
+        from calib_cli.design import record_warning
 
         warning = record_warning(plan, prof.rate_hz)
         if warning:

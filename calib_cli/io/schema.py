@@ -104,14 +104,12 @@ def check_table(table: dict, known, path: str, where: str, unknown: list) -> Non
 
 def warn_unknown(unknown: list, path: str) -> None:
     if unknown:
-        from calib_cli.cli.common import Ctx, err_console
+        from calib_cli.errors import warn
 
         shown = ", ".join(unknown[:8]) + (f" and {len(unknown) - 8} more" if len(unknown) > 8
                                           else "")
-        if not Ctx.quiet:
-            err_console.print(f"calib: warning: {path}: keys not used by calib: {shown} "
-                              "(prefix your own keys with x_ to silence this)", markup=False,
-                              soft_wrap=True)
+        warn(f"{path}: keys not used by calib: {shown} "
+             "(prefix your own keys with x_ to silence this)")
 
 
 def check_plan_keys(raw: dict, path: str) -> None:
@@ -221,7 +219,7 @@ def known_param_keys() -> set[str]:
     import numpy as np
 
     from calib_cli.model.effects import Layout
-    from calib_cli.sim.truth import _key_owner
+    from calib_cli.model.truth import _key_owner
 
     keys = set(_key_owner(Layout(), {}))
     keys |= set(_key_owner(Layout(n=6, el0=np.zeros(6), az0=np.zeros(6)), {}))

@@ -29,9 +29,9 @@ from calib_cli.io.h5 import (
     write_segments,
     write_site_layout,
 )
-from calib_cli.io.plan import Plan
 from calib_cli.methods.static_stream import StreamDetector
 from calib_cli.model.effects import Layout
+from calib_cli.plan import Plan, plan_layout  # noqa: F401  (plan_layout re-exported)
 
 CHUNK_ROWS = 65536
 READ_ROWS = 1 << 18
@@ -173,16 +173,6 @@ def segments_from_runs(vals, starts, n, plan: Plan, path: str):
     runs = [(int(a), int(b)) for v, a, b in zip(vals, starts, stops) if v >= 0]
     out = [replace(s, start=a, stop=b) for s, (a, b) in zip(segs, runs)]
     return out
-
-
-def plan_layout(plan: Plan) -> Layout:
-    """``sim.simulate.plan_layout`` without importing the simulator (and SciPy)
-    into every import (tests/test_import_stream.py checks they agree)."""
-    n_cycles = sum(1 for s in plan.segments if s.kind == "rotating")
-    if plan.kind == "rimu":
-        return Layout(n=len(plan.rimu_el0), el0=plan.rimu_el0, az0=plan.rimu_az0,
-                      n_cycles=n_cycles)
-    return Layout(n_cycles=n_cycles)
 
 
 def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=(),

@@ -45,7 +45,7 @@ from calib_cli.model.kinematics import Kinematics
 from calib_cli.model.strapdown import quat_exp as _qexp
 from calib_cli.model.strapdown import quat_matrix as _qmat
 from calib_cli.model.strapdown import quat_mul as _qmul
-from calib_cli.sim.truth import effect_from_description
+from calib_cli.model.truth import effect_from_description
 
 GAP_FACTOR = 1.5  # a sample interval > 1.5 x the median is a gap: no integration across it
 

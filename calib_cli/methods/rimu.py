@@ -37,7 +37,7 @@ from calib_cli.model import kinematics as kn
 from calib_cli.model.effects import Bias, Installation, Layout
 from calib_cli.model.frames import attitude_to_rotation
 from calib_cli.model.imu_model import ImuModel, base_model
-from calib_cli.sim.truth import describe_effect
+from calib_cli.model.truth import describe_effect
 
 SENSORS = ("accel", "gyro")
 NAMES = ("bias", "scale_error", "dEl", "dAz")

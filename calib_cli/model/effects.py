@@ -25,38 +25,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib_cli.geometry import Layout  # noqa: F401  (defined in the base layer; re-exported)
 from calib_cli.model.kinematics import Kinematics, force_at, rigid_body_accel
 
 SHIFT, INPUT, TRANSFER, CORRECTION, ADDITIVE, STOCHASTIC = range(6)
 
 TEMP_REF_C = 25.0  # degC: reference temperature of the temperature-drift terms
-
-
-@dataclass(frozen=True)
-class Layout:
-    """Channel geometry of a unit.
-
-    A triad has three orthogonal channels per sensor. A redundant unit (RIMU)
-    has n single-axis channels with nominal elevation/azimuth (rad).
-    ``n_cycles`` is the number of lever-arm rows (rotating segments).
-    """
-
-    n: int = 3
-    el0: np.ndarray | None = None
-    az0: np.ndarray | None = None
-    n_cycles: int = 0
-
-    @property
-    def redundant(self) -> bool:
-        return self.el0 is not None
-
-    def axes(self, del_=None, daz=None) -> np.ndarray:
-        """(n, 3) unit sensing directions; nominal, or with errors dEl, dAz (rad)."""
-        if not self.redundant:
-            return np.eye(3)
-        el = self.el0 + (0.0 if del_ is None else del_)
-        az = self.az0 - (0.0 if daz is None else daz)
-        return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 
 from calib_cli.model.frames import attitude_to_rotation, rotation_to_attitude
 from calib_cli.model.imu_model import ImuModel
-from calib_cli.sim.truth import Truth
+from calib_cli.model.truth import Truth
 
 TABLE_AXIS = np.array([1.0, 0.0, 0.0])
 STD_ATTITUDES_DEG = ([0.0, 0.0, 0.0], [0.0, 0.0, -90.0], [0.0, 90.0, 0.0])  # x, y, z along East
