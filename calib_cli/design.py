@@ -22,10 +22,10 @@ import numpy as np
 
 from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError, InputError
-from calib_cli.plan import Plan, PlanSegment
 from calib_cli.model.effects import Bias, Layout, ScaleMisalignment
 from calib_cli.model.imu_model import ImuModel
 from calib_cli.model.truth import DEFAULT_NOISE, Truth, default_truth
+from calib_cli.plan import Plan, PlanSegment
 
 D2R = np.pi / 180.0
 METHODS = ("auto", "vector", "scalar", "gyro", "align", "rimu")

@@ -25,7 +25,7 @@ RANK = {"": 0, "errors": 0, "units": 0, "geometry": 0, "plan": 0, "data": 0,
         "model": 1,
         "sim": 2, "methods": 2,
         "io": 3,
-        "acquire": 4, "batch": 4, "report": 4, "design": 4,
+        "acquire": 4, "batch": 4, "report": 4, "design": 4, "api": 4,
         "cli": 5, "__main__": 6,
         "validation": 7}
 # units of the same rank may import each other only along these edges

@@ -1,7 +1,8 @@
 """A virtual IMU (and turntable) speaking a profile's protocol over a pty or CAN.
 
 The unit's motion comes from ``model.kinematics`` and its outputs from the
-truth model (``ImuModel.predict`` plus white noise, as ``sim/`` does), so a
+truth model (``ImuModel.predict`` plus the noise effects' seeded realisation,
+exactly as ``sim/`` does: ``Emulator.samples``), so a
 recording of the emulator can be fitted and compared with the truth. The
 virtual table obeys the commands of a table profile and moves the unit.
 
@@ -428,7 +429,7 @@ class Emulator:
         self.fs = float(rate or prof.rate_hz)
         self.rng = np.random.default_rng(seed)
         self.seed = seed
-        self._noise_cache: dict = {}
+        self._noise, self._noise_k = None, 0  # the truth's noise realisation, next sample
         self.truth = truth or default_truth(layout, self.rng)
         self.faults = faults or Faults()
         self.frng = np.random.default_rng(self.faults.seed)
@@ -465,41 +466,32 @@ class Emulator:
         self._disc = None  # (k_start, k_end) of the disconnect
 
     # -- values of one chunk -------------------------------------------------
-    NOISE_BLOCK = 4096
-
-    def _noise(self, sensor: str, k0: int, n: int, dim: int) -> np.ndarray:
-        """Unit white noise for samples k0..k0+n-1, a function of the sample
-        index alone (blocks seeded by (seed, sensor, block)), so a run is
-        reproducible whatever the chunking of the real-time loop."""
-        B = self.NOISE_BLOCK
-        out = np.empty((n, dim))
-        k = k0
-        while k < k0 + n:
-            b = k // B
-            key = (sensor, b)
-            if self._noise_cache.get(sensor, (None,))[0] != key:
-                rng = np.random.default_rng([self.seed, 0 if sensor == "accel" else 1, b])
-                self._noise_cache[sensor] = (key, rng.standard_normal((B, dim)))
-            blk = self._noise_cache[sensor][1]
-            a = k - b * B
-            m = min(B - a, k0 + n - k)
-            out[k - k0:k - k0 + m] = blk[a:a + m]
-            k += m
-        return out
-
-    def _values(self, k0: int, n: int) -> dict:
+    def samples(self, k0: int, n: int) -> dict:
+        """The generator: SI outputs {"accel": (n, ns), "gyro": (n, ns)} of samples
+        k0..k0+n-1 (in order; the noise realisation is stateful). The truth's noise
+        (white, bias random walk, flicker) is realised by the model's effects with the
+        seed, exactly as ``calib simulate`` does: the same truth and seed give the same
+        samples bit for bit (tests/test_noise_effects.py)."""
+        if self._noise is None or k0 != self._noise_k:
+            if k0 != 0:
+                raise ValueError(f"samples are generated in order: next is {self._noise_k}, "
+                                 f"asked for {k0}")
+            model, params = self.truth.noise_model()
+            self._noise = model.noise_realisation(params, self.fs, self.seed)
         kin = self.unit.kinematics(k0, n).with_(temp=np.full(n, self.temp_c))
         out = self.truth.model.predict(self.truth.params, kin)
+        noise = self._noise.next(kin)
+        self._noise_k = k0 + n
+        return {s: out[s] + noise[s] for s in ("accel", "gyro")}
+
+    def _values(self, k0: int, n: int) -> dict:
+        ys = self.samples(k0, n)
         p = self.prof
         vals = {}
         names = list(p.channels)
         nsens = self.truth.model.layout.n
         for s in ("accel", "gyro"):
-            white = np.asarray(self.truth.noise.get(f"{s}_white", 0.0), dtype=float)
-            if f"{s}_white_density" in self.truth.noise:
-                white = np.asarray(self.truth.noise[f"{s}_white_density"], float) * \
-                    np.sqrt(self.fs)
-            y = out[s] + self._noise(s, k0, n, out[s].shape[1]) * white
+            y = ys[s]
             chan = (["ax", "ay", "az"] if s == "accel" else ["gx", "gy", "gz"]) \
                 if not p.redundant else [f"{s[0]}{i}" for i in range(nsens)]
             for j, c in enumerate(chan):

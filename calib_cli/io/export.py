@@ -39,9 +39,16 @@ from calib_cli.methods.apply import model_of
 from calib_cli.model.kinematics import Kinematics
 
 FORMATS = ("json", "yaml", "c-header", "csv")
-LINEAR_EFFECTS = {"bias", "scale_misalignment", "misalignment", "g_sensitivity"}
-THERMAL_EFFECTS = {"temperature_drift", "thermal_lag"}  # evaluated first (docs/thermal.md)
-NOT_APPLIED = {"lever_arm", "proof_mass_offsets"}  # input-side terms, not part of the correction
+def _effects(export: str) -> set:
+    """Catalogue effects by how export writes them (``Effect.export``)."""
+    from calib_cli.model.effects import CATALOGUE
+
+    return {n for n, c in CATALOGUE.items() if c.export == export}
+
+
+LINEAR_EFFECTS = _effects("linear")  # bias, scale_misalignment, misalignment, g_sensitivity
+THERMAL_EFFECTS = _effects("thermal")  # evaluated first (docs/thermal.md)
+NOT_APPLIED = _effects("input")  # input-side terms (lever arm, proof masses), not in the correction
 FORMULA = {"accel": "f = K^-1 (A - b)", "gyro": "w = G^-1 (W - d - D f)"}
 
 
@@ -58,7 +65,7 @@ def affine_correction(cal: CalibrationResult, path: str = "<calibration>") -> di
         raise InputError("a redundant-unit (RIMU) calibration has no triad K^-1; export it "
                          "as json, yaml or csv", path)
     names = {d.get("name") for d in cal.model}
-    bad = sorted(names - LINEAR_EFFECTS - NOT_APPLIED - THERMAL_EFFECTS)
+    bad = sorted(names - _effects("linear") - _effects("input") - _effects("thermal"))
     if "temperature_drift" in names and "misalignment" in names:
         bad.append("misalignment with temperature_drift")
     if any(d.get("name") == "temperature_drift" and d.get("order") is None for d in cal.model):
@@ -194,7 +201,7 @@ def export_object(cal: CalibrationResult, prov: dict, source: str) -> dict:
         obj["correction"] = {s: {k: _lists(v) for k, v in d.items()} for s, d in corr.items()}
         if th:
             obj["thermal"] = th
-        not_applied = sorted({d.get("name") for d in cal.model} & NOT_APPLIED)
+        not_applied = sorted({d.get("name") for d in cal.model} & _effects("input"))
         if not_applied:
             obj["not_applied"] = not_applied
     obj["params"] = {k: _lists(v) for k, v in cal.params.items()}

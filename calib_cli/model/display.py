@@ -24,6 +24,30 @@ for _s in ("accel", "gyro"):
 
 
 def display_of(key: str, unit: str) -> tuple[float, str]:
+    """(factor, unit) to show parameter KEY: the table above, else the display units
+    of the catalogue effect that owns the key (``ParamSpec.display``), else SI."""
     if "count" in unit:
         return 1.0, unit
-    return DISPLAY.get(key, (1.0, unit))
+    if key in DISPLAY:
+        return DISPLAY[key]
+    spec = _catalogue_specs().get(key)
+    if spec is not None and spec.display != (1.0, "") and spec.unit == unit:
+        return spec.display
+    return 1.0, unit
+
+
+def _catalogue_specs() -> dict:
+    """key -> ParamSpec over every catalogue effect (triad and redundant layouts)."""
+    from calib_cli.model.effects import CATALOGUE, Layout, make_effect
+
+    out = {}
+    for layout in (Layout(), Layout(n=6, el0=np.zeros(6), az0=np.zeros(6))):
+        for name, cls in CATALOGUE.items():
+            for sensor in (("",) if cls.sensorless else ("accel", "gyro")):
+                try:
+                    e = make_effect(name, sensor or "accel")
+                except (TypeError, ValueError):
+                    continue
+                for sp in e.specs(layout):
+                    out.setdefault(sp.key, sp)
+    return out

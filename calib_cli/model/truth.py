@@ -46,6 +46,21 @@ class Truth:
     def effect_list(self) -> list[dict]:
         return [describe_effect(e) for e in self.model.effects]
 
+    def noise_model(self) -> tuple[ImuModel, dict]:
+        """The model with its white noise as effects (``white_noise`` per sensor with a
+        [noise] entry) and the parameters including the noise levels: what the
+        simulator and the emulator realise (``ImuModel.noise_realisation``)."""
+        effects = list(self.model.effects)
+        params = dict(self.params)
+        for s in ("accel", "gyro"):
+            keys = [k for k in (f"{s}_white", f"{s}_white_density") if k in self.noise]
+            if keys and not any(e.name == "white_noise" and e.sensor == s for e in effects):
+                effects.append(make_effect("white_noise", s))
+            n = self.model.layout.n
+            for k in keys:
+                params[k] = np.broadcast_to(np.asarray(self.noise[k], dtype=float), (n,)).copy()
+        return ImuModel(tuple(effects), self.model.layout), params
+
 
 def describe_effect(e: Effect) -> dict:
     d = {"name": e.name, "sensor": e.sensor}
@@ -69,9 +84,10 @@ def _key_owner(layout: Layout, options: dict) -> dict[str, Effect]:
     owners = {}
     for name in CATALOGUE:
         for sensor in ("accel", "gyro"):
-            if name == "scale_misalignment" and layout.redundant:
+            cls = CATALOGUE[name]
+            if ("redundant" if layout.redundant else "triad") not in cls.layouts:
                 continue
-            if name == "installation" and not layout.redundant:
+            if cls.noise_table:  # its levels are the truth file's [noise] table
                 continue
             opts = {}
             if name in ("lever_arm", "proof_mass_offsets"):
@@ -146,9 +162,4 @@ def default_truth(layout: Layout, rng: np.random.Generator) -> Truth:
         effects.append(make_effect("bias", s))
         effects.append(make_effect("installation" if layout.redundant else "scale_misalignment", s))
     model = ImuModel(tuple(effects), layout)
-    params = {}
-    for spec in model.specs():
-        free = ~spec.fixed_mask()
-        draw = rng.standard_normal(spec.shape) * spec.typical * free
-        params[spec.key] = spec.neutral() + draw
-    return Truth(model, params, dict(DEFAULT_NOISE))
+    return Truth(model, model.random_params(rng), dict(DEFAULT_NOISE))

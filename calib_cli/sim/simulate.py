@@ -210,13 +210,13 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
         segments = [replace(sg, start=-(-sg.start // n_sub) - 1, stop=-(-sg.stop // n_sub) - 1)
                     for sg in seg_hi]
         segments = [sg if sg.start >= 0 else replace(sg, start=0) for sg in segments]
-    stoch = truth.model.realise_noise(truth.params, kin, rng)
+    # every noise term (white, random walk, flicker) is an effect with a seeded stream:
+    # the emulator draws the same numbers for the same truth and seed (acquire/emulator.py)
+    noise_model, noise_params = truth.noise_model()
+    stoch = noise_model.noise_realisation(noise_params, fs, seed).next(kin)
     noisy = {}
     for s in ("accel", "gyro"):
-        white = np.asarray(truth.noise.get(f"{s}_white", 0.0), dtype=float)
-        if f"{s}_white_density" in truth.noise:
-            white = np.asarray(truth.noise[f"{s}_white_density"], float) * np.sqrt(fs)
-        y = out[s] + stoch[s] + rng.standard_normal(out[s].shape) * white
+        y = out[s] + stoch[s]
         if truth.quantize:
             y = np.round(y)
         noisy[s] = y

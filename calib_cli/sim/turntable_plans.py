@@ -165,13 +165,7 @@ def turntable_truth(plan, rng, noise=None, proof_mass_sigma: float | None = None
     model = ImuModel(effects, layout)
     if proof_mass_sigma is None:
         proof_mass_sigma = float(plan.extra.get("sim_proof_mass_sigma_m", 5e-3))
-    params = {}
-    for spec in model.specs():
-        if spec.key == "lever_arm":
-            continue
-        free = ~spec.fixed_mask()
-        typical = proof_mass_sigma if spec.key == "proof_mass_offsets" else spec.typical
-        params[spec.key] = spec.neutral() + rng.standard_normal(spec.shape) * typical * free
+    params = model.random_params(rng, {"proof_mass_offsets": proof_mass_sigma}, skip=("lever_arm",))
     s = np.zeros((len(rotating), 3))
     for c, seg in enumerate(rotating):
         v = seg.extra.get("sim_lever_arm_m", seg.extra.get("lever_arm_m"))
