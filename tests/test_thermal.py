@@ -180,7 +180,11 @@ def test_cli_fit_show_apply(thermal_files):
     g = read_raw(d / "hold.h5").site.gravity
     err = np.array([v - g for k, v in corrected_norms(d / "corr.h5").items()
                     if not k.startswith("soak")])
-    assert np.sqrt(np.mean(err ** 2)) < 1e-4  # m/s^2: 10 ug (the raw error is several mg)
+    # the raw error is several mg; each 10 s hold at 10 Hz averages 100 samples of
+    # 1e-3 m/s^2 white noise, so its |f| carries ~1e-4 m/s^2 of noise by itself: the RMS
+    # over the 12 holds is within 2.5 x that (the old bound, 1e-4, sat at the noise level
+    # and passed or failed with the noise realisation)
+    assert np.sqrt(np.mean(err ** 2)) < 2.5e-4
 
 
 def test_apply_refusals(thermal_files, capsys):

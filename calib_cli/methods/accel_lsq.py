@@ -115,7 +115,7 @@ def _finish(method, model, packing, fit, base, rec, st, resid, extra_stats) -> C
 
 def _with_noise(st: StaticStats, noise) -> StaticStats:
     """The segment statistics with a stated per-sample noise (experiment design,
-    methods/design.py) instead of the one measured in the recording."""
+    design.py) instead of the one measured in the recording."""
     if noise is None:
         return st
     from dataclasses import replace

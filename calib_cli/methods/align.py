@@ -371,7 +371,7 @@ def fit_align(rec: Recording, rotation: str = "auto", gyro: str = "auto",
     misalignment), dimensionless; None: 30 ppm when the earth rate is usable,
     3000 ppm otherwise. turn_sigma: rad, for plan-stated turns. noise: {"accel":
     sigma, "gyro": sigma} per sample to weight with instead of the measured noise
-    (experiment design, methods/design.py)."""
+    (experiment design, design.py)."""
     site = rec.site
     inp = collect(rec, rotation, turn_sigma)
     if noise is not None:

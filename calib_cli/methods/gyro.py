@@ -334,7 +334,7 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
     this recording's noise and are propagated (``_independent_accel``).
     noise: {"accel": sigma, "gyro": sigma} per sample, to weight with instead of
     the measured noise; strict=False reports unobservable entries instead of
-    failing (both for experiment design, methods/design.py)."""
+    failing (both for experiment design, design.py)."""
     if rec.gyro is None:
         raise EstimationError("the recording has no gyro data")
     if rec.layout.redundant:

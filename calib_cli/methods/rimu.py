@@ -262,7 +262,7 @@ def fit_rimu(rec: Recording, *, noise: dict | None = None,
     """The contract's ``fit rimu``: every sensor's b, ks, dEl, dAz with covariance.
     noise: {"accel": sigma (n,), "gyro": sigma (n,)} per sample to weight with
     instead of the measured noise; strict=False returns even when no parameter
-    is determined (both for experiment design, methods/design.py)."""
+    is determined (both for experiment design, design.py)."""
     layout = rec.layout
     if not layout.redundant:
         raise EstimationError("this is not a redundant-unit recording (plan kind \"rimu\" "

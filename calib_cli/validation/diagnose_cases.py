@@ -64,7 +64,7 @@ RIMU_PLAN = ('name = "diag-rimu"\nkind = "rimu"\nsample_rate_hz = 50.0\ntransiti
              'temperature_profile = [[0, 20.0], [70, 35.0], [140, 24.0], [220, 30.0]]\n'
              + _SITE + '[rimu]\nprofile = "tetrahedron"\n' + _STATIC_AND_ROTATING)
 
-# two-position alignment of a navigation-grade unit (sim/align_cases): 2 x 300 s
+# two-position alignment of a navigation-grade unit (validation/align_cases): 2 x 300 s
 # related by a 130 deg turn, the temperature going up and down in both positions
 # (a thermal drift then differs from a slow wander)
 _ALIGN_TEMP = ("temperature_profile = [[0, 20.0], [60, 25.0], [120, 21.0], [180, 26.0], "
