@@ -7,8 +7,6 @@ import math
 
 import numpy as np
 
-from calib_cli.io.h5 import read_calibration
-
 
 def to_jsonable(x):
     """numpy arrays -> nested lists, NaN/inf -> None (JSON null)."""
@@ -30,6 +28,8 @@ def to_jsonable(x):
 
 def calibration_json(path, covariance: bool = False) -> dict:
     """The contract's JSON object for a calibration file."""
+    from calib_cli.io.h5 import read_calibration  # h5py only when a file is read
+
     c = read_calibration(path)
     obj = {"method": c.method, "unit": {"serial": c.serial},
            "params": c.params, "sigma": c.sigma, "units": c.units, "stats": c.stats}

@@ -338,7 +338,7 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
     if rec.gyro is None:
         raise EstimationError("the recording has no gyro data")
     if rec.layout.redundant:
-        raise EstimationError("this is a redundant-unit recording: use `calib fit rimu`")
+        raise InputError("this is a redundant-unit recording: use `calib fit rimu`")
     accel_independent = accel_independent and accel is not None  # fitted here: same data
     if accel is None:
         from calib_cli.methods.accel_lsq import fit_accel
