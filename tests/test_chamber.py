@@ -34,7 +34,7 @@ GROUPS = ("accel_bias", "accel_K", "accel_temp_bias", "accel_temp_scale", "gyro_
 
 
 def soak_plan(temps=(0, 25, 50), hold=0.4, positions=POSITIONS, extra=""):
-    text = ('name = "chamber-3"\nkind = "static"\nchamber_ramp_dpm = 1500\n'
+    text = ('name = "chamber-3"\nkind = "static"\nchamber_ramp_dpm = 1500\nunit_tau_s = 0.3\n'
             'chamber_soak_tol_degC = 0.02\nchamber_soak_s = 0.5\nchamber_soak_timeout_s = 30\n'
             + extra + '[site]\nlatitude_deg = 50.45\nheight_m = 180\n[unit]\nserial = "CH-1"\n')
     for T in temps:
@@ -86,7 +86,7 @@ def test_shipped_profiles_and_bad_profiles():
 def test_plan_keys_soak_rule_and_range_checks():
     plan = parse_plan(soak_plan(temps=(-20, 40)))
     rule = soak_rule(plan, plan.segments[0])
-    assert rule == {"chamber_soak_tol_degC": 0.02, "chamber_soak_s": 0.5,
+    assert rule == {"chamber_soak": True, "chamber_soak_tol_degC": 0.02, "chamber_soak_s": 0.5,
                     "chamber_soak_timeout_s": 30.0, "chamber_ramp_dpm": 1500.0}
     prof = load_chamber_profile("generic-scpi")
     w = check_plan(plan, prof)  # 1500 degC/min is above the profile's 5
@@ -232,3 +232,37 @@ def test_modbus_chamber_software_ramp_and_soak(tmp_path):
     steps = np.abs(np.diff(sps))
     assert steps.max() <= 600 / 60 * 0.5 + 0.1  # at most the rate over a poll (0.2 s + slack)
     assert not [x for x in em.chamber.log if x[0] == "bad"]
+
+
+def test_ramp_segment_sets_the_chamber_going_without_waiting():
+    """chamber_soak = false (a ramp design): the ramp rate and setpoint are sent
+    and the segment is recorded at once; a chamber that cannot ramp by itself
+    is refused before anything starts."""
+
+    class Chamber:
+        motorised = True
+
+        def __init__(self, ramps):
+            self.ramps, self.sent = ramps, []
+
+        def set_ramp(self, r):
+            self.sent.append(("ramp", r))
+            return self.ramps
+
+        def set_temp(self, t):
+            self.sent.append(("temp", t))
+
+    text = soak_plan(temps=(-20, 60), positions={"z-up": [0, 0, 0]}).replace(
+        "chamber_temp_degC = 60\n", "chamber_temp_degC = 60\nchamber_soak = false\n")
+    plan = parse_plan(text)
+    seg = plan.segments[1]
+    rule = soak_rule(plan, seg)
+    assert rule["chamber_soak"] is False
+    prof = dataclasses.replace(load_chamber_profile("generic-scpi"), max_ramp_dpm=2.0)
+    ch = Chamber(True)
+    Soak(_FakeSession([]), ch, prof, 60.0, rule, 2, seg.label).run()
+    assert ch.sent == [("ramp", 2.0), ("temp", 60.0)]
+    with pytest.raises(InputError, match="ramp by itself"):
+        Soak(_FakeSession([]), Chamber(False), prof, 60.0, rule, 2, seg.label).run()
+    with pytest.raises(InputError, match="ramp by itself"):
+        check_plan(plan, load_chamber_profile("generic-modbus"))

@@ -324,3 +324,50 @@ def test_one_temperature_is_exit_4(tmp_path, capsys):
     err = _fails(4, "fit", "thermal", tmp_path / "one.h5", "--out", tmp_path / "c.h5",
                  capsys=capsys)
     assert "degC" in err and not (tmp_path / "c.h5").exists()
+
+
+@pytest.mark.parametrize("design,opts", [
+    ("soak", ["--temps", "5", "--soak", "600", "--unit-tau", "120", "--duration", "30"]),
+    ("ramp", ["--ramp-dpm", "4", "--unit-tau", "60", "--duration", "40"])])
+def test_plan_make_thermal_checks_simulates_and_fits(tmp_path, design, opts):
+    """`calib plan make thermal` writes a plan that `plan check` predicts,
+    `simulate` runs and `fit thermal` fits within sigma of the truth; the
+    predicted sigma is the fit's at the same noise (order 2)."""
+    from calib_cli.io.h5 import read_calibration
+    from calib_cli.io.plan import load_plan
+
+    plan = tmp_path / "plan.toml"
+    _cli("plan", "make", "thermal", "--design", design, *opts, "--out", plan)
+    p = load_plan(plan)
+    temps = [s.extra["chamber_temp_degC"] for s in p.segments if "chamber_temp_degC" in s.extra]
+    if design == "soak":
+        assert temps == [-40.0, -8.8, 22.5, 53.8, 85.0] and len(p.segments) == 35
+    else:
+        assert temps == [-40.0, 85.0, -40.0]
+        assert [s.extra.get("chamber_soak", True) for s in p.segments
+                if "chamber_temp_degC" in s.extra] == [True, False, False]
+    r = _cli("plan", "check", plan, "--json", "--no-suggest")
+    pred = json.loads(r.output)
+    assert pred["method"] == "thermal"
+    assert "gyro_temp_scale[0,0]" in pred["unobservable"]
+    tr = TC.thermal_truth(np.random.default_rng(3))
+    rec = simulate(p, tr, seed=3)
+    write_raw(tmp_path / "raw.h5", rec)
+    _cli("fit", "thermal", tmp_path / "raw.h5", "--order", "2", "--out", tmp_path / "cal.h5")
+    res = read_calibration(tmp_path / "cal.h5")
+    _check_within(res, tr)
+    # the prediction at the simulator's noise is the fit's sigma (same design, same order)
+    nz = tr.noise
+    r = _cli("plan", "check", plan, "--json", "--no-suggest", "--accel-noise",
+             nz["accel_white"], "--gyro-noise", nz["gyro_white"])
+    pred = json.loads(r.output)
+    for k in ("accel_bias", "accel_temp_bias", "gyro_temp_bias"):
+        ratio = np.asarray(res.sigma[k]) / np.asarray(pred["sigma"][k])
+        print(design, k, "fit/predicted sigma", np.round(ratio.ravel(), 3))
+        assert np.all((ratio > 0.9) & (ratio < 1.1)), (k, ratio)
+
+
+def test_plan_make_thermal_refusals(capsys):
+    err = _fails(2, "plan", "make", "thermal", "--design", "ramp", "--temp-range", "20,25",
+                 "--out", "x.toml", capsys=capsys)
+    assert "--temp-range must span at least 10 degC" in err

@@ -16,7 +16,9 @@ that segment is recorded; ``calib record`` then waits for the soak:
 - if that takes longer than ``chamber_soak_timeout_s`` the recording stops
   (exit 3, the journal keeps what was recorded).
 
-The soak keys are read from the segment, else the plan's top level.
+The soak keys are read from the segment, else the plan's top level. A
+segment with ``chamber_soak = false`` (a ramp design) sets the chamber going
+(ramp rate, setpoint) and is recorded at once, without waiting.
 """
 
 from __future__ import annotations
@@ -336,9 +338,14 @@ def _num(v, key, where, path, lo=0.0):
     return float(v)
 
 
+_NO_RAMP = ("segment {label!r} ramps without a soak (chamber_soak = false): the chamber must "
+            "ramp by itself (a set_ramp command or ramp_register in its profile), or the plan "
+            "must leave out the ramp-rate limit")
+
+
 def soak_rule(plan, seg) -> dict:
     """The soak rule and ramp limit of a segment (segment keys, else the plan's)."""
-    out = {}
+    out = {"chamber_soak": seg.extra.get("chamber_soak", True) is not False}
     for k, d in SOAK_DEFAULTS.items():
         v = seg.extra.get(k, plan.extra.get(k, d))
         out[k] = _num(v, k, f"segment {seg.label!r}: " if k in seg.extra else "", plan.path)
@@ -366,6 +373,10 @@ def check_plan(plan, prof: ChamberProfile | None) -> list[str]:
                              f"degC ({prof.path})", plan.path)
         rule = soak_rule(plan, s)
         r = rule["chamber_ramp_dpm"]
+        native = "set_ramp" in prof.commands or "ramp_register" in prof.modbus
+        if not rule["chamber_soak"] and ramp_limit(rule, prof) and prof.kind != "manual" \
+                and not native:
+            raise InputError(_NO_RAMP.format(label=s.label), prof.path)
         if r is not None and prof.max_ramp_dpm is not None and r > prof.max_ramp_dpm:
             msg = (f"chamber_ramp_dpm {r:g} is above the chamber's limit {prof.max_ramp_dpm:g} "
                    "degC/min: the chamber's limit is used")
@@ -417,6 +428,17 @@ class Soak:
         t0 = time.monotonic()
         t_end = t0 + rule["chamber_soak_timeout_s"]
         rate = ramp_limit(rule, self.prof)
+        if not rule.get("chamber_soak", True):  # a ramp segment: set it going, record at once
+            s.state = f"ramping to {target:g} degC"
+            if not ch.motorised:
+                lim = f" at {rate:g} degC/min" if rate else ""
+                ch.ask(f"[{self.label}] start the chamber ramping to {target:g} degC{lim}, then "
+                       "press Enter")
+                return
+            if rate and not ch.set_ramp(rate):
+                raise InputError(_NO_RAMP.format(label=self.label), self.prof.path)
+            ch.set_temp(target)
+            return
         if not ch.motorised:
             lim = f" at no more than {rate:g} degC/min" if rate else ""
             ch.ask(f"[{self.label}] set the chamber to {target:g} degC{lim}, then press Enter"

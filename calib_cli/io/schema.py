@@ -39,7 +39,7 @@ PLAN_SEGMENT = {"label", "attitude_deg", "attitude_sigma_deg", "table_axis_enu",
                 "table_rate_dps", "lever_arm_m", "duration_s", "rotation_axis_body",
                 "rotation_angle_deg", "repeat", "rate_profile", "rate_shape", "rate_jerk_dps3",
                 "rate_oscillation", "transition_s",
-                "chamber_temp_degC", "chamber_ramp_dpm", "chamber_soak_tol_degC",
+                "chamber_temp_degC", "chamber_soak", "chamber_ramp_dpm", "chamber_soak_tol_degC",
                 "chamber_soak_s", "chamber_soak_timeout_s", "sample_kind", "sim_attitude_deg", "sim_repeat",
                 "sim_table_axis_enu", "sim_lever_arm_m"}
 PLAN_TABLES = {"": PLAN_TOP, "site": PLAN_SITE, "unit": PLAN_UNIT, "rimu": PLAN_RIMU,
@@ -166,6 +166,10 @@ def check_plan_values(raw: dict, path: str) -> None:
                 where = "" if i is None else f"segment {i + 1}: "
                 raise InputError(f"{where}{key} must be a number > 0, got {v!r}", path)
     for i, t in enumerate(raw.get("segment") or []):
+        v = t.get("chamber_soak") if isinstance(t, dict) else None
+        if v is not None and not isinstance(v, bool):
+            raise InputError(f"segment {i + 1}: chamber_soak must be true or false, got {v!r}",
+                             path)
         v = t.get("chamber_temp_degC") if isinstance(t, dict) else None
         if v is not None and (not num(v) or not -273.15 < v <= 1000):
             raise InputError(f"segment {i + 1}: chamber_temp_degC must be a temperature in "
