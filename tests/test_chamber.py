@@ -266,3 +266,27 @@ def test_ramp_segment_sets_the_chamber_going_without_waiting():
         Soak(_FakeSession([]), Chamber(False), prof, 60.0, rule, 2, seg.label).run()
     with pytest.raises(InputError, match="ramp by itself"):
         check_plan(plan, load_chamber_profile("generic-modbus"))
+
+
+def test_record_refuses_chamber_problems_before_starting(tmp_path, capsys):
+    """One line, exit 3 (2 for usage), nothing written: a thermal plan without
+    --chamber, a setpoint the chamber cannot reach, a chamber port that does
+    not open, a serial chamber without --chamber-port."""
+    from calib_cli.cli.main import main
+
+    plan = tmp_path / "plan.toml"
+    base = ["record", "--imu", "generic-bin6", "--port", str(tmp_path / "imu"), "--plan",
+            str(plan), "--out", str(tmp_path / "raw.h5"), "--no-check"]
+    scpi = ["--chamber", "generic-scpi", "--chamber-port"]
+    cases = [((-20, 40), [], 3, "give --chamber PROFILE"),
+             ((-20, 40), scpi + [str(tmp_path / "nope")], 3, "cannot open chamber port"),
+             ((-20, 40), ["--chamber", "generic-scpi"], 2, "needs --chamber-port"),
+             ((-90, 40), scpi + ["x"], 3, "outside the chamber's range -70..180")]
+    for temps, extra, code, msg in cases:
+        plan.write_text(soak_plan(temps=temps))
+        with pytest.raises(SystemExit) as e:
+            main([*base, *extra])
+        err = capsys.readouterr().err
+        assert e.value.code == code and msg in err, (extra, err)
+        assert len([ln for ln in err.splitlines() if not ln.startswith("calib: warning")]) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.toml"]
