@@ -490,11 +490,13 @@ class Soak:
     def _timeout(self, air) -> None:
         _, spread = self._stable()
         what = "" if air is None else f"; the chamber reads {air:.2f} degC"
+        moved = (f"its temperature moved by {spread:.3g} degC over the last "
+                 f"{self.rule['chamber_soak_s']:g} s (limit {self.rule['chamber_soak_tol_degC']:g})"
+                 if np.isfinite(spread) else
+                 f"less than chamber_soak_s = {self.rule['chamber_soak_s']:g} s of readings")
         raise InputError(
             f"segment {self.label!r}: the unit did not soak at {self.target:g} degC within "
-            f"{self.rule['chamber_soak_timeout_s']:g} s (chamber_soak_timeout_s): its "
-            f"temperature moved by {spread:.3g} degC over the last "
-            f"{self.rule['chamber_soak_s']:g} s (limit {self.rule['chamber_soak_tol_degC']:g})"
+            f"{self.rule['chamber_soak_timeout_s']:g} s (chamber_soak_timeout_s): {moved}"
             f"{what}", None)
 
 
