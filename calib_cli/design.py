@@ -28,7 +28,8 @@ from calib_cli.model.truth import DEFAULT_NOISE, Truth, default_truth
 from calib_cli.plan import Plan, PlanSegment
 
 D2R = np.pi / 180.0
-METHODS = ("auto", "vector", "scalar", "gyro", "align", "rimu")
+METHODS = ("auto", "vector", "scalar", "gyro", "align", "rimu", "thermal")
+THERMAL_ORDER = 2  # plan check predicts the thermal fit at this polynomial order
 WEAK_TYPICAL = 0.3  # sigma above 0.3 x the catalogue's typical size of the entry: weak
 WEAK_SPREAD = 3.0  # ... or above 3 x the median sigma of the same key
 N_SUGGEST = 5
@@ -83,6 +84,13 @@ def resolve_method(plan: Plan, method: str = "auto") -> str:
         return plan.kind
     if method in ("align", "rimu"):
         raise InputError(f"a static plan cannot be checked as {method!r}", plan.path)
+    from calib_cli.sim.chamber import has_chamber
+
+    if method == "thermal" or (method == "auto" and has_chamber(plan)):  # issue 21
+        if not has_chamber(plan):
+            raise InputError("a thermal check needs chamber_temp_degC on the plan's segments",
+                             plan.path)
+        return "thermal"
     if method != "auto":
         return method
     if any(s.kind == "turn" for s in plan.segments):
@@ -197,6 +205,10 @@ def _fit(method: str, rec: Recording, noise: Noise, options: dict) -> Calibratio
         from calib_cli.methods.rimu import fit_rimu
 
         return fit_rimu(rec, noise=nz, strict=False)
+    if method == "thermal":
+        from calib_cli.methods.thermal import fit_thermal
+
+        return fit_thermal(rec, order=int(options.get("temp_order", THERMAL_ORDER)), noise=nz)
     raise ValueError(method)
 
 
@@ -472,7 +484,8 @@ def check(plan: Plan, method: str = "auto", noise: Noise | None = None,
     res, rec = predict_result(plan, m, noise, truth, options)
     weak = weak_entries(res)
     targets = list(res.stats.get("unobservable", [])) + weak
-    sug = suggest(plan, m, noise, res, targets, truth, options) if suggestions else []
+    sug = suggest(plan, m, noise, res, targets, truth, options) \
+        if suggestions and m != "thermal" else []  # no candidate additions for thermal yet
     return Prediction(res.method, res, noise, plan_duration(rec), condition_number(res), weak,
                       sug)
 
