@@ -426,8 +426,8 @@ class _Assembler:
     of exactly ``CHUNK_ROWS`` rows (the raw file's HDF5 chunk: whole chunks are
     written once, never read back and rewritten), one copy per value."""
 
-    def __init__(self, cols, ncol, rows):
-        self.cols, self.ncol, self.rows = cols, ncol, rows
+    def __init__(self, cols):
+        self.cols = cols  # (time, accel, gyro, optional, segment) column indices
         self.pending: list[list[np.ndarray]] = []
         self.n = 0
 
@@ -500,7 +500,7 @@ def _arrow_chunks(path, header, offset, head, cols, hasher, direct=False):
         raise _Fallback(str(exc)) from None
     t_last = None
     ti, si = cols[0], cols[4]
-    asm = _Assembler(cols, len(header), STREAM_ROWS)
+    asm = _Assembler(cols)
     try:
         while True:
             try:

@@ -256,6 +256,35 @@ def plan_layout(plan: Plan) -> Layout:
     return Layout(n_cycles=n_cycles)
 
 
+_ALLOCATOR_TUNED = False
+
+
+def keep_freed_memory() -> None:
+    """On glibc, keep freed memory in the process for reuse (``mallopt``):
+    every block of the import allocates and frees the same few arrays of a
+    few MB, and by default glibc maps them fresh (or trims the heap and
+    grows it again) each time, so that the kernel zeroes every page again:
+    about half the page faults of an import. Peak memory is unchanged (the
+    freed blocks are those the next block reuses). Elsewhere: nothing."""
+    global _ALLOCATOR_TUNED
+    if _ALLOCATOR_TUNED:
+        return
+    _ALLOCATOR_TUNED = True
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+        libc.mallopt(M_MMAP_THRESHOLD, 64 << 20)
+        libc.mallopt(M_TRIM_THRESHOLD, 256 << 20)
+    except (OSError, AttributeError):  # not glibc (musl, ...)
+        pass
+
+
 def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=(),
                   window_s: float = 1.0, multiplier: float = 3.0, min_static_s: float = 1.0,
                   accel_units: str = "m/s^2", gyro_units: str = "rad/s",
@@ -269,6 +298,7 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
     streaming); ``check(sink, segments)`` may veto the segments (gap checks) and returns
     counters to record. ``source`` is closed on return (a generator's ``close``).
     """
+    keep_freed_memory()
     try:
         return _import_to_raw(out, source, plan, path, inputs, window_s, multiplier,
                               min_static_s, accel_units, gyro_units, hashes, counters, check,

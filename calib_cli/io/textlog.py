@@ -520,7 +520,7 @@ def _text_chunks_arrow(path, sep, start, k, idx, scale, rate):
         else None
     cols = (ti, [idx[f] for f in ("ax", "ay", "az")], gi,
             {"temp": idx["temp"]} if "temp" in idx else {}, None)
-    asm = _Assembler(cols, k + 1, STREAM_ROWS)
+    asm = _Assembler(cols)
     t_last, n = None, 0
     try:
         while True:
@@ -580,15 +580,18 @@ def import_text_to_raw(out, acc_path, plan: Plan, gyro_path=None, columns: str |
     streamable = (gyro_path is None and not sort and segments_json is None and have_pyarrow()
                   and time_unit in TIME_UNITS and not plan_is_redundant(plan))
     if streamable:
+        from calib_cli.io.csvlog import _FileHash
         from calib_cli.io.stream_import import import_to_raw, prefetch
 
         try:
             sep, start, k, idx, scale = _text_stream_plan(acc_path, columns, delimiter, header,
                                                           rate, time_unit)
+            fh = _FileHash(acc_path)  # the provenance's SHA-256, by a thread meanwhile
             res = import_to_raw(out, prefetch(_text_chunks_arrow(acc_path, sep, start, k, idx,
                                                                  scale, rate)),
                                 plan, acc_path, inputs, window_s, multiplier, min_static_s,
-                                accel_units, gyro_units, sample_kind=sample_kind)
+                                accel_units, gyro_units, sample_kind=sample_kind,
+                                hashes=lambda: {acc_path: fh.hexdigest()})
             return res.n, res.units, res.segments
         except _NotStreamable:
             pass
