@@ -70,6 +70,10 @@ class TurntableOptions:
     tangential: bool = True
     block_s: float = 0.2
     passes: int = 8
+    # the first two passes (which only bring the linearisation point near the solution) use
+    # blocks this many times longer: the block model is exact at any length, the later
+    # passes' result depends on where they start only to second order (half the time)
+    coarse_factor: int = 2
     converge_sigma: float = 0.1
     axis_sigma: float = 1e-3
     # prior 1-sigma (rad) of each table axis's tilt from the plan's direction (estimated);
@@ -399,6 +403,7 @@ def _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, T, tangential) -> np.ndarray
 
 
 _I3 = np.eye(3)
+_LOW_RATE = float(np.radians(0.5))  # rad/s: blocks slower than this give the low-rate |g| figures
 
 
 def _sk(v) -> np.ndarray:
@@ -600,6 +605,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         P[:, :3] = 0.0
         P[:3, :3] = np.eye(3) * np.radians(2.0) ** 2
         sg2 = float((sig_g**2).mean())
+        innov_scale = np.sqrt(b.m) / sig_a
         q_phi = block_n * sg2 * (1.0 / rec.sample_rate) ** 2
         Q_phi = _I3 * q_phi
         Cw_all = b.cen + (_skew_n(b.dw) if opt.tangential else 0.0)
@@ -697,13 +703,14 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             S = H @ PH + Rm
             Si = np.linalg.inv(S)
             Kg = PH @ Si
-            x = x + Kg @ v
-            P = P - Kg @ PH.T
-            P = 0.5 * (P + P.T)
+            x += Kg @ v
+            P -= Kg @ PH.T
+            if j % 16 == 0:  # rounding makes P drift from symmetric; cheap enough every 16
+                P = 0.5 * (P + P.T)
             if not skip[j] and j >= nb // 2:  # the second half of each cycle: converged state
-                innov.append(v[:3] * np.sqrt(b.m) / sig_a)
+                innov.append(v[:3] * innov_scale)
             nis.append(float(v @ Si @ v))
-            if b.wabs[j] < np.radians(0.5):
+            if b.wabs[j] < _LOW_RATE:
                 fcorr = np.linalg.solve(Kc, b.a_mean[j] - cur["ab"])
                 lowrate.append((np.linalg.norm(b.a_mean[j]), np.linalg.norm(fcorr)))
             if ec is not None and j >= 1 and ec.ok[j]:
@@ -805,6 +812,11 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     fs = rec.sample_rate
     block_n = max(1, int(round(opt.block_s * fs)))
     enc, sig_enc, enc_notes = _encoder_setup(rec, cycles, block_n, opt)
+    shortest = min(cy.sl.stop - cy.sl.start for cy in cycles)
+    coarse_n = block_n * max(1, int(opt.coarse_factor))
+    if shortest < 50 * coarse_n:
+        coarse_n = block_n
+    enc_coarse = _encoder_setup(rec, cycles, coarse_n, opt)[0] if coarse_n != block_n else enc
     L = _Layout(nc, opt.lever_arm == "estimate", est_p, n_axes, est_enc=enc is not None)
     on = np.concatenate([np.arange(rec.segments[cy.seg_index].start,
                                    rec.segments[cy.seg_index].stop) for cy in cycles])
@@ -868,15 +880,18 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
         hist = None
         n_passes, moved = 0, np.inf
         for k in range(max(1, opt.passes)):
-            kw = dict(record_history=k == 0, enc=enc, sig_enc=sig_enc * enc_inflation)
+            coarse = k < min(2, opt.passes - 1)
+            bn = coarse_n if coarse else block_n
+            kw = dict(record_history=k == 0, enc=enc_coarse if coarse else enc,
+                      sig_enc=sig_enc * enc_inflation)
             try:
                 out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation,
-                                   sig_g, block_n, s_known, first=k == 0,
+                                   sig_g, bn, s_known, first=k == 0,
                                    start_info=info_start, **kw)
             except _StartInfoError:  # fall back to a pass started from the prior alone
                 kw["record_history"] = False
                 out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation,
-                                   sig_g, block_n, s_known, first=False, **kw)
+                                   sig_g, bn, s_known, first=False, **kw)
             if not np.all(np.isfinite(out.theta)):
                 break
             if hist is None:  # the sigma history is the first pass's (it starts from the prior)
@@ -906,7 +921,7 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
             # the fit rerun from the IMU alone (it is never trusted blindly)
             enc_notes.append(f"encoder not used: normalized innovation RMS {r_enc:.1f} "
                              f"(encoder), {r:.2f} (accelerometers) with it")
-            enc = None
+            enc = enc_coarse = None
             continue
         if np.all(np.isfinite(out.theta)) and r < 1.3:
             break
