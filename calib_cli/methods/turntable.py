@@ -84,8 +84,11 @@ class TurntableOptions:
     accel_skip: float = 0.02  # rad/s^2: with tangential off, blocks accelerating faster are skipped
     history_every: float = 2.0
     noise: dict | None = None  # {"accel": (3,), "gyro": (3,)} per-sample sigma; else from data
-    # the table's angle channel as a measurement: "auto" (where the log has it), "angle", "off"
+    # the table's channels as measurements: "auto" (those the log has and that pass the
+    # checks), "angle", "rate", "both", "off"
     table_encoder: str = "auto"
+    rate_scale_sigma: float = 0.01  # prior of the rate channel's relative scale error
+    rate_bias_sigma: float = float(np.radians(0.1))  # rad/s, prior of its offset
     encoder_sigma: float | None = None  # rad per reading; else from the channel's quantum
     encoder_opr_sigma: float = 2e-3  # rad, prior of the once-per-revolution error terms
     encoder_clock_sigma: float = 0.02  # s, prior of the encoder's clock offset to the IMU
@@ -129,6 +132,7 @@ class _Layout:
     est_p: bool
     n_axes: int = 0  # table axes whose tilt from the plan's direction is estimated
     est_enc: bool = False  # the table's angle encoder: a zero per cycle, once-per-rev, clock
+    est_rate: bool = False  # the table's rate channel: its scale error and offset
     idx: dict = field(default_factory=dict)
     size: int = 0
 
@@ -152,6 +156,9 @@ class _Layout:
             add("eo", 2)
             add("ec", 1)
             add("es", 1)
+        if self.est_rate:
+            add("rk", 1)
+            add("rb", 1)
 
     @property
     def gyro(self) -> np.ndarray:
@@ -267,6 +274,8 @@ class _Blocks:
     # (nb, 3, 3, 21): d(C r)/d theta_gyro = sum_c r_c cg[:, c], C = the block's mean
     # centripetal (+ tangential) operator, r a position in body axes
     cg: np.ndarray
+    mbar: np.ndarray  # (nb, 3, 21) block mean of dw/dtheta_gyro
+    wbar: np.ndarray  # (nb, 3) block mean of the corrected rates
     dw_raw: np.ndarray  # (nb, 3) mean angular acceleration (also with the tangential term off)
     m: int  # samples per block
 
@@ -347,9 +356,10 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
     e1 = e0 + block_n
     dw_raw = ((wpad[e1] + wpad[e1 - 1]) - (wpad[e0] + wpad[e0 - 1])) / (2 * dtb.sum(axis=1)[:, None])
     dwm = dw_raw if tangential else np.zeros((nb, 3))
-    cg = _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, dtb.sum(axis=1), tangential)
+    cg, mbar = _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, dtb.sum(axis=1), tangential)
     return _Blocks(t=t[:n:block_n], a_mean=A[:n].reshape(nb, block_n, 3).mean(axis=1),
-                   r_mean=r_sum / block_n, r_end=R, cen=cen, dw=dwm, q=q, cg=cg,
+                   r_mean=r_sum / block_n, r_end=R, cen=cen, dw=dwm, q=q, cg=cg, mbar=mbar,
+                   wbar=wb.mean(axis=1),
                    qbar=qbar / block_n, wg=wg / block_n, dw_raw=dw_raw,
                    wabs=np.linalg.norm(wb, axis=2).mean(axis=1), m=block_n,
                    w_start=wb[:, 0].copy())
@@ -374,18 +384,19 @@ def _rate_sensitivity(w: np.ndarray, f: np.ndarray, Ginv: np.ndarray) -> np.ndar
     return M
 
 
-def _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, T, tangential) -> np.ndarray:
+def _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, T, tangential):
     """Sensitivity (nb, 3, 3, 21) of the block means of the rigid-body terms to the gyro
     parameters: the centripetal and tangential accelerations at a point r are computed
     from the corrected gyros, so a gyro scale error changes them too (at 0.5 m and
     200 deg/s, 12 m/s^2 per unit of scale). d(C r)/dtheta = sum_c r_c out[:, c] with
     C r = mean(w (w.r) - r |w|^2) + dw x r; d(w (w.r) - r |w|^2)/dw = (w.r) I + w r^T
-    - 2 r w^T."""
+    - 2 r w^T. Also returns the block means of dw/dtheta_gyro (nb, 3, 21)."""
     nb = n // block_n
     M = _rate_sensitivity(w, f, Ginv)
     Mb = M[:n].reshape(nb, block_n, 3, 21)
     wb = w[:n].reshape(nb, block_n, 3)
     wM = np.einsum("bma,bmap->bp", wb, Mb) / block_n  # mean w^T M
+    mbar = Mb.mean(axis=1)
     out = np.empty((nb, 3, 3, 21))
     for c in range(3):
         t = np.einsum("bm,bmap->bap", wb[:, :, c], Mb) / block_n
@@ -399,7 +410,7 @@ def _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, T, tangential) -> np.ndarray
         dD = ((Mpad[e1] + Mpad[e1 - 1]) - (Mpad[e0] + Mpad[e0 - 1])) / (2 * T[:, None, None])
         for c in range(3):  # dw x e_c = -[e_c x] dw
             out[:, c] -= np.einsum("ab,nbp->nap", skew(np.eye(3)[c]), dD)
-    return out
+    return out, mbar
 
 
 _I3 = np.eye(3)
@@ -409,6 +420,15 @@ _LOW_RATE = float(np.radians(0.5))  # rad/s: blocks slower than this give the lo
 def _sk(v) -> np.ndarray:
     """Skew matrix of one vector (frames.skew without its checks: called per block)."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _rotvec(M: np.ndarray) -> np.ndarray:
+    """Rotation vector of one rotation matrix of angle below 180 deg (SciPy's per-call
+    overhead doubled the fit's time at one call per block)."""
+    v = 0.5 * np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+    sn = float(np.sqrt(v @ v))
+    th = np.arctan2(sn, 0.5 * (M[0, 0] + M[1, 1] + M[2, 2] - 1.0))
+    return v * (th / sn) if sn > 1e-12 else v
 
 
 def _rot(phi):
@@ -473,12 +493,13 @@ def _encoder_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
     regressing the encoder's angle on the raw gyros' integrated angle: a slope outside
     +-(1 +- 5 %) drops that cycle's encoder (never trusted blindly)."""
     mode = opt.table_encoder
-    if mode not in ("auto", "angle", "off"):
-        raise InputError(f"table_encoder must be auto, angle or off, got {mode!r}")
+    if mode not in ENCODER_MODES:
+        raise InputError(f"table_encoder must be one of {', '.join(ENCODER_MODES)}, got {mode!r}")
+    need = mode in ("angle", "both")
     ang = rec.table_angle
-    if mode == "off" or ang is None:
-        if mode == "angle":
-            raise InputError("--table-encoder angle: the recording has no table_angle column")
+    if mode in ("off", "rate") or ang is None:
+        if need:
+            raise InputError(f"--table-encoder {mode}: the recording has no table_angle column")
         return None, 0.0, []
     out, notes = [], []
     interval = rec.sample_kind == "interval-mean"
@@ -486,8 +507,8 @@ def _encoder_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
     for cy in cycles:
         th = ang[cy.sl]
         if not np.all(np.isfinite(th)) or len(th) < 2 * block_n:
-            if mode == "angle":
-                raise InputError(f"--table-encoder angle: rotating segment "
+            if need:
+                raise InputError(f"--table-encoder {mode}: rotating segment "
                                  f"{rec.segments[cy.seg_index].label!r} has no table angle")
             out.append(None)
             notes.append(f"{rec.segments[cy.seg_index].label}: no table angle")
@@ -537,6 +558,79 @@ def _encoder_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
     return out, float(sig), notes
 
 
+ENCODER_MODES = ("auto", "angle", "rate", "both", "off")
+
+
+@dataclass(frozen=True)
+class _RateChannel:
+    """One cycle's table-rate readings: z (nb,) block means times the sign (rad/s, about
+    table_axis_enu), sign +-1 against the gyros."""
+
+    z: np.ndarray
+    sign: float
+
+
+def _rate_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
+    """The table's rate channel per cycle (None where unusable), its per-sample 1-sigma
+    (rad/s) and notes. Read as the rate at each stamp. Checked like the angle: the slope
+    against the gyros' rate about the plan's axis within 1 +- 5 %, and the readings must
+    follow the gyros over 2 s windows (a logged setpoint misses the wobble)."""
+    mode = opt.table_encoder
+    need = mode in ("rate", "both")
+    rt = rec.table_rate
+    if mode not in ("auto", "rate", "both") or rt is None:
+        if need:
+            raise InputError(f"--table-encoder {mode}: the recording has no table_rate column")
+        return None, 0.0, []
+    out, notes, sig = [], [], []
+    dt = float(np.median(np.diff(rec.time)))
+    interval = rec.sample_kind == "interval-mean"
+    for cy in cycles:
+        label = rec.segments[cy.seg_index].label
+        r = rt[cy.sl]
+        if not np.all(np.isfinite(r)) or len(r) < 2 * block_n:
+            if need:
+                raise InputError(f"--table-encoder {mode}: rotating segment {label!r} has no "
+                                 "table rate")
+            out.append(None)
+            notes.append(f"{label}: no table rate")
+            continue
+        g = rec.gyro[cy.sl] @ cy.a_nom
+        slope = float(g @ r / max(float(g @ g), 1e-30))
+        if not 0.95 < abs(slope) < 1.05:
+            out.append(None)
+            notes.append(f"{label}: table rate / gyro rate = {slope:.3f}, rate channel not used")
+            continue
+        # the block means must follow the raw gyros' (scale and offset fitted; robust
+        # spread, so the ramps' timing does not count): a logged setpoint misses the
+        # table's wobble, which averages out over longer windows
+        n = (len(r) // block_n) * block_n
+        gm = g[:n].reshape(-1, block_n).mean(axis=1)
+        if interval:  # interval-mean gyros lag the stamps by half a sample
+            gm = gm + 0.5 * dt * np.gradient(gm, block_n * dt)
+        y = r[:n].reshape(-1, block_n).mean(axis=1)
+        A = np.column_stack([gm, np.ones(len(gm))])
+        res = y - A @ np.linalg.lstsq(A, y, rcond=None)[0]
+        spread = 1.4826 * float(np.median(np.abs(res - np.median(res))))
+        sig_r = float(np.mean(_third_diff_sigma(r[:, None])))
+        sig_gyro = float(np.sqrt(np.mean(_third_diff_sigma(rec.gyro[cy.sl]) ** 2)))
+        expected = np.sqrt((sig_gyro**2 + sig_r**2) / block_n)
+        # (plus 0.2 deg/s: the raw unit's own g-sensitivity, bias and cross-axis terms
+        # about the plan's axis reach 0.1 deg/s at the wide MEMS truths)
+        if spread > 3.0 * expected + float(np.radians(0.2)):
+            out.append(None)
+            notes.append(f"{label}: the table rate does not follow the gyros "
+                         f"({np.degrees(spread):.3f} deg/s spread per block, noise "
+                         f"{np.degrees(expected):.3f}), rate channel not used")
+            continue
+        sign = float(np.sign(slope))
+        out.append(_RateChannel(z=sign * y, sign=sign))
+        sig.append(sig_r)
+    if all(c is None for c in out):
+        return None, 0.0, notes
+    return out, float(max(sig)), notes
+
+
 @dataclass
 class _PassOut:
     theta: np.ndarray
@@ -547,11 +641,13 @@ class _PassOut:
     hist_s: list
     lowrate: list
     enc_innov: list = field(default_factory=list)  # normalized encoder innovations
+    rate_innov: list = field(default_factory=list)  # normalized rate-channel innovations
 
 
 def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: TurntableOptions,
                  sig_a, sig_g, block_n, s_known, record_history: bool, first: bool,
                  enc: list | None = None, sig_enc: float = 0.0,
+                 rate: list | None = None, sig_rate: float = 0.0,
                  start_info: np.ndarray | None = None) -> _PassOut:
     par = _unpack(theta_lin, L, cycles)
     par_lin = _unpack(theta_lin, L, cycles)
@@ -579,6 +675,8 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
     else:
         P[3:, 3:] = _scaled_inv(start_info) * np.outer(prior_sd, prior_sd)
     innov, nis, hist_t, hist_s, lowrate, enc_innov = [], [], [], [], [], []
+    rate_innov = []
+    interval = rec.sample_kind == "interval-mean"
     hist_idx = []
     if record_history:
         if L.est_s:
@@ -622,6 +720,13 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             skip = fast | np.roll(fast, 1) | np.roll(fast, -1)
         sA = slice(0, 3)
         ec = enc[c] if enc is not None else None
+        rc = rate[c] if rate is not None else None
+        if rc is not None:
+            irk, irb = 3 + L.idx["rk"][0], 3 + L.idx["rb"][0]
+            we_axis = float(cy.a_enu @ w_e)
+            # per block: the gyro noise of the projected block mean plus the channel's own
+            var_rate = (float((sig_g**2).mean()) + sig_rate**2) / block_n
+            half_dt = 0.5 / rec.sample_rate if interval else 0.0
         if ec is not None:
             iez = 3 + L.idx["ez"][c]
             ieo = 3 + L.idx["eo"]
@@ -717,7 +822,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 # the table's encoder: its angle since the cycle start against the filter's
                 # (the attitude about the table axis since the start attitude), with the
                 # encoder's zero, once-per-revolution error and clock offset as states
-                psi_ref += float(cy.a_enu @ Rotation.from_matrix(Rh @ R_ref.T).as_rotvec())
+                psi_ref += float(cy.a_enu @ _rotvec(Rh @ R_ref.T))
                 R_ref = Rh
                 cur_e = theta_lin + x[3:]
                 omega = float(a_b @ b.w_start[j])
@@ -740,6 +845,33 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 P = 0.5 * (P + P.T)
                 if j >= nb // 2:
                     enc_innov.append(ve / np.sqrt(Se))
+            if rc is not None and j < len(rc.z):
+                # the table's rate channel (the rate at each stamp, about table_axis_enu)
+                # against the corrected gyros about the table axis, earth rate removed, with
+                # the channel's scale error and offset as states. Interval-mean gyro samples
+                # lag the stamp by half a sample: their block mean plus dw/dt dt/2
+                wp = b.wbar[j] + half_dt * b.dw_raw[j]
+                base = float(a_b @ wp) - we_axis
+                gs = a_b @ b.mbar[j]  # (21,)
+                kr = (theta_lin[irk - 3] + x[irk]) if first else theta_lin[irk - 3]
+                br = (theta_lin[irb - 3] + x[irb]) if first else theta_lin[irb - 3]
+                Hr = np.zeros(ns)
+                Hr[iG] = (1.0 + kr) * gs
+                Hr[irk] = base
+                Hr[irb] = 1.0
+                Hr[3 + L.idx["u"][2 * c:2 * c + 2]] = (1.0 + kr) * (cy.basis.T @ wp)
+                if first:
+                    hr = (1.0 + kr) * (base + gs @ x[iG]) + br
+                else:
+                    hr = (1.0 + kr) * base + br + Hr[3:] @ x[3:]
+                vr = rc.z[j] - hr
+                PHr = P @ Hr
+                Sr = Hr @ PHr + var_rate
+                Kr = PHr / Sr
+                x += Kr * vr
+                P -= np.outer(Kr, PHr)
+                if j >= nb // 2:
+                    rate_innov.append(vr / np.sqrt(Sr))
             # reset: absorb phi into the attitude
             Rh = _rot(x[:3]) @ Rh
             x[:3] = 0.0
@@ -774,7 +906,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         x[3:] = np.linalg.solve(lam, rhs) * prior_sd
         P[3:, 3:] = _scaled_inv(lam) * np.outer(prior_sd, prior_sd)
     return _PassOut(theta_lin + x[3:], P[3:, 3:], innov, nis, hist_t, hist_s, lowrate,
-                    enc_innov)
+                    enc_innov, rate_innov)
 
 
 class _StartInfoError(Exception):
@@ -817,7 +949,11 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     if shortest < 50 * coarse_n:
         coarse_n = block_n
     enc_coarse = _encoder_setup(rec, cycles, coarse_n, opt)[0] if coarse_n != block_n else enc
-    L = _Layout(nc, opt.lever_arm == "estimate", est_p, n_axes, est_enc=enc is not None)
+    rate, sig_rate, rate_notes = _rate_setup(rec, cycles, block_n, opt)
+    rate_coarse = _rate_setup(rec, cycles, coarse_n, opt)[0] if coarse_n != block_n else rate
+    enc_notes += rate_notes
+    L = _Layout(nc, opt.lever_arm == "estimate", est_p, n_axes, est_enc=enc is not None,
+                est_rate=rate is not None)
     on = np.concatenate([np.arange(rec.segments[cy.seg_index].start,
                                    rec.segments[cy.seg_index].stop) for cy in cycles])
     if opt.noise is not None:
@@ -859,6 +995,9 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
         sd[L.idx["eo"]] = opt.encoder_opr_sigma
         sd[L.idx["ec"]] = opt.encoder_clock_sigma
         sd[L.idx["es"]] = opt.encoder_scale_sigma
+    if L.est_rate:
+        sd[L.idx["rk"]] = opt.rate_scale_sigma
+        sd[L.idx["rb"]] = opt.rate_bias_sigma
     # a model that does not explain the data (e.g. lever arms ignored) leaves accelerometer
     # residuals far above the noise and can drag the attitude off; the fit then restarts with
     # the measurement noise widened to the residual level (stats.accel_noise_inflation), so
@@ -872,6 +1011,10 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
             s0 = _initial_lever_arm(rec, cy)
             if s0 is not None:
                 start[L.idx["s"][2 * c:2 * c + 2]] = cy.basis.T @ s0
+    # convergence is judged on the reported parameters: nuisance states such as the
+    # encoder's zero per cycle re-absorb the coarse start attitude at every pass
+    rep_idx = np.concatenate([L.idx[k] for k in ("ab", "K", "gb", "G", "D", "s", "p")
+                              if k in L.idx])
     inflation = 1.0
     enc_inflation = 1.0
     for _attempt in range(6):
@@ -883,7 +1026,8 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
             coarse = k < min(2, opt.passes - 1)
             bn = coarse_n if coarse else block_n
             kw = dict(record_history=k == 0, enc=enc_coarse if coarse else enc,
-                      sig_enc=sig_enc * enc_inflation)
+                      sig_enc=sig_enc * enc_inflation, rate=rate_coarse if coarse else rate,
+                      sig_rate=sig_rate)
             try:
                 out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation,
                                    sig_g, bn, s_known, first=k == 0,
@@ -900,8 +1044,8 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
             # the largest move of any parameter since the pass before, in its sigma (the
             # first pass, an extended filter from the neutral unit, is not compared)
             prev_move = moved
-            moved = (float(np.max(np.abs(out.theta - theta) / np.sqrt(np.diag(out.P))))
-                     if k >= 1 else np.inf)
+            moved = (float(np.max(np.abs(out.theta - theta)[rep_idx]
+                                  / np.sqrt(np.diag(out.P))[rep_idx])) if k >= 1 else np.inf)
             n_passes = k + 1
             theta = out.theta
             # converged: this pass moved less than the tolerance, or the next pass would,
@@ -923,6 +1067,13 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
                              f"(encoder), {r:.2f} (accelerometers) with it")
             enc = enc_coarse = None
             continue
+        r_rate = (float(np.sqrt(np.mean(np.square(out.rate_innov)))) if out.rate_innov
+                  else 1.0)
+        if rate is not None and not (r_rate < 1.5 and r < 1.3):
+            enc_notes.append(f"rate channel not used: normalized innovation RMS {r_rate:.1f} "
+                             f"(rate), {r:.2f} (accelerometers) with it")
+            rate = rate_coarse = None
+            continue
         if np.all(np.isfinite(out.theta)) and r < 1.3:
             break
         # widen step by step (a diverged attempt's residuals overstate the mismatch)
@@ -936,7 +1087,7 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     res.stats["filter_passes"] = n_passes
     res.stats["filter_last_move_sigma"] = float(moved) if np.isfinite(moved) else None
     res.stats["table_encoder"] = _encoder_stats(enc, L, out, sig_enc * enc_inflation,
-                                                enc_inflation, enc_notes)
+                                                enc_inflation, enc_notes, rate, sig_rate)
     return res
 
 
@@ -953,15 +1104,29 @@ def _clipped(rec: Recording, cycles) -> list[int]:
     return out
 
 
-def _encoder_stats(enc, L, out, sig_enc, inflation, notes) -> dict:
-    """What the encoder contributed (stats.table_encoder): mode, cycles used, the estimated
-    once-per-revolution amplitude and clock offset with sigma, the reading noise used."""
-    if enc is None:
-        return {"mode": "off", "notes": notes}
+def _encoder_stats(enc, L, out, sig_enc, inflation, notes, rate=None, sig_rate=0.0) -> dict:
+    """What the table's channels contributed (stats.table_encoder): mode, cycles used, the
+    estimated once-per-revolution amplitude and clock offset with sigma, the reading noise
+    used; for the rate channel its scale error and offset with sigma."""
     P = out.P
+    rate_part = {}
+    if rate is not None:
+        ik, ib = L.idx["rk"][0], L.idx["rb"][0]
+        rate_part = {
+            "rate_cycles_used": [r is not None for r in rate],
+            "rate_scale_error": float(out.theta[ik]),
+            "rate_scale_error_sigma": float(np.sqrt(P[ik, ik])),
+            "rate_offset_dps": float(np.degrees(out.theta[ib])),
+            "rate_offset_sigma_dps": float(np.degrees(np.sqrt(P[ib, ib]))),
+            "rate_reading_sigma_dps": float(np.degrees(sig_rate)),
+            "rate_normalized_innovation_rms": float(np.sqrt(np.mean(np.square(out.rate_innov))))
+            if out.rate_innov else None}
+    if enc is None:
+        return {"mode": "rate" if rate is not None else "off", **rate_part, "notes": notes}
     eo = out.theta[L.idx["eo"]]
     ec = float(out.theta[L.idx["ec"][0]])
-    return {"mode": "angle", "cycles_used": [e is not None for e in enc],
+    return {"mode": "both" if rate is not None else "angle", **rate_part,
+            "cycles_used": [e is not None for e in enc],
             "sign": [None if e is None else e.sign for e in enc],
             "once_per_rev_mrad": [float(v) * 1e3 for v in eo],
             "once_per_rev_sigma_mrad": [float(np.sqrt(P[i, i])) * 1e3 for i in L.idx["eo"]],
