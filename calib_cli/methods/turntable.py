@@ -276,6 +276,7 @@ class _Blocks:
     cg: np.ndarray
     mbar: np.ndarray  # (nb, 3, 21) block mean of dw/dtheta_gyro
     wbar: np.ndarray  # (nb, 3) block mean of the corrected rates
+    dw_var: np.ndarray  # (nb,) variance of the block's mean angular acceleration (corners)
     dw_raw: np.ndarray  # (nb, 3) mean angular acceleration (also with the tangential term off)
     m: int  # samples per block
 
@@ -356,10 +357,23 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
     e1 = e0 + block_n
     dw_raw = ((wpad[e1] + wpad[e1 - 1]) - (wpad[e0] + wpad[e0 - 1])) / (2 * dtb.sum(axis=1)[:, None])
     dwm = dw_raw if tangential else np.zeros((nb, 3))
+    # Where the angular acceleration jumps (a ramp's corners) the accelerometers see the
+    # value at each stamp on one side of the corner, and the central differences see the
+    # mean of both: the block mean's tangential term is off by jump * (u - 1/2) / m per
+    # corner, u the corner's phase between stamps (uniform): variance jump^2 / 12 / m^2,
+    # 0.2 m/s^2 at 1000 deg/s^2 and 0.5 m. The jump from the second differences,
+    # E sum (d2 / dt^2)^2 / 8 = jump^2 / 12, counted where it stands 4 sigma above the
+    # gyro noise (rad^2/s^4)
+    d2 = np.zeros(len(w))
+    d2[1:-1] = np.sum((w[2:] - 2 * w[1:-1] + w[:-2]) ** 2, axis=1)
+    noise2 = 6.0 * float(np.sum(_third_diff_sigma(W) ** 2))
+    dt2 = float(np.median(dt)) ** 2
+    jump2 = np.where(d2 > 16.0 * noise2, (d2 - noise2) / dt2**2, 0.0)
+    dw_var = jump2[:n].reshape(nb, block_n).sum(axis=1) / 8.0 / block_n**2
     cg, mbar = _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, dtb.sum(axis=1), tangential)
     return _Blocks(t=t[:n:block_n], a_mean=A[:n].reshape(nb, block_n, 3).mean(axis=1),
                    r_mean=r_sum / block_n, r_end=R, cen=cen, dw=dwm, q=q, cg=cg, mbar=mbar,
-                   wbar=wb.mean(axis=1),
+                   wbar=wb.mean(axis=1), dw_var=dw_var if tangential else np.zeros(nb),
                    qbar=qbar / block_n, wg=wg / block_n, dw_raw=dw_raw,
                    wabs=np.linalg.norm(wb, axis=2).mean(axis=1), m=block_n,
                    w_start=wb[:, 0].copy())
@@ -797,7 +811,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             ss = float(s_c @ s_c)
             r_extra = 4.0 * b.wabs[j] ** 2 * ss * sg2 / b.m
             if opt.tangential:
-                r_extra += sg2 / 2 / T**2 * ss
+                r_extra += (sg2 / 2 / T**2 + b.dw_var[j]) * ss
             Rm = np.diag(np.concatenate([sig_a**2 / b.m + r_extra,
                                          np.full(2, opt.axis_sigma**2)]))
             if skip[j]:  # the table accelerates and the tangential term is off: axis only
