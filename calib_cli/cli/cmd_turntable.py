@@ -41,10 +41,12 @@ from calib_cli.io.h5 import read_raw
 @click.option("--noise", "noise_spec", metavar="accel=SIGMA,gyro=SIGMA",
               help="Per-sample white noise (SI: m/s^2, rad/s) instead of the estimate from the "
                    "data; one value for all axes of a sensor.")
-@click.option("--table-encoder", "table_encoder", type=click.Choice(["auto", "off", "angle"]),
+@click.option("--table-encoder", "table_encoder",
+              type=click.Choice(["auto", "off", "angle", "rate", "both"]),
               default="auto", show_default=True,
-              help="The table's angle channel as a measurement (zero, once-per-revolution error "
-                   "and clock offset estimated): auto uses it where the log has it.")
+              help="The table's angle and/or rate channels as measurements (angle: zero, "
+                   "once-per-revolution error and clock offset estimated; rate: scale error "
+                   "and offset estimated): auto uses those the log has that pass the checks.")
 @click.option("--json", "as_json", is_flag=True,
               help="Print the result as JSON (docs/contract.md section 5) on stdout.")
 @click.option("--plot", type=click.Path(dir_okay=False),
