@@ -10,7 +10,7 @@ from matplotlib.figure import Figure
 from calib_cli.io.escape import mpl_text
 from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
 from calib_cli.report.figures import line_style
-from calib_cli.report.format import DPH, MG, value_text
+from calib_cli.report.format import CHECK_POSITION_HEADER, DPH, MG, check_position_rows, value_text
 
 BLOCK_S = 0.5  # residuals are shown as means over blocks of this length
 
@@ -89,22 +89,13 @@ def estimate_history_figure(res) -> Figure:
 def check_positions_table(st: dict) -> Table | None:
     """stats.check_positions as a table (None without a check position)."""
     cp = st.get("check_positions") or {}
-    rows = []
-    for p in cp.get("positions", []):
-        rows.append([str(p["label"]), f"{p['vertical_axis']} ({p['axis_tilt_deg']:.1f} deg)",
-                     f"{p['g_error'] * MG * 1e3:+.1f} +- {p['g_error_sigma'] * MG * 1e3:.1f}",
-                     f"{p['g_error_z']:+.2f}",
-                     f"{p['earth_rate_up_error'] * DPH:+.3f} +- "
-                     f"{p['earth_rate_up_error_sigma'] * DPH:.3f}",
-                     f"{p['earth_rate_up_error_z']:+.2f}"])
+    rows = check_position_rows(cp)
     if not rows:
         return None
     return Table("Check positions (static segments the fit did not use): |f| - g, and the "
                  "corrected rate along the vertical minus the earth rate's vertical component, "
                  "with 1-sigma (noise of the mean and the calibration's covariance); verdict "
-                 f"{cp.get('verdict')} (pass: every |z| < 3.3).",
-                 ["position", "axis up (tilt)", "|f| - g (ug)", "z",
-                  "w_up - W sin(lat) (deg/h)", "z"], rows)
+                 f"{cp.get('verdict')} (pass: every |z| < 3.3).", CHECK_POSITION_HEADER, rows)
 
 
 def sigma_history_plot(res, path, title: str | None = None) -> None:
