@@ -163,3 +163,36 @@ def test_c_header_size_effect_matches_apply(tmp_path):
     # and the compensation is not nothing at this size
     plain, _ = apply_triad(cal, rec.accel, rec.gyro)
     assert np.abs(plain - f_ref).max() > 1e-3
+
+
+@pytest.mark.slow
+def test_fitted_offsets_cut_the_error_5x():
+    """The same with the offsets a 9-cycle fit gives (MEMS noise, 3 x 600 s + 6 x 300 s):
+    the fitted p carries its real error (sigma ~0.25 mm), not a drawn one."""
+    from calib_cli.methods.turntable import fit_turntable
+    from calib_cli.sim.truth import Truth
+    from calib_cli.sim.turntable_plans import turntable_plan_text
+
+    rec_p, rec_0, params = _records()
+    plan9 = parse_plan(turntable_plan_text(5, tilted=True))
+    t9 = turntable_truth(plan9, np.random.default_rng(5))
+    unit = {k: v for k, v in params.items() if k != "lever_arm"}  # the same unit on the table
+    res = fit_turntable(simulate(plan9, Truth(t9.model, {**t9.params, **unit}, t9.noise), 5))
+    p_fit = np.asarray(res.params["proof_mass_offsets"], float)
+    sig = np.asarray(res.sigma["proof_mass_offsets"], float)
+    off = ~np.eye(3, dtype=bool)
+    rot = np.zeros(len(rec_p), bool)
+    for s in rec_p.segments:
+        rot[s.slice] = s.kind == "rotating"
+    ref, _ = apply_triad(_cal({**params, "proof_mass_offsets": np.zeros((3, 3))}),
+                         rec_0.accel, rec_0.gyro)
+    plain, _ = apply_triad(_cal(params), rec_p.accel, rec_p.gyro)
+    comp, _ = apply_triad(_cal({**params, "proof_mass_offsets": p_fit}), rec_p.accel,
+                          rec_p.gyro, time=rec_p.time)
+    e_plain = np.sqrt(np.mean((plain - ref)[rot] ** 2))
+    e_comp = np.sqrt(np.mean((comp - ref)[rot] ** 2))
+    print(f"fitted p: sigma {np.median(sig[off]) * 1e3:.3f} mm (median), error RMS "
+          f"{np.sqrt(np.mean((p_fit - params['proof_mass_offsets'])[off] ** 2)) * 1e3:.3f} mm; "
+          f"specific-force error {e_plain:.3g} -> {e_comp:.3g} m/s^2 ({e_plain / e_comp:.1f}x)")
+    assert np.all(np.isfinite(sig[off]))
+    assert e_plain > 5 * e_comp, (e_plain, e_comp)
