@@ -69,6 +69,18 @@ def test_exact_calibration_leaves_only_the_noise():
     assert check_positions(rec, bad)["verdict"] == "fail"
 
 
+def test_noise_free_exact_calibration_has_no_verdict():
+    from calib_cli.sim.turntable_plans import turntable_truth
+
+    plan = _plan(30.0)
+    t = turntable_truth(plan, np.random.default_rng(1), noise={"accel_white": 0.0,
+                                                               "gyro_white": 0.0})
+    rec = simulate(plan, t, 1)
+    cp = check_positions(rec, _truth_cal(rec))
+    assert cp["verdict"] == "none" and cp["positions"][0]["g_error_z"] is None
+    assert abs(cp["positions"][0]["g_error"]) < 1e-9
+
+
 def test_turntable_fit_reports_check_positions(fitted):
     rec, res = fitted
     cp = res.stats["check_positions"]

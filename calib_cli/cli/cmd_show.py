@@ -56,7 +56,7 @@ def _render_calibration(path, covariance):
     for k, v in c.stats.items():
         if k == "check_positions" and isinstance(v, dict):  # a table of its own, below
             v = (f"{v.get('verdict')}: {v.get('n', 0)} static positions, max |z| "
-                 f"{v.get('max_abs_z', float('nan')):.2f}" if v.get("positions")
+                 f"{v['max_abs_z']:.2f}" if "max_abs_z" in v
                  else f"{v.get('verdict')}: {v.get('note', '')}")
         if isinstance(v, float):
             v = f"{v:.6g}"
