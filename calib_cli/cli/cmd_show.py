@@ -12,6 +12,7 @@ from calib_cli.cli.render import params_table
 from calib_cli.io.contract_json import calibration_json  # noqa: F401  (re-exported)
 from calib_cli.io.escape import term_text
 from calib_cli.io.h5 import file_kind, provenance, read_calibration, read_raw
+from calib_cli.report.format import CHECK_POSITION_HEADER, check_position_rows
 from calib_cli.units import g_figures_line
 
 
@@ -43,6 +44,10 @@ def _render_calibration(path, covariance):
     out_console.print(params_table(c.params, c.sigma, c.units, title=f"calibration ({c.method})"))
     st = Table(title="stats", show_header=False)
     for k, v in c.stats.items():
+        if k == "check_positions" and isinstance(v, dict):  # a table of its own, below
+            v = (f"{v.get('verdict')}: {v.get('n', 0)} static positions, max |z| "
+                 f"{v['max_abs_z']:.2f}" if "max_abs_z" in v
+                 else f"{v.get('verdict')}: {v.get('note', '')}")
         if isinstance(v, float):
             v = f"{v:.6g}"
         st.add_row(term_text(k), term_text(v))
@@ -59,6 +64,14 @@ def _render_calibration(path, covariance):
         line = g_figures_line(c.stats)
         if line:
             out_console.print(line)
+    cp_rows = check_position_rows(c.stats.get("check_positions"))
+    if cp_rows:
+        ct = Table(title="check positions (static segments the fit did not use)")
+        for col in CHECK_POSITION_HEADER:
+            ct.add_column(col)
+        for row in cp_rows:
+            ct.add_row(*(term_text(x) for x in row))
+        out_console.print(ct)
     if covariance:
         out_console.print(f"covariance: {c.covariance.shape[0]} free entries (use --json)")
 

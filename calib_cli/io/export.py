@@ -12,8 +12,11 @@ K, a separate misalignment, g-sensitivity) end up in the one affine map that
 ``calib apply`` inverts. A model that is not affine in its inputs
 (nonlinearity, scale asymmetry, temperature drift, time offset) cannot be
 written as K^-1 and b: the export refuses it rather than drop terms silently.
-Lever arms and proof-mass offsets are not part of the correction (apply does
-not invert them either) and are listed but not applied.
+Proof-mass offsets are exported as the size-effect compensation that `calib
+apply` makes (accelerometer i brought to the triad's reference point, from the
+corrected rates w and their derivative dw/dt: f_i -= (w x (w x p_i) + dw/dt x
+p_i)_i); the header gets a function taking w and dw/dt. Lever arms belong to
+the table, not to the unit: listed but not applied.
 
 Formats: json, yaml (written here, no dependency), csv (long format, one row
 per entry), c-header (K^-1, b, G^-1, d, D as literals with full precision,
@@ -50,6 +53,9 @@ LINEAR_EFFECTS = _effects("linear")  # bias, scale_misalignment, misalignment, g
 THERMAL_EFFECTS = _effects("thermal")  # evaluated first (docs/thermal.md)
 NOT_APPLIED = _effects("input")  # input-side terms (lever arm, proof masses), not in the correction
 FORMULA = {"accel": "f = K^-1 (A - b)", "gyro": "w = G^-1 (W - d - D f)"}
+SIZE_EFFECT_FORMULA = ("f_i -= (w x (w x p_i) + dw/dt x p_i)_i with w = G^-1 (W - d - D f) and "
+                       "dw/dt its time derivative, p_i row i of proof_mass_offsets; then "
+                       "w = G^-1 (W - d - D f) again with the new f (as calib apply)")
 
 
 def _predict(model, params, sensor, f, w):
@@ -130,6 +136,16 @@ def _thermal_of(cal: CalibrationResult, sensor: str) -> dict | None:
     return out
 
 
+def size_effect_offsets(cal: CalibrationResult) -> np.ndarray | None:
+    """The proof-mass offsets p (3, 3), m, that `calib apply` compensates (entries not
+    determined taken as 0), when the calibration corrects both sensors; else None."""
+    from calib_cli.methods.apply import corrected_channels, proof_mass_offsets
+
+    if cal.layout.redundant or corrected_channels(cal) != ["accel", "gyro"]:
+        return None
+    return proof_mass_offsets(cal)
+
+
 def thermal_info(cal: CalibrationResult) -> dict | None:
     """T_ref, order, calibrated range and lag of a thermal calibration (None otherwise)."""
     ds = [d for d in cal.model if d.get("name") == "temperature_drift"]
@@ -201,7 +217,12 @@ def export_object(cal: CalibrationResult, prov: dict, source: str) -> dict:
         obj["correction"] = {s: {k: _lists(v) for k, v in d.items()} for s, d in corr.items()}
         if th:
             obj["thermal"] = th
-        not_applied = sorted({d.get("name") for d in cal.model} & _effects("input"))
+        p = size_effect_offsets(cal)
+        if p is not None:
+            obj["formula"]["size_effect"] = SIZE_EFFECT_FORMULA
+            obj["correction"]["size_effect"] = {"proof_mass_offsets": _lists(p)}
+        not_applied = sorted(({d.get("name") for d in cal.model} & NOT_APPLIED)
+                             - ({"proof_mass_offsets"} if p is not None else set()))
         if not_applied:
             obj["not_applied"] = not_applied
     obj["params"] = {k: _lists(v) for k, v in cal.params.items()}
@@ -303,7 +324,7 @@ C_STRINGS = ("SOURCE_FILE", "SOURCE_SHA256", "SOURCE_CREATED_UTC", "SOURCE_COMMA
 
 
 def c_header_symbols(prefix: str = "calib", accel: bool = True, gyro: bool = True,
-                     thermal: bool = False, lag: bool = False) -> dict:
+                     thermal: bool = False, lag: bool = False, size_effect: bool = False) -> dict:
     """The names a c-header export defines (docs/export.md): {"macros",
     "types", "objects", "functions"}; the header defines nothing else."""
     P, p = prefix.upper(), prefix.lower()
@@ -327,6 +348,10 @@ def c_header_symbols(prefix: str = "calib", accel: bool = True, gyro: bool = Tru
         macros.append(f"{P}_HAS_GYRO")
         objects += [f"{P}_GYRO_UNITS", f"{P}_GYRO_BIAS", f"{P}_GYRO_GINV", f"{P}_GYRO_D"]
         functions.append(f"{p}_correct_gyro")
+    if size_effect:
+        macros.append(f"{P}_HAS_SIZE_EFFECT")
+        objects.append(f"{P}_PROOF_MASS")
+        functions.append(f"{p}_size_effect")
     return {"macros": macros, "types": [f"{p}_real_t"], "objects": objects,
             "functions": functions}
 
@@ -386,11 +411,38 @@ def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = 
         "",
     ]
     th = thermal_info(cal)
+    size = _c_size_effect(size_effect_offsets(cal), single, P, p, T)
     body = [] if th is None else _c_thermal_common(corr, th, single, P, p, T)
     for sensor in ("accel", "gyro"):
         if sensor in corr:
             body += _c_sensor(sensor, corr[sensor], th is not None, single, P, p, T, units)
-    return "\n".join(head + body + [f"#endif /* {P}_CORRECTION_H */", ""])
+    return "\n".join(head + body + size + [f"#endif /* {P}_CORRECTION_H */", ""])
+
+
+def _c_size_effect(pm, single, P, p, T) -> list[str]:
+    """The size-effect compensation (docs/export.md): the proof-mass offsets and a
+    function taking the corrected rate w and its derivative dw/dt, as `calib apply`."""
+    if pm is None:
+        return []
+    return [f"#define {P}_HAS_SIZE_EFFECT 1",
+            "/* proof-mass offsets, m: row i is accelerometer i's proof mass relative to the",
+            " * triad's reference point (entries the calibration did not determine are 0) */",
+            _c_mat(f"{P}_PROOF_MASS", pm, single, T), "",
+            "/* Size effect: accelerometer i to the triad's reference point,",
+            " *   f_i -= (w x (w x p_i) + dw x p_i)_i",
+            " * w: corrected angular rate (rad/s), dw: its time derivative (rad/s^2), f: the",
+            f" * corrected specific force, changed in place. Then call {p}_correct_gyro again",
+            " * with the new f (its D term sees the force at the reference point). */",
+            f"static inline void {p}_size_effect(const {T} w[3], const {T} dw[3], {T} f[3])",
+            "{",
+            f"    {T} ww = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];",
+            "    for (int i = 0; i < 3; ++i) {",
+            f"        const {T} *r = {P}_PROOF_MASS[i];",
+            "        int j = (i + 1) % 3, k = (i + 2) % 3;",
+            f"        {T} wr = w[0] * r[0] + w[1] * r[1] + w[2] * r[2];",
+            "        f[i] -= (w[i] * wr - r[i] * ww) + (dw[j] * r[k] - dw[k] * r[j]);",
+            "    }",
+            "}", ""]
 
 
 def _c_rows(name, m, single, T):
