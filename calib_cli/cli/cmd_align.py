@@ -46,26 +46,34 @@ def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_
     if not (np.isfinite(turn_sigma_deg) and turn_sigma_deg >= 0):
         raise InputError(f"--turn-sigma-deg must be >= 0, got {turn_sigma_deg}")
     rec = read_raw(raw)
-    if method == "classic":
-        from calib_cli.methods.align_classic import fit_classic
+    from calib_cli.cli.progress import bar
 
-        res = fit_classic(rec, rotation=rotation)
-    elif method == "static":
-        from calib_cli.methods.align_static import fit_align_static
-
-        res = fit_align_static(rec)
-        if res.stats.get("degeneracy"):
-            info(f"[yellow]degenerate positions:[/] {res.stats['degeneracy']}; not observable: "
-                 + ", ".join(res.stats["unobservable"]))
-    else:
-        from calib_cli.methods.align import fit_align
-
-        res = fit_align(rec, rotation=rotation, gyro=gyro_mode,
-                        gyro_k_prior=None if gyro_k_ppm is None else gyro_k_ppm * 1e-6,
-                        turn_sigma=np.radians(turn_sigma_deg))
+    with bar("fit align"):
+        res = _fit(rec, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_deg)
+    if method == "static" and res.stats.get("degeneracy"):
+        info(f"[yellow]degenerate positions:[/] {res.stats['degeneracy']}; not observable: "
+             + ", ".join(res.stats["unobservable"]))
     if not res.stats.get("earth_rate_used", True):
         info(f"[yellow]earth rate not used:[/] {res.stats.get('grade_check')}; heading not "
              "estimated, accelerometer biases and tilt only")
     if res.stats.get("observability"):
         info(res.stats["observability"])
     save(res, raw, out, rec=rec, as_json=as_json)
+
+
+def _fit(rec, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_deg):
+    import numpy as np
+
+    if method == "classic":
+        from calib_cli.methods.align_classic import fit_classic
+
+        return fit_classic(rec, rotation=rotation)
+    if method == "static":
+        from calib_cli.methods.align_static import fit_align_static
+
+        return fit_align_static(rec)
+    from calib_cli.methods.align import fit_align
+
+    return fit_align(rec, rotation=rotation, gyro=gyro_mode,
+                     gyro_k_prior=None if gyro_k_ppm is None else gyro_k_ppm * 1e-6,
+                     turn_sigma=np.radians(turn_sigma_deg))

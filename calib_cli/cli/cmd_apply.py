@@ -6,8 +6,9 @@ import click
 import h5py
 import numpy as np
 
-from calib_cli.cli.common import info
+from calib_cli.cli.common import info, json_output_option, output_json
 from calib_cli.cli.main import cli
+from calib_cli.cli.progress import track
 from calib_cli.errors import InputError
 from calib_cli.io.h5 import atomic_path, open_checked, read_calibration, write_provenance
 from calib_cli.methods.apply import (
@@ -33,7 +34,8 @@ CHUNK = 262144  # samples per chunk: memory stays flat for long recordings
                    "has no temperature column.")
 @click.option("--extrapolate", is_flag=True,
               help="Correct data outside the calibrated temperature range (docs/thermal.md).")
-def apply_cmd(cal, raw, out, temp_c=None, extrapolate=False):
+@json_output_option
+def apply_cmd(cal, raw, out, temp_c=None, extrapolate=False, as_json=False):
     """Correct a recording with a calibration: f = K^-1 (A - b), w = G^-1 (W - d - D f).
 
     A redundant-unit (RIMU) calibration gives the corrected single-axis outputs
@@ -95,7 +97,7 @@ def apply_cmd(cal, raw, out, temp_c=None, extrapolate=False):
                         body[s] = out_s.create_dataset(f"{s}_body", shape=(n, 3), dtype="f8", fletcher32=True,
                                                        chunks=True)
             size = proof_mass_offsets(c) is not None and gyr is not None and not rimu
-            for a in range(0, n, CHUNK):
+            for a in track(range(0, n, CHUNK), "apply", -(-n // CHUNK)):
                 b = min(n, a + CHUNK)
                 try:
                     a0, b0 = (max(0, a - 1), min(n, b + 1)) if size else (a, b)
@@ -126,6 +128,8 @@ def apply_cmd(cal, raw, out, temp_c=None, extrapolate=False):
             out_s.attrs["accel_units"] = "m/s^2" if "accel" in chans else units["accel"]
             out_s.attrs["gyro_units"] = "rad/s" if "gyro" in chans else units["gyro"]
     info(f"corrected {n} samples ({', '.join(chans)}) -> {out}")
+    if as_json:
+        output_json(out, "corrected")
     return 0
 
 

@@ -6,6 +6,7 @@ import click
 
 from calib_cli.cli.common import info
 from calib_cli.cli.main import cli
+from calib_cli.cli.progress import bar
 from calib_cli.cli.render import render_summary
 from calib_cli.io.h5 import read_raw, write_calibration
 
@@ -47,5 +48,6 @@ def fit_accel_cmd(raw, out, method, as_json):
     from calib_cli.methods.accel_lsq import fit_accel
 
     rec = read_raw(raw)
-    res = fit_accel(rec, method)
+    with bar("fit accel"):
+        res = fit_accel(rec, method)
     save(res, raw, out, rec=rec, as_json=as_json)

@@ -45,11 +45,13 @@ def fit_gyro_cmd(raw, out, accel_path, g_sensitivity, as_json):
         info("accelerometer calibration " + ("from other data: its uncertainty is propagated "
                                              "into the gyro parameters" if independent else
                                              "from this recording"))
-    res = fit_gyro(rec, acc, g_sensitivity, accel_independent=independent)
+    from calib_cli.cli.progress import bar
     from calib_cli.methods.gross import screen_fit
 
-    screen_fit(res, rec, lambda r: fit_gyro(r, acc, g_sensitivity,
-                                            accel_independent=independent))
+    with bar("fit gyro"):
+        res = fit_gyro(rec, acc, g_sensitivity, accel_independent=independent)
+        screen_fit(res, rec, lambda r: fit_gyro(r, acc, g_sensitivity,
+                                                accel_independent=independent))
     save(res, raw, out, [accel_path] if accel_path else [], rec=rec, as_json=as_json)
     st = res.stats
     for w in st.get("warnings", []):

@@ -28,10 +28,12 @@ def fit_rimu_cmd(raw, out, as_json):
     if not rec.layout.redundant:
         raise InputError("not a redundant-unit recording (plan kind \"rimu\" with a [rimu] "
                          "geometry)", raw)
-    res = fit_rimu(rec)
+    from calib_cli.cli.progress import bar
     from calib_cli.methods.gross import screen_fit
 
-    screen_fit(res, rec, fit_rimu)  # a misplaced position is named (exit 4)
+    with bar("fit rimu"):
+        res = fit_rimu(rec)
+        screen_fit(res, rec, fit_rimu)  # a misplaced position is named (exit 4)
     save(res, raw, out, rec=rec, as_json=as_json)
 
 

@@ -84,8 +84,11 @@ def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis
                            table_tilt_sigma=float(np.radians(table_tilt_deg)),
                            grade=grade, priors=prior or None, noise=noise,
                            table_encoder=table_encoder)
+    from calib_cli.cli.progress import bar
+
     try:
-        res = fit_turntable(rec, opt)
+        with bar("fit turntable") as cb:
+            res = fit_turntable(rec, opt, progress=cb)
     except InputError as exc:
         exc.path = exc.path or raw
         raise

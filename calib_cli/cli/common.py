@@ -6,12 +6,21 @@ import json
 import math
 import sys
 
-import numpy as np
-from rich.console import Console
+# status and tables go to stderr so that --json output on stdout stays clean.
+# err_console and out_console (rich Consoles) are made on first use (module
+# __getattr__ below): `calib --help` and shell completion do not import rich or
+# numpy (< 0.3 s, benchmarks/bench_cli.py).
+_CONSOLES: dict = {}
 
-# status and tables go to stderr so that --json output on stdout stays clean
-err_console = Console(stderr=True, highlight=False)
-out_console = Console(highlight=False)
+
+def __getattr__(name):
+    if name in ("err_console", "out_console"):
+        if name not in _CONSOLES:
+            from rich.console import Console
+
+            _CONSOLES[name] = Console(stderr=name == "err_console", highlight=False)
+        return _CONSOLES[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class Ctx:
@@ -27,11 +36,13 @@ def interactive() -> bool:
 
 def info(msg: str) -> None:
     if not Ctx.quiet:
-        err_console.print(msg)
+        __getattr__("err_console").print(msg)
 
 
 def to_jsonable(x):
     """numpy arrays -> nested lists, NaN/inf -> None (JSON null)."""
+    import numpy as np
+
     if isinstance(x, dict):
         return {str(k): to_jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
@@ -50,6 +61,28 @@ def to_jsonable(x):
 
 def print_json(obj) -> None:
     sys.stdout.write(json.dumps(to_jsonable(obj), indent=2) + "\n")
+
+
+def output_json(path, kind: str, warnings=()) -> None:
+    """The --json object of a command that writes one file (import, simulate,
+    apply, export): {"output", "kind", "sha256", "warnings"} on stdout alone."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    print_json({"output": str(path), "kind": kind, "sha256": h.hexdigest(),
+                "warnings": [str(w) for w in warnings]})
+
+
+def json_output_option(f):
+    """`--json`: the output object of output_json on stdout (status stays on stderr)."""
+    import click
+
+    return click.option("--json", "as_json", is_flag=True,
+                        help='Print {"output", "kind", "sha256", "warnings"} of the written '
+                             "file as JSON on stdout and nothing else there.")(f)
 
 
 def complete_profile(kind: str):

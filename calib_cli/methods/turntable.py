@@ -483,7 +483,7 @@ class _PassOut:
 def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: TurntableOptions,
                  sig_a, sig_g, block_n, s_known, record_history: bool, first: bool,
                  enc: list | None = None, sig_enc: float = 0.0,
-                 start_info: np.ndarray | None = None) -> _PassOut:
+                 start_info: np.ndarray | None = None, tick=None) -> _PassOut:
     par = _unpack(theta_lin, L, cycles)
     par_lin = _unpack(theta_lin, L, cycles)
     if s_known is not None:
@@ -518,6 +518,8 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             hist_idx += list(3 + L.idx["p"])
     next_hist = -np.inf
     for c, cy in enumerate(cycles):
+        if tick is not None:
+            tick()
         b = _blocks(rec, cy, par, block_n, opt.tangential, s_known)
         nb = len(b.t)
         T = b.m / rec.sample_rate
@@ -700,8 +702,12 @@ def _scaled_inv(A: np.ndarray) -> np.ndarray:
     return 0.5 * (Ai + Ai.T)
 
 
-def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()) -> CalibrationResult:
-    """Fit the turntable model to a raw recording with rotating segments."""
+def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions(),
+                  progress=None) -> CalibrationResult:
+    """Fit the turntable model to a raw recording with rotating segments.
+
+    progress: optional callback ``progress(done, total)``, called once per cycle
+    and filter pass (a retry with widened noise extends the total)."""
     opt = options
     if opt.lever_arm not in ("off", "known", "estimate"):
         raise InputError(f"lever_arm must be off, known or estimate, got {opt.lever_arm!r}")
@@ -782,12 +788,23 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
                 start[L.idx["s"][2 * c:2 * c + 2]] = cy.basis.T @ s0
     inflation = 1.0
     enc_inflation = 1.0
+    tick = None
+    if progress is not None:
+        steps = [0, max(1, opt.passes) * nc]
+
+        def tick():
+            steps[0] += 1
+            if steps[0] > steps[1]:  # a retry: one more round of passes
+                steps[1] += max(1, opt.passes) * nc
+            progress(steps[0], steps[1])
+
     for _attempt in range(6):
         theta = start.copy()
         info_start = None
         hist = None
         for k in range(max(1, opt.passes)):
-            kw = dict(record_history=k == 0, enc=enc, sig_enc=sig_enc * enc_inflation)
+            kw = dict(record_history=k == 0, enc=enc, sig_enc=sig_enc * enc_inflation,
+                      tick=tick)
             try:
                 out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation,
                                    sig_g, block_n, s_known, first=k == 0,
