@@ -97,4 +97,5 @@ def complete_profile(kind: str):
                 for p in all_profiles((kind,))
                 if not p["shadowed"] and p["name"].startswith(incomplete)]
 
+    complete.calib_profile_kind = kind  # recorded in cli/_tree.py (cli/index.py)
     return complete
