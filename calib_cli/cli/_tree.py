@@ -665,7 +665,8 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                     {'name': 'out_dir', 'opts': ['--out'], 'path': [False, True]},
                                     {'name': 'tol_path',
                                      'opts': ['--tolerances'],
-                                     'path': [True, False]}]},
+                                     'path': [True, False]},
+                                    {'is_flag': True, 'name': 'pdf', 'opts': ['--pdf']}]},
               'rimu-check': {'help': 'Parity-space fault detection and isolation; exit 6 when a '
                                      'fault is found.',
                              'params': [{'argument': True,

@@ -28,6 +28,9 @@ def _plot(entries, keys, path) -> None:
 
     from calib_cli.batch.history import element_names
     from calib_cli.io.h5 import atomic_path
+    from calib_cli.report.figures import use_palette
+
+    use_palette()  # the Okabe-Ito colour-blind-safe cycle of every calib figure
 
     fig, axes = plt.subplots(len(keys), 1, figsize=(8, 2.6 * len(keys)), squeeze=False,
                              sharex=True)
