@@ -188,8 +188,8 @@ def test_every_figure_uses_the_colour_blind_safe_palette():
             continue
         text = p.read_text()  # report.builder imports report.figures (use_palette at import)
         assert "use_palette" in text or "calib_cli.report.builder import" in text, p
-    from calib_cli.report.figures import OKABE_ITO
-
     import matplotlib
+
+    from calib_cli.report.figures import OKABE_ITO
 
     assert matplotlib.rcParams["axes.prop_cycle"].by_key()["color"] == OKABE_ITO

@@ -37,6 +37,13 @@ class _Commands(click.Group):
         _register()
         return super().list_commands(ctx)
 
+    def format_epilog(self, ctx, formatter):
+        """Where the docs/ files the help texts name are in this install."""
+        from calib_cli.docs_path import docs_dir
+
+        formatter.write_paragraph()
+        formatter.write_text(f"docs/ (named in the help texts): {docs_dir()}")
+
     def format_commands(self, ctx, formatter):
         """`calib --help` from the static index (cli/index.py, cli/_tree.py) while
         the commands' modules are not loaded: < 0.3 s instead of seconds."""
