@@ -193,3 +193,14 @@ def test_every_figure_uses_the_colour_blind_safe_palette():
     from calib_cli.report.figures import OKABE_ITO
 
     assert matplotlib.rcParams["axes.prop_cycle"].by_key()["color"] == OKABE_ITO
+
+
+def test_static_report_has_the_detection_figure(reports, tmp_path):
+    d = reports["accel"].parent
+    _run("report", d / "accel.cal.h5", d / "static.h5", "--out", tmp_path / "rep")
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "![static-detection]" in md and not check_markdown(tmp_path / "rep" / "report.md")
+    from calib_cli.report.sections_static import _detection_options
+
+    assert _detection_options("calib import csv a.csv --window 2 --threshold=4 --out r.h5") == {
+        "window_s": 2.0, "multiplier": 4.0, "min_static_s": 1.0}
