@@ -42,7 +42,10 @@ def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_
     opts = registry.options_from("align", method=method, rotation=rotation, gyro=gyro_mode,
                                  gyro_k_ppm=gyro_k_ppm, turn_sigma_deg=turn_sigma_deg)
     rec = read_raw(raw)
-    res = registry.run("align", rec, opts, raw)
+    from calib_cli.cli.progress import bar
+
+    with bar("fit align"):
+        res = registry.run("align", rec, opts, raw)
     if method == "static" and res.stats.get("degeneracy"):
         info(f"[yellow]degenerate positions:[/] {res.stats['degeneracy']}; not observable: "
              + ", ".join(res.stats["unobservable"]))
@@ -52,3 +55,21 @@ def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_
     if res.stats.get("observability"):
         info(res.stats["observability"])
     save(res, raw, out, rec=rec, as_json=as_json)
+
+
+def _fit(rec, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_deg):
+    import numpy as np
+
+    if method == "classic":
+        from calib_cli.methods.align_classic import fit_classic
+
+        return fit_classic(rec, rotation=rotation)
+    if method == "static":
+        from calib_cli.methods.align_static import fit_align_static
+
+        return fit_align_static(rec)
+    from calib_cli.methods.align import fit_align
+
+    return fit_align(rec, rotation=rotation, gyro=gyro_mode,
+                     gyro_k_prior=None if gyro_k_ppm is None else gyro_k_ppm * 1e-6,
+                     turn_sigma=np.radians(turn_sigma_deg))

@@ -61,7 +61,10 @@ def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir):
     if not 0 < alpha < 1:
         raise click.BadParameter("--alpha must be in (0, 1)")
     rec = read_raw(raw)
-    d = diagnose(rec, method, base=base, alpha=alpha, noise=noise)
+    from calib_cli.cli.progress import bar
+
+    with bar("diagnose"):
+        d = diagnose(rec, method, base=base, alpha=alpha, noise=noise)
     j = to_jsonable(d.to_json())
     pb = d.problem
     residuals = {"initial": d.fits[0].residual_blocks(pb)}

@@ -6,6 +6,7 @@ import click
 
 from calib_cli.cli.common import info
 from calib_cli.cli.main import cli
+from calib_cli.cli.progress import bar
 from calib_cli.cli.render import render_summary
 from calib_cli.io.h5 import read_raw, write_calibration
 
@@ -48,5 +49,6 @@ def fit_accel_cmd(raw, out, method, as_json):
 
     opts = registry.options_from("accel", method=method)
     rec = read_raw(raw)
-    res = registry.run("accel", rec, opts, raw)
+    with bar("fit accel"):
+        res = registry.run("accel", rec, opts, raw)
     save(res, raw, out, rec=rec, as_json=as_json)

@@ -45,8 +45,11 @@ def fit_gyro_cmd(raw, out, accel_path, g_sensitivity, as_json):
         info("accelerometer calibration " + ("from other data: its uncertainty is propagated "
                                              "into the gyro parameters" if independent else
                                              "from this recording"))
+    from calib_cli.cli.progress import bar
+
     opts = registry.GyroOptions(g_sensitivity, acc, independent)
-    res = registry.run("gyro", rec, opts, raw)
+    with bar("fit gyro"):
+        res = registry.run("gyro", rec, opts, raw)
     save(res, raw, out, [accel_path] if accel_path else [], rec=rec, as_json=as_json)
     st = res.stats
     for w in st.get("warnings", []):

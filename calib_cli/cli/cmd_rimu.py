@@ -25,7 +25,10 @@ def fit_rimu_cmd(raw, out, as_json):
     from calib_cli.methods import registry
 
     rec = read_raw(raw)
-    res = registry.run("rimu", rec, None, raw)  # a misplaced position is named (exit 4)
+    from calib_cli.cli.progress import bar
+
+    with bar("fit rimu"):
+        res = registry.run("rimu", rec, None, raw)  # a misplaced position is named (exit 4)
     save(res, raw, out, rec=rec, as_json=as_json)
 
 

@@ -78,7 +78,8 @@ def _render_calibration(path, covariance):
 
 def _render_raw(path):
     r = read_raw(path)
-    t = Table(title=term_text(f"{len(r)} samples at {r.sample_rate:.4g} Hz, units {r.units}"))
+    units = ", ".join(f"{k} {v}" for k, v in r.units.items() if v)
+    t = Table(title=term_text(f"{len(r)} samples at {r.sample_rate:.4g} Hz, units: {units}"))
     for col in ("segment", "kind", "samples", "duration s", "attitude deg"):
         t.add_column(col)
     for s in r.segments:

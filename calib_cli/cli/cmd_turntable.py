@@ -75,7 +75,10 @@ def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis
                                 grade=grade, prior=prior or None, noise=noise,
                                 table_encoder=table_encoder)
     rec = read_raw(raw)
-    res = registry.run("turntable", rec, opt, raw)
+    from calib_cli.cli.progress import bar
+
+    with bar("fit turntable") as cb:
+        res = registry.run("turntable", rec, opt, raw, progress=cb)
     clipped = res.stats.get("accel_clipped_samples") or []
     if any(clipped):
         info(f"[yellow]warning:[/] {sum(clipped)} accelerometer samples sit at full scale "

@@ -23,9 +23,11 @@ from calib_cli.methods.rimu import apply_rimu
 CHUNK = 262144  # samples per chunk: memory stays flat for long recordings
 
 
-def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = False):
+def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = False,
+               progress=None):
     """Correct RAW with CAL into OUT (written atomically); returns (samples, channels).
-    Bad input raises InputError naming the file (exit 3)."""
+    Bad input raises InputError naming the file (exit 3). ``progress(done, total)``:
+    optional, called after each chunk."""
     from calib_cli.io import validate
 
     c = read_calibration(cal)
@@ -81,6 +83,8 @@ def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = F
                                                        chunks=True)
             size = proof_mass_offsets(c) is not None and gyr is not None and not rimu
             for a in range(0, n, CHUNK):
+                if progress is not None:
+                    progress(a // CHUNK, -(-n // CHUNK))
                 b = min(n, a + CHUNK)
                 try:
                     a0, b0 = (max(0, a - 1), min(n, b + 1)) if size else (a, b)

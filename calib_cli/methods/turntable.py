@@ -665,7 +665,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                  sig_a, sig_g, block_n, s_known, record_history: bool, first: bool,
                  enc: list | None = None, sig_enc: float = 0.0,
                  rate: list | None = None, sig_rate: float = 0.0,
-                 start_info: np.ndarray | None = None) -> _PassOut:
+                 start_info: np.ndarray | None = None, tick=None) -> _PassOut:
     par = _unpack(theta_lin, L, cycles)
     par_lin = _unpack(theta_lin, L, cycles)
     if s_known is not None:
@@ -702,6 +702,8 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             hist_idx += list(3 + L.idx["p"])
     next_hist = -np.inf
     for c, cy in enumerate(cycles):
+        if tick is not None:
+            tick()
         b = _blocks(rec, cy, par, block_n, opt.tangential, s_known)
         nb = len(b.t)
         T = b.m / rec.sample_rate
@@ -937,8 +939,12 @@ def _scaled_inv(A: np.ndarray) -> np.ndarray:
     return 0.5 * (Ai + Ai.T)
 
 
-def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()) -> CalibrationResult:
-    """Fit the turntable model to a raw recording with rotating segments."""
+def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions(),
+                  progress=None) -> CalibrationResult:
+    """Fit the turntable model to a raw recording with rotating segments.
+
+    progress: optional callback ``progress(done, total)``, called once per cycle
+    and filter pass (a retry with widened noise extends the total)."""
     opt = options
     if opt.lever_arm not in ("off", "known", "estimate"):
         raise InputError(f"lever_arm must be off, known or estimate, got {opt.lever_arm!r}")
@@ -1035,6 +1041,16 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
                               if k in L.idx])
     inflation = 1.0
     enc_inflation = 1.0
+    tick = None
+    if progress is not None:
+        steps = [0, min(3, max(1, opt.passes)) * nc]  # three passes are typical
+
+        def tick():
+            steps[0] += 1
+            if steps[0] > steps[1]:  # one more pass, or a retry
+                steps[1] += nc
+            progress(steps[0], steps[1])
+
     for _attempt in range(6):
         theta = start.copy()
         info_start = None
@@ -1045,7 +1061,7 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
             bn = coarse_n if coarse else block_n
             kw = dict(record_history=k == 0, enc=enc_coarse if coarse else enc,
                       sig_enc=sig_enc * enc_inflation, rate=rate_coarse if coarse else rate,
-                      sig_rate=sig_rate)
+                      sig_rate=sig_rate, tick=tick)
             try:
                 out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation,
                                    sig_g, bn, s_known, first=k == 0,

@@ -82,6 +82,9 @@ def physical_signature(d: Diagnosis, k: int, sensor: str, ch: int):
 def _disagreement(d: Diagnosis, path: Path):
     import matplotlib.pyplot as plt
 
+    from calib_cli.report.figures import use_palette
+
+    use_palette()  # the Okabe-Ito colour-blind-safe cycle of every calib figure
     pb = d.problem
     stages = [("base model", d.fits[0])] + ([("final model", d.fits[-1])] if d.steps else [])
     rate = np.degrees(np.sqrt(pb.bin_mean((pb.kin.w ** 2).sum(axis=1))))
@@ -118,6 +121,9 @@ def _disagreement(d: Diagnosis, path: Path):
 def _step_plot(d: Diagnosis, k: int, path: Path):
     import matplotlib.pyplot as plt
 
+    from calib_cli.report.figures import use_palette
+
+    use_palette()
     pb = d.problem
     contrib = effect_contribution(d, k)
     res0, res1 = d.fits[k].residual_blocks(pb), d.fits[k + 1].residual_blocks(pb)

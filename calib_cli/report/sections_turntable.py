@@ -26,9 +26,26 @@ def sigma_history_figure(res, title: str | None = None) -> Figure:
     for k, lab in enumerate(labels):
         ax.semilogy(t - (t[0] if len(t) else 0.0), sig[:, k] * 1e3, lw=1.0,
                     label=mpl_text(lab), **line_style(k))
-    ax.set_xlabel("time from the first cycle's start (s)")
+    # cycle boundaries: the history is sampled within the cycles only, so the transitions
+    # between them are the gaps of its time axis; each cycle named at the top
+    t0 = t[0] if len(t) else 0.0
+    names = list(res.stats.get("cycles") or [])
+    if len(t) > 2:
+        dt = np.diff(t)
+        cut = np.flatnonzero(dt > 2.2 * max(float(np.median(dt)), 1e-9)) + 1
+        starts = np.concatenate([[0], cut])
+        for k, i in enumerate(starts):
+            if k:
+                ax.axvline(t[i] - t0, color="0.55", lw=0.7, ls="-", zorder=0)
+            if len(starts) == len(names):
+                ax.annotate(mpl_text(names[k]), (t[i] - t0, 1.0),
+                            xycoords=("data", "axes fraction"), xytext=(2, 2),
+                            textcoords="offset points", fontsize=6, rotation=30,
+                            ha="left", va="bottom")
+    ax.set_xlabel("time from the first cycle's start (s); grey lines: cycle boundaries")
     ax.set_ylabel("1-sigma (mm)")
-    ax.set_title(title or "turntable fit: sigma history of lever arms and proof-mass offsets")
+    ax.set_title(title or "turntable fit: sigma history of lever arms and proof-mass offsets",
+                 pad=30 if names else 6)
     ax.grid(True, which="both", alpha=0.3)
     if labels:  # beside the axes, never over the data
         ax.legend(fontsize=6, ncol=1 + len(labels) // 16, loc="upper left",
