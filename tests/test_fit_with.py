@@ -198,7 +198,7 @@ def test_holdout_g_error_of_the_diagnosis_calibration_fast():
 
 
 @pytest.mark.slow
-def test_holdout_g_error_of_the_diagnosis_calibration_20_seeds():
+def test_holdout_g_error_of_the_diagnose_calibration_20_seeds():
     diag, base = _pooled(range(1, 21))
     print(f"hold-out |g| error RMS: diagnosis calibration {diag:.3f}x, base {base:.2f}x the "
           "noise floor (20 seeds)")

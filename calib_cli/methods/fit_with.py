@@ -183,12 +183,13 @@ def add_effect(pb: Problem, cur: Fit, c: dc.Candidate) -> Fit:
 # a fit of the engine as an ordinary calibration
 
 
-def _static_g_errors(pb: Problem, model, params: dict, counts: bool) -> tuple:
-    """RMS over the static positions of |mean f| - g, raw and corrected (triads)."""
+def g_error_per_position(pb: Problem, model, params: dict) -> list:
+    """[(segment label, |mean f| - g raw, corrected)] over the static positions (triads;
+    [] for a redundant unit), m/s^2 (raw: in the data's units)."""
     if pb.layout.redundant or "accel" not in pb.sensors:
-        return None, None
+        return []
     seg = pb.kin.segment
-    before, after = [], []
+    out = []
     y = pb.y["accel"]
     for idx in np.unique(seg):
         if pb.seg_kinds[idx] != "static":
@@ -196,10 +197,18 @@ def _static_g_errors(pb: Problem, model, params: dict, counts: bool) -> tuple:
         on = seg == idx
         temp = None if pb.kin.temp is None else np.asarray(pb.kin.temp[on], float)
         x = correct(model, params, "accel", y[on], temp=temp)
-        before.append(np.linalg.norm(y[on].mean(axis=0)) - pb.g)
-        after.append(np.linalg.norm(x.mean(axis=0)) - pb.g)
-    if not after:
+        out.append((pb.seg_labels[idx], float(np.linalg.norm(y[on].mean(axis=0)) - pb.g),
+                    float(np.linalg.norm(x.mean(axis=0)) - pb.g)))
+    return out
+
+
+def _static_g_errors(pb: Problem, model, params: dict, counts: bool) -> tuple:
+    """RMS over the static positions of |mean f| - g, raw and corrected (triads)."""
+    rows = g_error_per_position(pb, model, params)
+    if not rows:
         return None, None
+    before = [r[1] for r in rows]
+    after = [r[2] for r in rows]
     rms = lambda v: float(np.sqrt(np.mean(np.square(v))))  # noqa: E731
     return (None if counts else rms(before)), rms(after)
 

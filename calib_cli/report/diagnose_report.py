@@ -205,5 +205,44 @@ def write_report(d: Diagnosis, out_dir, source: str = "") -> list[str]:
                                           for k, v in d.untested.items()] + [""]
     if d.notes:
         lines += ["## Notes", ""] + [f"- {md_text(n)}" for n in d.notes] + [""]
+    lines += calibration_section(d, source)
     (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
     return files + ["summary.md"]
+
+
+def calibration_section(d: Diagnosis, source: str = "") -> list[str]:
+    """The report's last section: the command that writes the final model's calibration
+    and the before/after of the quantity the user cares about (|g| error per static
+    position for accelerometer triads, the residual per segment (rotating cycles) in
+    noise units for every method)."""
+    from calib_cli.methods.fit_with import g_error_per_position
+
+    lines = ["## The calibration", ""]
+    cmd = d.fit_command(source or "RAW.h5", "CAL.h5")
+    if cmd:
+        lines += ["The calibration of the final model (DIAG.h5 holds it too; `calib diagnose "
+                  "--calibration CAL.h5` writes it as well):", "", f"    {md_text(cmd)}", ""]
+    else:
+        lines += ["No effect was added: the base model is the calibration (`calib fit "
+                  f"{md_text(d.method)}`).", ""]
+    pb = d.problem
+    base, final = d.fits[0], d.fits[-1]
+    g0 = g_error_per_position(pb, base.spec.model, base.params)
+    g1 = g_error_per_position(pb, final.spec.model, final.params)
+    counts = pb.units.get("accel") == "count"
+    if g0 and not counts:
+        mg = 1e3 / 9.80665
+        lines += ["|g| error per static position (mg), base model -> final model:", "",
+                  "| position | base | final |", "|---|---|---|"]
+        lines += [f"| {md_text(a[0])} | {a[2] * mg:.4f} | {b[2] * mg:.4f} |"
+                  for a, b in zip(g0, g1)]
+        r0 = float(np.sqrt(np.mean([a[2] ** 2 for a in g0])))
+        r1 = float(np.sqrt(np.mean([b[2] ** 2 for b in g1])))
+        lines += ["", f"RMS {r0 * mg:.4f} mg -> {r1 * mg:.4f} mg.", ""]
+    rows = d.by_segment()
+    lines += ["Residual RMS per segment (noise units; rotating segments are the cycles), base "
+              "model -> final model:", "", "| segment | kind | base | final |",
+              "|---|---|---|---|"]
+    lines += [f"| {md_text(r['segment'])} | {md_text(r['kind'])} | {r['rms_initial']:.2f} | "
+              f"{r['rms_final']:.2f} |" for r in rows]
+    return lines + [""]
