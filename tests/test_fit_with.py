@@ -203,3 +203,61 @@ def test_holdout_g_error_of_the_diagnose_calibration_20_seeds():
     print(f"hold-out |g| error RMS: diagnosis calibration {diag:.3f}x, base {base:.2f}x the "
           "noise floor (20 seeds)")
     assert diag <= 1.2 and base >= 3.0, (diag, base)
+
+
+def test_axis_aligned_plan_reports_nonlinearity_and_asymmetry_not_separable():
+    from calib_cli.io.plan import parse_plan
+    from calib_cli.methods.diagnose import diagnose
+    from calib_cli.sim.simulate import plan_layout
+    from calib_cli.sim.truth import truth_from_dict
+
+    six = ('name = "six"\nkind = "static"\nsample_rate_hz = 50.0\n[site]\n'
+           'latitude_deg = 45.0\n' + "".join(
+               f'[[segment]]\nlabel = "p{i}"\nattitude_deg = [{a}, {b}, 0]\nduration_s = 5.0\n'
+               for i, (a, b) in enumerate([(0, -90), (0, 90), (90, 0), (-90, 0), (0, 0),
+                                           (180, 0)])))
+    plan = parse_plan(six)
+    truth = truth_from_dict({"params": {"accel_scale_asymmetry": [3e-3, -3e-3, 2e-3]}},
+                            plan_layout(plan))
+    d = diagnose(simulate(plan, truth, seed=4), "accel")
+    assert [s.with_arg for s in d.steps] == ["accel_nonlinearity"]
+    assert any("not separable" in n and "35-55 deg" in n for n in d.notes)
+
+
+def test_diagnose_gyro_names_scale_asymmetry_and_closes_the_turn_angles(tmp_path, capsys):
+    sys_path = str(__import__("pathlib").Path(__file__).parent)
+    import sys
+
+    if sys_path not in sys.path:
+        sys.path.insert(0, sys_path)
+    import gyro_sim as G
+
+    plan = tmp_path / "gyro.toml"
+    plan.write_text(G.plan_text().replace(
+        'name = "gyro-sim"', 'name = "gyro-sim"\ntemperature_profile = '
+        '[[0, 20.0], [80, 35.0], [160, 24.0], [260, 32.0]]'))
+    (tmp_path / "t.toml").write_text('[params]\ngyro_bias_dps = [0.1, -0.2, 0.05]\n'
+                                     'gyro_scale_asymmetry = [2e-3, -1.5e-3, 1e-3]\n')
+    raw, diag, cal = tmp_path / "raw.h5", tmp_path / "diag.h5", tmp_path / "cal.h5"
+    run(capsys, "simulate", plan, "--truth", tmp_path / "t.toml", "--out", raw, "--seed", "3")
+    j = json.loads(run(capsys, "diagnose", raw, "--method", "gyro", "--out", diag,
+                       "--calibration", cal, "--json", "--report", tmp_path / "rep").stdout)
+    assert [s["with"] for s in j["steps"]] == ["gyro.scale_asymmetry"]
+    assert j["fit_command"].endswith("--with gyro.scale_asymmetry")
+    assert j["residual_rms_final"] <= 1.2 * j["noise_rms"] < j["residual_rms_initial"]
+    worst = max(abs(r["error_initial_deg"]) for r in j["turn_angle_error_deg"])
+    assert max(abs(r["error_final_deg"]) for r in j["turn_angle_error_deg"]) < worst / 5
+    assert "Turn-angle error" in (tmp_path / "rep" / "summary.md").read_text()
+    run(capsys, "fit", "gyro", raw, "--out", tmp_path / "with.h5", "--with", "scale_asymmetry")
+    a, c = read_calibration(diag), read_calibration(tmp_path / "with.h5")
+    for k in c.params:
+        s = np.asarray(c.sigma[k], float)
+        ok = np.isfinite(s) & (s > 0)
+        assert np.all(np.abs(np.asarray(a.params[k]) - c.params[k])[ok] < 0.1 * s[ok]), k
+    est, sig = c.params["gyro_scale_asymmetry"], c.sigma["gyro_scale_asymmetry"]
+    assert np.all(np.abs(est - [2e-3, -1.5e-3, 1e-3]) < 4.5 * sig)
+    ex = json.loads(run(capsys, "export", diag, "--format", "json").stdout)
+    assert np.allclose(ex["correction"]["gyro"]["a"], a.params["gyro_scale_asymmetry"])
+    r = run(capsys, "fit", "gyro", raw, "--out", tmp_path / "x.h5", "--with", "lever_arm",
+            code=2)
+    assert "the gyro method takes" in r.stderr

@@ -1,4 +1,4 @@
-"""calib diagnose RAW --method accel|align|turntable|rimu --out DIAG.h5 [--json] [--report DIR]
+"""calib diagnose RAW --method accel|gyro|align|turntable|rimu --out DIAG.h5 [--json] [--report DIR]
 
 Find the effect the model lacks, name it, add it and show the gap shrink
 (docs/diagnose.md)."""
@@ -6,6 +6,7 @@ Find the effect the model lacks, name it, add it and show the gap shrink
 from __future__ import annotations
 
 import click
+import numpy as np
 from rich.table import Table
 
 from calib_cli.cli.common import Ctx, info, out_console, print_json, to_jsonable
@@ -42,7 +43,7 @@ def _render(j: dict) -> None:
 @cli.command("diagnose")
 @click.argument("raw", type=click.Path(dir_okay=False))
 @click.option("--method", required=True,
-              type=click.Choice(["accel", "align", "turntable", "rimu"]))
+              type=click.Choice(["accel", "gyro", "align", "turntable", "rimu"]))
 @click.option("--out", required=True, type=click.Path(dir_okay=False))
 @click.option("--base", type=click.Choice(["full", "diagonal"]), default="full",
               show_default=True, help="diagonal: start from diagonal scale factors "
@@ -73,26 +74,41 @@ def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir, cal_
             raise click.UsageError("--calibration and --out name the same file (DIAG.h5 holds "
                                    "the calibration already)")
     rec = read_raw(raw)
-    d = diagnose(rec, method, base=base, alpha=alpha, noise=noise)
+    if method == "gyro":
+        from calib_cli.methods.diagnose_gyro import diagnose_gyro
+
+        d = diagnose_gyro(rec, base=base, alpha=alpha)
+        if noise != "auto":
+            info("--noise does not apply to --method gyro (the gyro fit's own noise estimate)")
+    else:
+        d = diagnose(rec, method, base=base, alpha=alpha, noise=noise)
     j = to_jsonable(d.to_json())
     j["fit_command"] = d.fit_command(str(raw), str(cal_out or "CAL.h5"))
     cal = d.calibration(rec)
-    pb = d.problem
-    residuals = {"initial": d.fits[0].residual_blocks(pb)}
-    for i, f in enumerate(d.fits[1:]):
-        residuals[f"step{i + 1}"] = f.residual_blocks(pb)
-    write_diagnosis(out, j, {"time": pb.bin_t, "segment": pb.bin_seg, "count": pb.counts},
-                    residuals, d.noise_sigma, [raw], rec.serial, calibration=cal)
+    if method == "gyro":
+        residuals = {("initial" if i == 0 else f"step{i}"):
+                     {k: np.asarray(v, float).reshape(-1, 1) for k, v in r.residuals.items()}
+                     for i, r in enumerate(d.results)}
+        bins = {"time": np.zeros(0), "segment": np.zeros(0, int), "count": np.zeros(0)}
+        noise_sigma = {"gyro": np.asarray(cal.stats.get("gyro_noise_sigma", []), float)}
+    else:
+        pb = d.problem
+        residuals = {"initial": d.fits[0].residual_blocks(pb)}
+        for i, f in enumerate(d.fits[1:]):
+            residuals[f"step{i + 1}"] = f.residual_blocks(pb)
+        bins = {"time": pb.bin_t, "segment": pb.bin_seg, "count": pb.counts}
+        noise_sigma = d.noise_sigma
+    write_diagnosis(out, j, bins, residuals, noise_sigma, [raw], rec.serial, calibration=cal)
     if cal_out:
         from calib_cli.io.h5 import write_calibration
 
         write_calibration(cal_out, cal, [raw])
     if report_dir:
         from calib_cli.io.outpath import atomic_dir
-        from calib_cli.report.diagnose_report import write_report
+        from calib_cli.report.diagnose_report import write_gyro_report, write_report
 
         with atomic_dir(report_dir) as tmp:
-            write_report(d, tmp, source=str(raw))
+            (write_gyro_report if method == "gyro" else write_report)(d, tmp, source=str(raw))
         info(f"report -> {report_dir}")
     if as_json:
         print_json(j)

@@ -56,7 +56,8 @@ def with_options(f):
     return f
 
 
-def run_with(method, raw, out, with_text, list_effects, base, noise, as_json) -> bool:
+def run_with(method, raw, out, with_text, list_effects, base, noise, as_json,
+             accel=None, accel_independent=False, extra_inputs=()) -> bool:
     """Handle --with / --list-effects; False when neither was given (the plain fit)."""
     if not with_text and not list_effects:
         if base != "full" or noise != "auto":
@@ -69,11 +70,11 @@ def run_with(method, raw, out, with_text, list_effects, base, noise, as_json) ->
         if raw:
             from calib_cli.methods.diagnose_problem import build_problem
 
-            if method not in fw.ENGINE_METHODS:
-                pb = None
+            if method == "gyro":
+                lines = fw.gyro_lines(read_raw(raw), accel, base)
             else:
                 pb = build_problem(read_raw(raw), method, noise=noise)
-        for e in fw.effect_lines(pb, method, base):
+        for e in (lines if raw and method == "gyro" else fw.effect_lines(pb, method, base)):
             if e["excited"] is None:
                 click.echo(f"{e['with']}: {e['excites']}")
             elif e["excited"]:
@@ -85,25 +86,28 @@ def run_with(method, raw, out, with_text, list_effects, base, noise, as_json) ->
         raise click.UsageError("--with needs RAW and --out")
     try:
         effects = fw.parse_with(with_text, method)
+        bad = [fw.with_arg(n, s) for n, s in effects
+               if method == "gyro" and (s != "gyro" or n not in fw.GYRO_EFFECTS)]
+        if bad:
+            raise ValueError(f"{', '.join(bad)}: the gyro method takes "
+                             f"{', '.join(fw.GYRO_EFFECTS)} (docs/diagnose.md)")
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--with") from None
     if any(n == "misalignment" for n, _ in effects) and base != "diagonal":
         raise click.UsageError("--with misalignment needs --base diagonal (the full base model "
                                "already has every misalignment)")
-    if method not in fw.ENGINE_METHODS:
-        from calib_cli.errors import EstimationError
-
-        raise EstimationError(f"--with is not available for `fit {method}` yet "
-                              "(docs/diagnose.md)", raw)
     from calib_cli.errors import EstimationError
 
     rec = read_raw(raw)
     try:
-        res, _, _ = fw.fit_with(rec, method, effects, base=base, noise=noise)
+        if method == "gyro":
+            res = fw.fit_with_gyro(rec, effects, base, accel, accel_independent)
+        else:
+            res, _, _ = fw.fit_with(rec, method, effects, base=base, noise=noise)
     except EstimationError as exc:
         exc.path = exc.path or raw
         raise
-    save(res, raw, out, rec=rec, as_json=as_json)
+    save(res, raw, out, list(extra_inputs), rec=rec, as_json=as_json)
     return True
 
 

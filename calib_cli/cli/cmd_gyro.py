@@ -28,17 +28,13 @@ def fit_gyro_cmd(raw, out, accel_path, g_sensitivity, with_text, list_effects, w
     rotations between static positions and turns of known angle (docs/gyro.md)."""
     from calib_cli.methods.gyro import fit_gyro
 
-    if run_with("gyro", raw, out, with_text, list_effects, with_base, with_noise, as_json):
-        return
-    need_raw_out(raw, out)
-    rec = read_raw(raw)
     acc = read_calibration(accel_path) if accel_path else None
     if acc is not None and "accel_K" not in acc.params:
         from calib_cli.errors import InputError
 
         raise InputError("not an accelerometer calibration (no accel_K)", accel_path)
     independent = False
-    if acc is not None:
+    if acc is not None and raw:
         from calib_cli.io.h5 import provenance, sha256_file
 
         try:
@@ -50,6 +46,12 @@ def fit_gyro_cmd(raw, out, accel_path, g_sensitivity, with_text, list_effects, w
         info("accelerometer calibration " + ("from other data: its uncertainty is propagated "
                                              "into the gyro parameters" if independent else
                                              "from this recording"))
+    if run_with("gyro", raw, out, with_text, list_effects, with_base, with_noise, as_json,
+                accel=acc, accel_independent=independent,
+                extra_inputs=[accel_path] if accel_path else []):
+        return
+    need_raw_out(raw, out)
+    rec = read_raw(raw)
     res = fit_gyro(rec, acc, g_sensitivity, accel_independent=independent)
     from calib_cli.methods.gross import screen_fit
 

@@ -397,6 +397,14 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
         added.add(c.key)
         cur = f
         fits.append(cur)
+    pair = [st for st in steps if st.effect in ("accel_nonlinearity", "scale_asymmetry")
+            and st.sensor == "accel"]
+    if pair and "accel scale_asymmetry" in untested_all \
+            and dc.excitation(pb, base).accel_levels == 3:
+        notes.append("accelerometer nonlinearity and scale asymmetry are not separable on this "
+                     "plan (each axis sees only 0 and +-g, where k2 u^2 and a |u| are the same "
+                     "signature): the step named nonlinearity stands for either; to tell them "
+                     "apart record positions with the axes at 35-55 deg inclination")
     n_after = rms(cur)
     floor = white_rms(cur)
     dof = len(cur.r) - cur.n_free

@@ -45,8 +45,15 @@ ENGINE_METHODS = ("accel", "align", "turntable", "rimu")
 WANDERS = ("bias_random_walk", "bias_instability")
 
 
+GYRO_EFFECTS = ("misalignment", "scale_asymmetry", "temperature_drift", "g_sensitivity")
+
+
 def method_sensors(method: str) -> tuple:
-    return ("accel",) if method == "accel" else ("accel", "gyro")
+    return {"accel": ("accel",), "gyro": ("gyro",)}.get(method, ("accel", "gyro"))
+
+
+def gyro_effect(name: str):
+    return make_effect(name, "gyro", **({"structure": "full"} if name == "misalignment" else {}))
 
 
 def with_arg(name: str, sensor: str) -> str:
@@ -112,6 +119,8 @@ def effect_lines(pb: Problem | None, method: str, base: str = "full") -> list[di
             if method == "align" and name in ("misalignment", "lever_arm", "proof_mass_offsets",
                                               "time_offset"):
                 continue
+            if method == "gyro" and name not in GYRO_EFFECTS:
+                continue
             sens = [fixed] if fixed is not None else list(method_sensors(method))
             for s in sens:
                 e = make_effect(name, s or "accel")
@@ -137,6 +146,54 @@ def check_excited(pb: Problem, base: str, effects) -> None:
         if why:
             raise EstimationError(f"--with {with_arg(name, sensor)}: this record cannot "
                                   f"determine it ({why}); record {c.effect.record}")
+
+
+def gyro_lines(rec: Recording, accel=None, base: str = "full") -> list[dict]:
+    """``effect_lines`` of the gyro method on a record."""
+    from calib_cli.methods.gyro import excitation
+
+    ex = excitation(rec, accel if accel is not None else _accel_of(rec), base)
+    out = []
+    for name in GYRO_EFFECTS:
+        e = gyro_effect(name)
+        why = e.not_excited(ex)
+        out.append({"with": with_arg(name, "gyro"), "excites": e.excites, "record": e.record,
+                    "excited": why is None, "why": why})
+    return out
+
+
+def _accel_of(rec: Recording):
+    from calib_cli.methods.accel_lsq import fit_accel
+
+    return fit_accel(rec)
+
+
+def fit_with_gyro(rec: Recording, effects, base: str = "full", accel=None,
+                  accel_independent: bool = False) -> CalibrationResult:
+    """``fit gyro --with``: bias + G (gyro_D only with g_sensitivity) plus the effects,
+    through the gyro fit's own equations (methods/gyro.py)."""
+    from calib_cli.methods.gyro import excitation, fit_gyro
+
+    bad = [with_arg(n, s) for n, s in effects if s != "gyro" or n not in GYRO_EFFECTS]
+    if bad:
+        raise EstimationError(f"--with {', '.join(bad)}: the gyro method takes "
+                              f"{', '.join(GYRO_EFFECTS)} (gyro)")
+    acc = accel if accel is not None else _accel_of(rec)
+    ex = excitation(rec, acc, base)
+    extra = []
+    for name, _ in effects:
+        e = gyro_effect(name)
+        why = e.not_excited(ex)
+        if why:
+            raise EstimationError(f"--with {with_arg(name, 'gyro')}: this record cannot "
+                                  f"determine it ({why}); record {e.record}")
+        extra.append(e)
+    res = fit_gyro(rec, acc, "off", accel_independent, extra=extra,
+                   structure="diagonal" if base == "diagonal" else "full")
+    res.stats["with"] = [with_arg(n, s) for n, s in effects]
+    res.stats["base"] = base
+    res.stats["base_model"] = ["gyro_bias", f"gyro_K ({'diagonal' if base == 'diagonal' else 'full'})"]
+    return res
 
 
 def fit_with(rec: Recording, method: str, effects, base: str = "full", noise: str = "auto"

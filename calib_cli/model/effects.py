@@ -78,6 +78,7 @@ class Excitation:
     n_bins: int = 0
     rotating: bool = False
     redundant: bool = False
+    gravity_3d: bool = True  # static positions with gravity directions spanning 3-D
 
 
 _NEEDS_ROTATION = "needs rotation (a turntable): the experiment has only static positions"
@@ -201,7 +202,11 @@ class GSensitivity(Effect):
     record = "static positions with each axis up and down, gyros recorded"
 
     def not_excited(self, ex):
-        return None if "gyro" in ex.sensors else "no gyro data in this method's record"
+        if "gyro" not in ex.sensors:
+            return "no gyro data in this method's record"
+        if not ex.gravity_3d:
+            return "the static positions' gravity directions do not span all three axes"
+        return None
 
     def specs(self, layout):
         return [ParamSpec("gyro_D", (layout.n, 3), "(rad/s)/(m/s^2)", 1e-4,
