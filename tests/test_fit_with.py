@@ -225,11 +225,6 @@ def test_axis_aligned_plan_reports_nonlinearity_and_asymmetry_not_separable():
 
 
 def test_diagnose_gyro_names_scale_asymmetry_and_closes_the_turn_angles(tmp_path, capsys):
-    sys_path = str(__import__("pathlib").Path(__file__).parent)
-    import sys
-
-    if sys_path not in sys.path:
-        sys.path.insert(0, sys_path)
     import gyro_sim as G
 
     plan = tmp_path / "gyro.toml"
@@ -261,3 +256,37 @@ def test_diagnose_gyro_names_scale_asymmetry_and_closes_the_turn_angles(tmp_path
     r = run(capsys, "fit", "gyro", raw, "--out", tmp_path / "x.h5", "--with", "lever_arm",
             code=2)
     assert "the gyro method takes" in r.stderr
+
+
+def test_fit_rimu_with_g_sensitivity_within_sigma_and_apply(tmp_path, capsys):
+    from calib_cli.io.h5 import write_raw
+    from calib_cli.io.plan import parse_plan
+    from calib_cli.methods.fit_with import fit_with
+    from calib_cli.sim.simulate import plan_layout
+    from calib_cli.sim.truth import truth_from_dict
+
+    rimu = ('name = "rimu-six"\nkind = "rimu"\nsample_rate_hz = 50.0\ntransition_s = 2.0\n'
+            '[site]\nlatitude_deg = 50.45\n[rimu]\nprofile = "tetrahedron"\n' + "".join(
+                f'[[segment]]\nlabel = "p{i}"\nattitude_deg = [{a}, {b}, 0]\n'
+                'table_axis_enu = [0, 0, 1]\n'
+                'rate_profile = [[0, 20], [4, 20], [6, -60], [10, -60]]\n'
+                for i, (a, b) in enumerate([(0, -90), (0, 90), (90, 0), (-90, 0), (0, 0),
+                                            (180, 0)])))
+    plan = parse_plan(rimu)
+    D = np.zeros((9, 3))
+    D[[0, 4, 8], [0, 1, 2]] = [2e-4, -1.5e-4, 1e-4]
+    truth = truth_from_dict({"params": {"gyro_D": D.tolist()}}, plan_layout(plan))
+    rec = simulate(plan, truth, seed=9)
+    res, _, _ = fit_with(rec, "rimu", [("g_sensitivity", "gyro")])
+    est, sig = res.params["gyro_D"], res.sigma["gyro_D"]
+    ok = np.isfinite(sig) & (sig > 0)
+    assert np.all(np.abs(est - D)[ok] < 4.5 * sig[ok])
+    assert res.layout.redundant and "gyro_D" in res.params
+    raw = tmp_path / "raw.h5"
+    write_raw(raw, rec)
+    run(capsys, "fit", "rimu", raw, "--out", tmp_path / "cal.h5", "--with", "g_sensitivity")
+    # the redundant-unit correction has no inverse for gyro_D: said, nothing written
+    r = run(capsys, "apply", tmp_path / "cal.h5", raw, "--out", tmp_path / "c.h5", code=3)
+    assert "g_sensitivity" in r.stderr and not (tmp_path / "c.h5").exists()
+    run(capsys, "fit", "rimu", raw, "--out", tmp_path / "x.h5", "--with", "misalignment",
+        code=2)

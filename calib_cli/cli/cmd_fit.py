@@ -93,6 +93,10 @@ def run_with(method, raw, out, with_text, list_effects, base, noise, as_json,
                              f"{', '.join(fw.GYRO_EFFECTS)} (docs/diagnose.md)")
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--with") from None
+    if any(n == "misalignment" for n, _ in effects) and method in ("align", "rimu"):
+        raise click.BadParameter(f"the {method} method has no triad misalignment (align: K is "
+                                 "the identity; rimu: each sensor's direction is in the base "
+                                 "model)", param_hint="--with")
     if any(n == "misalignment" for n, _ in effects) and base != "diagonal":
         raise click.UsageError("--with misalignment needs --base diagonal (the full base model "
                                "already has every misalignment)")

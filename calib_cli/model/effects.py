@@ -344,10 +344,18 @@ class ScaleAsymmetry(Effect):
     name: str = field(default="scale_asymmetry", init=False)
     stage: int = field(default=CORRECTION, init=False)
 
-    excites = ("accelerometer: inputs of both signs at four or more sizes (tilts between 0 "
-               "and +-g; at 0 and +-g only it looks like nonlinearity); gyro: turns both ways")
-    record = ("positions with the axes tilted 35-55 deg (accelerometer), rotations both ways "
-              "(gyro)")
+    @property
+    def excites(self):
+        if self.sensor == "gyro":
+            return "rotations both ways about an axis (faster than 3 deg/s)"
+        return ("inputs of both signs at four or more sizes (tilts between 0 and +-g; at 0 "
+                "and +-g only it looks like nonlinearity)")
+
+    @property
+    def record(self):
+        if self.sensor == "gyro":
+            return "rotations both ways about each axis"
+        return "positions with the axes tilted 35-55 deg"
 
     def not_excited(self, ex):
         if self.sensor == "gyro":
