@@ -126,6 +126,10 @@ def fit_accel_cmd(raw, out, method, with_text, list_effects, with_base, with_noi
     """Static multi-position accelerometer fit: A = b + K f."""
     from calib_cli.methods.accel_lsq import fit_accel
 
+    if (with_text or list_effects) and method != "auto":
+        raise click.UsageError("--method applies to the plain fit; with --with the positions "
+                               "decide (known attitudes: bias + full K; unknown: the scalar "
+                               "model)")
     if run_with("accel", raw, out, with_text, list_effects, with_base, with_noise, as_json):
         return
     need_raw_out(raw, out)
