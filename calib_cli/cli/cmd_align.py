@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import click
 
-from calib_cli.cli.cmd_fit import fit_group, json_option, save
+from calib_cli.cli.cmd_fit import fit_group, json_option, need_raw_out, run_with, save, with_options
 from calib_cli.cli.common import info
 from calib_cli.io.h5 import read_raw
 
 
 @fit_group.command("align")
-@click.argument("raw", type=click.Path(dir_okay=False))
-@click.option("--out", required=True, type=click.Path(dir_okay=False))
+@click.argument("raw", required=False, type=click.Path(dir_okay=False))
+@click.option("--out", type=click.Path(dir_okay=False))
 @click.option("--method", type=click.Choice(["two-position", "classic", "static"]),
               default="two-position", show_default=True,
               help="two-position: any rotation between the positions; classic: the 2- or "
@@ -32,11 +32,15 @@ from calib_cli.io.h5 import read_raw
                    "that bend the integrated turn [default: 30, or 3000 without earth rate].")
 @click.option("--turn-sigma-deg", type=float, default=0.0, show_default=True,
               help="1-sigma error per axis of a plan-stated turn (with --rotation plan).")
+@with_options
 @json_option
 def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_deg,
-                  as_json):
+                  with_text, list_effects, with_base, with_noise, as_json):
     """Accelerometer and gyro biases and the attitude of the first position from
     two (or more) static positions related by a known rotation."""
+    if run_with("align", raw, out, with_text, list_effects, with_base, with_noise, as_json):
+        return
+    need_raw_out(raw, out)
     from calib_cli.methods import registry
 
     opts = registry.options_from("align", method=method, rotation=rotation, gyro=gyro_mode,
@@ -56,20 +60,3 @@ def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_
         info(res.stats["observability"])
     save(res, raw, out, rec=rec, as_json=as_json)
 
-
-def _fit(rec, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_deg):
-    import numpy as np
-
-    if method == "classic":
-        from calib_cli.methods.align_classic import fit_classic
-
-        return fit_classic(rec, rotation=rotation)
-    if method == "static":
-        from calib_cli.methods.align_static import fit_align_static
-
-        return fit_align_static(rec)
-    from calib_cli.methods.align import fit_align
-
-    return fit_align(rec, rotation=rotation, gyro=gyro_mode,
-                     gyro_k_prior=None if gyro_k_ppm is None else gyro_k_ppm * 1e-6,
-                     turn_sigma=np.radians(turn_sigma_deg))

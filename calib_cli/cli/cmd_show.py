@@ -103,7 +103,8 @@ def show_cmd(files, as_json, covariance):
     of their combined sigma (e.g. one unit calibrated on two dates)."""
     path = files[0]
     kind = file_kind(path)
-    if len(files) == 2 and kind == "calibration" and file_kind(files[1]) == "calibration":
+    cal_kinds = ("calibration", "diagnosis")  # a diagnosis file holds a calibration too
+    if len(files) == 2 and kind in cal_kinds and file_kind(files[1]) in cal_kinds:
         from calib_cli.cli.compare import show_compare  # A.h5 B.h5: differences in sigma
 
         return show_compare(files, as_json)

@@ -33,6 +33,13 @@ def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = F
     c = read_calibration(cal)
     validate.check_calibration(c, cal)
     rimu = c.layout.redundant
+    if rimu:
+        extra = sorted({d.get("name") for d in c.model} - {"bias", "installation", "lever_arm"})
+        if extra:  # the redundant-unit correction (docs/rimu.md) has no inverse for them
+            raise InputError(f"this redundant-unit calibration's model also has "
+                             f"{', '.join(extra)}, which the RIMU correction (bias, scale "
+                             "error, installation angles) does not invert yet; nothing "
+                             "was written", cal)
     with open_checked(raw, ("raw",)) as src:
         if "samples" not in src:
             raise InputError("missing group /samples (a recording is expected here)", raw)
