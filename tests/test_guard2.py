@@ -1,0 +1,209 @@
+"""Issue 15, the remaining guard rails, driven through the CLI: numbers in
+messages, huge values, concurrent writers of one output, a full disk in the
+middle of a streamed write."""
+
+from __future__ import annotations
+
+import errno
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "sample_data"
+PLAN = SAMPLE / "twelve_position.toml"
+CSV = SAMPLE / "twelve_position.csv"
+
+
+@pytest.fixture(scope="module")
+def logcsv(tmp_path_factory):
+    """The shipped plan simulated: a contract CSV with a segment column."""
+    from calib_cli.cli.main import main
+
+    p = tmp_path_factory.mktemp("g2log") / "log.csv"
+    with pytest.raises(SystemExit) as e:
+        main(["-q", "simulate", str(PLAN), "--out", str(p), "--seed", "1"])
+    assert e.value.code in (0, None)
+    return p
+
+
+def _edit_csv(src, tmp_path, name, row, col, value):
+    lines = src.read_text().splitlines()
+    body = [i for i, ln in enumerate(lines) if ln and not ln.startswith("#")][1:]
+    i = body[row]
+    cells = lines[i].split(",")
+    cells[col] = value
+    lines[i] = ",".join(cells)
+    p = tmp_path / name
+    p.write_text("\n".join(lines) + "\n")
+    return p
+
+
+def _one_line(err):
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err and "np." not in err, err
+    return lines[0]
+
+
+@pytest.mark.parametrize("row,col,value,words", [
+    (98, 0, "1e20", ["1e+20"]),            # a time far beyond any recording
+    (-1, 0, "1e20", ["1e+20", "beyond"]),  # ... even as the last, increasing, time
+    (98, 0, "-1e20", ["-1e+20"]),
+    (98, -1, "1e20", ["segment index 1e+20"]),
+    (98, -1, "-1e20", ["segment index -1e+20"]),
+    (5, 0, "0.5", ["0.5 then", "not increasing"]),
+])
+def test_numbers_in_import_messages(logcsv, run_cli, tmp_path, row, col, value, words):
+    src = _edit_csv(logcsv, tmp_path, "x.csv", row, col, value)
+    code, _, err = run_cli("import", "csv", src, "--plan", PLAN, "--out", tmp_path / "o.h5")
+    line = _one_line(err)
+    assert code == 3 and "x.csv" in line, err
+    for w in words:
+        assert w in line, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.csv"]
+    # the same through batch (the non-streaming reader)
+    pipe = tmp_path / "pipe.toml"
+    pipe.write_text(f'name = "p"\n[[step]]\nstep = "import"\nplan = "{PLAN}"\n')
+    code, _, err = run_cli("batch", pipe, src, "--out", tmp_path / "out")
+    assert code == 1, err
+    assert "-9223372036854775808" not in err and "np.float64" not in err, err
+    for w in words[:1]:
+        assert w in err, err
+
+
+def test_numbers_in_text_import_messages(logcsv, run_cli, tmp_path):
+    lines = [ln for ln in logcsv.read_text().splitlines() if ln and not ln.startswith("#")][1:]
+    rows = [ln.split(",") for ln in lines]
+    rows[-1][0] = "1e20"
+    (tmp_path / "t.txt").write_text("\n".join(" ".join(r) for r in rows) + "\n")
+    code, _, err = run_cli("import", "text", tmp_path / "t.txt", "--plan", PLAN, "--out",
+                           tmp_path / "o.h5", "--columns",
+                           "time=1,ax=2,ay=3,az=4,gx=5,gy=6,gz=7,segment=8")
+    line = _one_line(err)
+    assert code == 3 and "1e+20" in line and "--time-unit" in line
+    rows[-1][0] = rows[-3][0]
+    (tmp_path / "t.txt").write_text("\n".join(" ".join(r) for r in rows) + "\n")
+    code, _, err = run_cli("import", "text", tmp_path / "t.txt", "--plan", PLAN, "--out",
+                           tmp_path / "o.h5", "--columns",
+                           "time=1,ax=2,ay=3,az=4,gx=5,gy=6,gz=7,segment=8")
+    line = _one_line(err)
+    assert code == 3 and "not increasing" in line and "152." in line, err
+
+
+def test_message_numbers_safety_net():
+    from calib_cli.errors import InputError, num
+
+    e = InputError("a (np.float64(20.02) then np.int64(3)) np.True_", "f.csv")
+    assert e.line() == "f.csv: a (20.02 then 3) True"
+    assert num(1e20) == "1e+20" and num(3.0) == "3" and num(float("nan")) == "nan"
+
+
+# ---------------------------------------------------------------------------
+# two commands writing one output at once
+
+
+@pytest.fixture(scope="module")
+def raw(tmp_path_factory):
+    from calib_cli.cli.main import main
+
+    d = tmp_path_factory.mktemp("g2")
+    with pytest.raises(SystemExit) as e:
+        main(["-q", "import", "csv", str(CSV), "--plan", str(PLAN), "--out", str(d / "raw.h5")])
+    assert e.value.code in (0, None)
+    return d / "raw.h5"
+
+
+HOLD = """
+import sys, time
+from calib_cli.io.outpath import atomic_file
+with atomic_file(sys.argv[1]) as tmp:
+    open(tmp, "w").write("partial")
+    print("held", flush=True)
+    time.sleep(float(sys.argv[2]))
+"""
+
+
+def test_second_writer_of_one_output_fails_naming_the_holder(raw, run_cli, tmp_path):
+    out = tmp_path / "c.h5"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    holder = subprocess.Popen([sys.executable, "-c", HOLD, str(out), "30"], env=env,
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        code, _, err = run_cli("fit", "accel", raw, "--out", out)
+        line = _one_line(err)
+        assert code == 3 and f"pid {holder.pid}" in line and "c.h5" in line, err
+        assert not out.exists()
+    finally:
+        holder.kill()
+        holder.wait(10)
+    # the holder was killed: its lock is released, its temp and lock files are cleaned
+    code, _, err = run_cli("fit", "accel", raw, "--out", out)
+    assert code == 0, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.h5"]
+
+
+def test_two_fits_at_once_never_a_mixed_file(raw, tmp_path):
+    out = tmp_path / "c.h5"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    cmd = [sys.executable, "-m", "calib_cli", "-q", "fit", "accel", str(raw), "--out", str(out)]
+    procs = [subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    res = [(p.wait(120), p.stderr.read()) for p in procs]
+    for code, err in res:
+        assert code in (0, 3), err
+        if code == 3:
+            assert "another command is writing this output" in err and err.count("\n") == 1
+    assert any(code == 0 for code, _ in res)
+    from calib_cli.io.h5 import read_calibration
+
+    assert read_calibration(out).params["accel_K"].shape == (3, 3)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.h5"]
+
+
+# ---------------------------------------------------------------------------
+# a full disk in the middle of a streamed write
+
+
+def test_disk_full_mid_import_leaves_nothing(run_cli, tmp_path, monkeypatch):
+    import calib_cli.io.stream_import as si
+
+    calls = {"n": 0}
+    orig = si._Sink.append
+
+    def append(self, name, arr):
+        calls["n"] += 1
+        if calls["n"] >= 3:  # time and accel have data in the temp file: gyro fails
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return orig(self, name, arr)
+
+    monkeypatch.setattr(si._Sink, "append", append)
+    code, _, err = run_cli("import", "csv", CSV, "--plan", PLAN, "--out", tmp_path / "raw.h5")
+    line = _one_line(err)
+    assert code == 2 and "disk full" in line and "raw.h5" in line, err
+    assert calls["n"] >= 3
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_disk_full_mid_report_leaves_nothing(raw, run_cli, tmp_path, monkeypatch):
+    """A report directory: a figure that cannot be written (ENOSPC) leaves
+    neither the directory nor its temp."""
+    from calib_cli.cli.main import main
+
+    cal = tmp_path / "cal.h5"
+    with pytest.raises(SystemExit):
+        main(["-q", "fit", "accel", str(raw), "--out", str(cal)])
+    import matplotlib.figure
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", full)
+    code, _, err = run_cli("-q", "report", cal, raw, "--out", tmp_path / "rep")
+    line = _one_line(err)
+    assert code == 2 and "disk full" in line, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.h5"]
