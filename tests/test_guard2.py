@@ -207,3 +207,66 @@ def test_disk_full_mid_report_leaves_nothing(raw, run_cli, tmp_path, monkeypatch
     line = _one_line(err)
     assert code == 2 and "disk full" in line, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.h5"]
+
+
+# ---------------------------------------------------------------------------
+# fit align: the gross-error screen (methods/gross.py, _screen_align)
+
+
+def _align_files(run_cli, d, stated, true, seed=3):
+    """A recording simulated with the turns ``true`` and imported with a plan
+    stating ``stated`` (a misplaced position, as far as the plan knows)."""
+    from calib_cli.sim.align_cases import plan_text
+
+    (d / "true.toml").write_text(plan_text(true, duration=20.0))
+    (d / "stated.toml").write_text(plan_text(stated, duration=20.0))
+    assert run_cli("-q", "simulate", d / "true.toml", "--out", d / "log.csv", "--seed",
+                   str(seed))[0] == 0
+    assert run_cli("-q", "import", "csv", d / "log.csv", "--plan", d / "stated.toml", "--out",
+                   d / "raw.h5")[0] == 0
+    return d / "raw.h5"
+
+
+def test_align_misplaced_position_named(run_cli, tmp_path):
+    z, x = (0, 0, 1), (1, 0, 0)
+    raw = _align_files(run_cli, tmp_path, [(z, 90.0), (x, 120.0), (x, -120.0)],
+                       [(z, 90.0), (x, 90.0), (x, -90.0)])
+    code, _, err = run_cli("-q", "fit", "align", raw, "--rotation", "plan", "--out",
+                           tmp_path / "cal.h5")
+    line = _one_line(err)
+    assert code == 4 and "gross error at position 3 ('position-3')" in line, err
+    assert "turn" in line and "mg off" in line
+    assert not (tmp_path / "cal.h5").exists()
+    # the gyros integrated through the recorded turns measure the real rotation: no error
+    code, _, err = run_cli("-q", "fit", "align", raw, "--rotation", "gyro", "--out",
+                           tmp_path / "cal.h5")
+    assert code == 0, err
+    # batch: the same screen in the fit step
+    pipe = tmp_path / "pipe.toml"
+    pipe.write_text('name = "p"\n[[step]]\nstep = "fit"\nmethod = "align"\n'
+                    'options = { rotation = "plan" }\n')
+    code, _, err = run_cli("-q", "batch", pipe, raw, "--out", tmp_path / "out")
+    assert code == 1 and "position-3" in err, err
+
+
+def test_align_two_positions_misstated_turn_exit_4(run_cli, tmp_path):
+    """Two positions leave no leave-one-out; the misfit (the gyros see the
+    earth rate turn 40 deg less than stated) is exit 4, not 60 mg biases."""
+    z = (0, 0, 1)
+    raw = _align_files(run_cli, tmp_path, [(z, 130.0)], [(z, 90.0)])
+    code, _, err = run_cli("-q", "fit", "align", raw, "--rotation", "plan", "--out",
+                           tmp_path / "cal.h5")
+    line = _one_line(err)
+    assert code == 4 and "far beyond the noise" in line and "rotation_angle_deg" in line, err
+    assert run_cli("-q", "fit", "align", raw, "--out", tmp_path / "cal.h5")[0] == 0
+
+
+def test_align_on_a_twelve_position_file_exit_4(run_cli, tmp_path):
+    """The issue's case: fit align on the shipped 12-position MEMS recording
+    gave biases of 42, -42, 122 mg with exit 0 (the unit's scale factors)."""
+    raw = tmp_path / "raw.h5"
+    assert run_cli("-q", "import", "csv", CSV, "--plan", PLAN, "--out", raw)[0] == 0
+    code, _, err = run_cli("-q", "fit", "align", raw, "--out", tmp_path / "cal.h5")
+    line = _one_line(err)
+    assert code == 4 and "calib fit accel" in line and "sigma" in line, err
+    assert not (tmp_path / "cal.h5").exists()

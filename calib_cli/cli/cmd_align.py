@@ -60,9 +60,13 @@ def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_
     else:
         from calib_cli.methods.align import fit_align
 
-        res = fit_align(rec, rotation=rotation, gyro=gyro_mode,
-                        gyro_k_prior=None if gyro_k_ppm is None else gyro_k_ppm * 1e-6,
-                        turn_sigma=np.radians(turn_sigma_deg))
+        kw = dict(rotation=rotation, gyro=gyro_mode,
+                  gyro_k_prior=None if gyro_k_ppm is None else gyro_k_ppm * 1e-6,
+                  turn_sigma=np.radians(turn_sigma_deg))
+        res = fit_align(rec, **kw)
+        from calib_cli.methods.gross import screen_fit
+
+        screen_fit(res, rec, lambda r: fit_align(r, **kw))  # a misplaced position: exit 4
     if not res.stats.get("earth_rate_used", True):
         info(f"[yellow]earth rate not used:[/] {res.stats.get('grade_check')}; heading not "
              "estimated, accelerometer biases and tilt only")
