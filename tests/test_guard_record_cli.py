@@ -138,3 +138,54 @@ def test_record_refuses_a_misplaced_position_and_the_fit_names_one_it_let_pass(t
     assert fit.returncode == 4, fit.stderr
     assert "gross error at position 5 ('p5')" in fit.stderr, fit.stderr
     assert fit.stderr.count("\n") == 1 and not (tmp_path / "cal.h5").exists()
+
+
+NOISY = """# a unit noisier than the default stillness limits (0.05 m/s^2, 0.01 rad/s)
+[params]
+accel_bias_mg = [6.0, -4.0, 9.0]
+gyro_bias_dps = [0.15, -0.08, 0.22]
+[noise]
+accel_white_mg = 12.0
+gyro_white_dps = 1.2
+"""
+
+
+def _record_motorised(tmp_path, em_paths, plan, extra=()):
+    (tmp_path / "plan.toml").write_text(plan)
+    return _Proc(["record", "--imu", "generic-bin6", "--port", em_paths["imu"], "--table",
+                  "generic-3axis", "--table-port", em_paths["table"], "--plan",
+                  tmp_path / "plan.toml", "--out", tmp_path / "raw.h5", "--settle-window",
+                  "0.2", "--no-check", *extra])
+
+
+def test_stillness_limits_measured_at_the_start(tmp_path):
+    """generic-bin6 states no [noise]: the defaults sit below this unit's
+    noise (0.118 m/s^2, 0.021 rad/s per sample), so the limits are measured
+    in the first second and the plan records; with --accel-still 0.05 the
+    unit never counts as still and the timeout message gives the measured
+    std, the limit and the option."""
+    (tmp_path / "truth.toml").write_text(NOISY)
+    em = _Proc(["emulate", "--imu", "generic-bin6", "--table", "generic-3axis", "--rate",
+                "500", "--speed-dps", "1800", "--link-dir", tmp_path / "ports", "--truth",
+                tmp_path / "truth.toml"])
+    try:
+        paths = json.loads(em.p.stdout.readline())
+        rec = _record_motorised(tmp_path, paths, _plan([(0, 0, 0), (0, -90, 0)], 0.3))
+        code, err = rec.finish()
+        assert code == 0, err
+        assert "measured at the start" in err and "stillness limits" in err, err
+        d = tmp_path / "again"
+        d.mkdir()
+        rec = _record_motorised(d, paths, _plan([(0, 0, 0)], 0.3),
+                                ("--accel-still", "0.05", "--settle-timeout", "3"))
+        code, err = rec.finish()
+    finally:
+        em.p.terminate()
+        em.finish(30)
+    lines = [ln for ln in err.splitlines() if ln.startswith("calib: error")]
+    assert code == 3 and len(lines) == 1, err
+    msg = " ".join(err.split())
+    assert "did not keep still within 3 s: measured std accel" in msg, err
+    assert "(limit 0.05, --accel-still)" in msg and "--gyro-still" in msg, err
+    assert "measured accel" in msg and "at the start" in msg, err
+    assert not (d / "raw.h5").exists()
