@@ -8,6 +8,7 @@ import errno
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -270,3 +271,93 @@ def test_align_on_a_twelve_position_file_exit_4(run_cli, tmp_path):
     line = _one_line(err)
     assert code == 4 and "calib fit accel" in line and "sigma" in line, err
     assert not (tmp_path / "cal.h5").exists()
+
+
+# ---------------------------------------------------------------------------
+# leftovers of killed runs, umask, report directories
+
+
+def test_killed_runs_leftovers_cleaned_by_the_next_run(raw, run_cli, tmp_path):
+    """A real SIGKILL while a report is written leaves its temp directory and
+    the output lock; the next run of the same command removes both, replaces
+    the report whole and leaves only its own files."""
+    import signal
+
+    from calib_cli.cli.main import main
+
+    cal = tmp_path / "cal.h5"
+    with pytest.raises(SystemExit):
+        main(["-q", "fit", "accel", str(raw), "--out", str(cal)])
+    rep = tmp_path / "rep"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    # the report's figure step is made to hang, so the kill lands mid-write
+    hang = ("import sys, time, matplotlib.figure\n"
+            "def slow(self, *a, **k):\n"
+            "    open(sys.argv[-1] + '.started', 'w').close(); time.sleep(300)\n"
+            "matplotlib.figure.Figure.savefig = slow\n"
+            "from calib_cli.cli.main import main\n"
+            "main(sys.argv[1:-1])\n")
+    p = subprocess.Popen([sys.executable, "-c", hang, "-q", "report", str(cal), str(raw),
+                          "--out", str(rep), str(tmp_path / "k")], env=env)
+    t_end = time.time() + 120
+    while not (tmp_path / "k.started").exists() and time.time() < t_end:
+        time.sleep(0.1)
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait(30)
+    (tmp_path / "k.started").unlink()
+    left = sorted(x.name for x in tmp_path.iterdir())
+    assert any(n.startswith(".rep.calib-") and n.endswith(".tmpdir") for n in left), left
+    assert ".rep.calib-lock" in left, left
+    old = os.umask(0o027)
+    try:
+        code, _, err = run_cli("-q", "report", cal, raw, "--out", rep)
+    finally:
+        os.umask(old)
+    assert code == 0, err
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["cal.h5", "rep"]
+    import stat
+
+    assert stat.S_IMODE(rep.stat().st_mode) == 0o750
+    assert all(stat.S_IMODE(f.stat().st_mode) == 0o640 for f in rep.iterdir() if f.is_file())
+
+
+@pytest.mark.parametrize("mask,mode", [(0o002, 0o664), (0o077, 0o600)])
+def test_outputs_follow_the_umask(raw, run_cli, tmp_path, mask, mode):
+    import stat
+
+    old = os.umask(mask)
+    try:
+        outs = {"c.h5": ("fit", "accel", raw, "--out", tmp_path / "c.h5")}
+        for name, args in outs.items():
+            code, _, err = run_cli("-q", *args)
+            assert code == 0, err
+            assert stat.S_IMODE((tmp_path / name).stat().st_mode) == mode
+        code, _, err = run_cli("-q", "apply", tmp_path / "c.h5", raw, "--out",
+                               tmp_path / "corr.h5")
+        assert code == 0, err
+        assert stat.S_IMODE((tmp_path / "corr.h5").stat().st_mode) == mode
+        code, _, err = run_cli("-q", "export", tmp_path / "c.h5", "--format", "json", "--out",
+                               tmp_path / "c.json")
+        assert code == 0, err
+        assert stat.S_IMODE((tmp_path / "c.json").stat().st_mode) == mode
+    finally:
+        os.umask(old)
+
+
+def test_batch_reports_a_csv_deleted_from_a_directory(logcsv, run_cli, tmp_path, monkeypatch):
+    arch = tmp_path / "arch"
+    arch.mkdir()
+    for n in ("a.csv", "b.csv"):
+        (arch / n).write_bytes(logcsv.read_bytes())
+    (arch / "plan.toml").write_text(PLAN.read_text())
+    pipe = tmp_path / "pipe.toml"
+    pipe.write_text('name = "p"\nglob = ["*.csv"]\n[[step]]\nstep = "import"\n'
+                    'plan = "{dir}/plan.toml"\n')
+    monkeypatch.chdir(tmp_path)
+    code, _, err = run_cli("-q", "batch", pipe, "arch", "--out", "out")
+    assert code == 0, err
+    (arch / "b.csv").unlink()
+    code, _, err = run_cli("-q", "batch", pipe, "arch", "--out", "out")
+    assert code == 1, err
+    assert "arch/b.csv: no such file" in err, err
+    assert (tmp_path / "out" / "b-csv" / "raw.h5").exists()  # old outputs left alone
