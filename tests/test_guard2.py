@@ -361,3 +361,52 @@ def test_batch_reports_a_csv_deleted_from_a_directory(logcsv, run_cli, tmp_path,
     assert code == 1, err
     assert "arch/b.csv: no such file" in err, err
     assert (tmp_path / "out" / "b-csv" / "raw.h5").exists()  # old outputs left alone
+
+
+def test_recorded_file_cut_short_is_not_told_to_reimport(run_cli, tmp_path):
+    """A recording made by `calib record` and stopped after 3 of 12 positions:
+    the fit says the plan was not finished, not 're-import ... calib detect'."""
+    import h5py
+
+    from calib_cli.io.h5 import read_raw, write_raw
+
+    raw = tmp_path / "raw.h5"
+    assert run_cli("-q", "import", "csv", CSV, "--plan", PLAN, "--out", raw)[0] == 0
+    rec = read_raw(raw)
+    import dataclasses
+
+    cut = rec.segments[2].stop
+    short = dataclasses.replace(
+        rec, time=rec.time[:cut], accel=rec.accel[:cut], gyro=rec.gyro[:cut],
+        segments=tuple(rec.segments[:3]),
+        counters={"plan_finished": 0, "journal_complete": 1, "frames": cut})
+    write_raw(tmp_path / "rec.h5", short, [])
+    with h5py.File(tmp_path / "rec.h5") as h5:
+        assert h5["counters"].attrs["plan_finished"] == 0
+    code, _, err = run_cli("-q", "fit", "accel", tmp_path / "rec.h5", "--out", tmp_path / "c.h5")
+    line = _one_line(err)
+    assert code == 4 and "stopped before its plan ended" in line, err
+    assert "3 of the plan's 12 segments" in line and "re-import" not in line, err
+
+
+def test_plan_parsing_is_linear_in_the_segments(run_cli, tmp_path):
+    """20k segments were 4.8 s and 10^5 did not finish in 120 s (quadratic):
+    4x the segments must cost well under 16x the time (best of two)."""
+    from calib_cli.io.plan import parse_plan
+
+    def text(n):
+        return 'name = "big"\nkind = "static"\nsample_rate_hz = 10\n' + "".join(
+            f'[[segment]]\nlabel = "p{i}"\nattitude_deg = [0, 0, 0]\nduration_s = 1.0\n'
+            for i in range(n))
+
+    def best(n):
+        t = text(n)
+        out = []
+        for _ in range(2):
+            t0 = time.perf_counter()
+            assert len(parse_plan(t).segments) == n
+            out.append(time.perf_counter() - t0)
+        return min(out)
+
+    small, large = best(1000), best(4000)
+    assert large < 8 * small + 0.2, (small, large)
