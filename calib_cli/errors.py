@@ -52,6 +52,11 @@ class InputError(CalibError):
     exit_code = 3
 
 
+class DamagedInput(InputError):
+    """Damaged content (checksum mismatch, NaN/inf samples, broken HDF5
+    structure): exit 3 wherever it is found, never turned into a note."""
+
+
 class EstimationError(CalibError):
     """The estimate failed: too few or degenerate positions, no convergence,
     nothing observable (exit 4). The message says what the experiment lacks."""

@@ -410,3 +410,29 @@ def test_plan_parsing_is_linear_in_the_segments(run_cli, tmp_path):
 
     small, large = best(1000), best(4000)
     assert large < 8 * small + 0.2, (small, large)
+
+
+def test_report_with_nan_samples_is_exit_3(raw, run_cli, tmp_path):
+    """The report turned every Allan failure into a note: damaged samples are
+    exit 3 there too (an uneven or short record stays a note)."""
+    import h5py
+    import numpy as np
+
+    from calib_cli.cli.main import main
+
+    cal = tmp_path / "cal.h5"
+    with pytest.raises(SystemExit):
+        main(["-q", "fit", "accel", str(raw), "--out", str(cal)])
+    bad = tmp_path / "nan.h5"
+    bad.write_bytes(raw.read_bytes())
+    with h5py.File(bad, "r+") as h5:
+        a = h5["samples/accel"][()]
+        a[100, 1] = np.nan
+        del h5["samples/accel"]
+        h5.create_dataset("samples/accel", data=a)
+    code, _, err = run_cli("-q", "report", cal, bad, "--out", tmp_path / "rep")
+    line = _one_line(err)
+    assert code == 3 and "NaN or infinite" in line and "nan.h5" in line, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.h5", "nan.h5"]
+    code, _, err = run_cli("-q", "report", cal, raw, "--out", tmp_path / "rep")
+    assert code == 0, err
