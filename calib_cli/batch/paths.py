@@ -121,7 +121,9 @@ def vanished(inputs, out_dir: str, found: list[BatchInput]) -> list[BatchInput]:
     out, seen = [], set()
     for base, subdirs, files in os.walk(root):
         subdirs[:] = [d for d in subdirs if not d.startswith(".")]
-        for f in files:
+        if Path(base).relative_to(root).as_posix() in known:
+            continue  # an input found now: its outputs are not opened (large archives)
+        for f in sorted(files):
             if not f.endswith(".h5") or f.startswith("."):
                 continue
             src, key = _attrs(os.path.join(base, f), ("batch_input", "batch_key"))
