@@ -3,10 +3,11 @@
     python -m benchmarks.bench_import [--sizes 100,1000] [--repeat 3] [--dir DIR]
 
 Writes contract CSVs of the given sizes (MB; time, ax ay az, gx gy gz, temp;
-one comment line; static positions with turns between them, at 1 kHz) to a
-temporary directory, then measures, each in its own subprocess (whole
-process: interpreter start, imports, reading, writing), the wall time and
-peak RSS of
+one comment line; static positions with turns between them, at 1 kHz) once
+into ``--dir`` (default ``$TMPDIR/calib-bench-import``; kept there and reused
+by the next run, so the 1 GB log is written once), then measures, each in
+its own subprocess (whole process: interpreter start, imports, reading,
+writing), the wall time and peak RSS of
 
 - ``calib import csv LOG --plan PLAN --out RAW.h5`` (static detection on, a
   ``repeat = "auto"`` plan so every detected position is kept),
@@ -14,10 +15,14 @@ peak RSS of
 - the baseline: ``pyarrow.csv.open_csv`` streaming the same file to float64
   numpy arrays in one pass,
 
-and prints the median over ``--repeat`` runs (wall time and CPU time, user +
-system, which is steadier on a shared machine) with the ratios. The peak
-RSS is that of the measured process alone (``getrusage(RUSAGE_CHILDREN)`` in
-a wrapper process that runs only it).
+and prints the median over ``--repeat`` runs (``--repeat-large`` for logs
+over 200 MB; wall time and CPU time, user + system, which is steadier on a
+shared machine) with the ratios to the baseline measured in the same run.
+The runs of the three commands are interleaved (baseline, csv, text,
+baseline, ...) so that a change in the machine's load hits them alike, and
+the load average is printed with the figures. The peak RSS is that of the
+measured process alone (``getrusage(RUSAGE_CHILDREN)`` in a wrapper process
+that runs only it).
 """
 
 from __future__ import annotations
@@ -49,16 +54,18 @@ print(n)
 
 def write_log(path: Path, mb: float, rate: float = 1000.0) -> int:
     """A contract CSV of about ``mb`` megabytes: 20 s static positions with
-    5 s turns between them; returns the row count."""
+    5 s turns between them; returns the row count. Written to a temporary
+    name and renamed, so an interrupted run leaves no partial log to reuse."""
     import numpy as np
     import pyarrow as pa
     import pyarrow.csv as pc
 
     rng = np.random.default_rng(0)
     target = mb * 1e6
-    rows_per_chunk = 500_000
+    rows_per_chunk = 100_000
     n = 0
-    with open(path, "wb") as fh:
+    part = path.with_name(path.name + ".part")
+    with open(part, "wb") as fh:
         fh.write(b"# calib benchmark log\ntime,ax,ay,az,gx,gy,gz,temp\n")
         while fh.tell() < target:
             i = np.arange(n, n + rows_per_chunk)
@@ -83,7 +90,20 @@ def write_log(path: Path, mb: float, rate: float = 1000.0) -> int:
             pc.write_csv(pa.table(cols), fh, write_options=pc.WriteOptions(include_header=False,
                                                                            quoting_style="none"))
             n += rows_per_chunk
+    part.replace(path)
     return n
+
+
+def cached_log(directory: Path, mb: float) -> tuple[Path, int]:
+    """The log of ``mb`` MB in ``directory``, written on the first run only."""
+    log = directory / f"log_{mb:g}MB_v2.csv"
+    rows_file = log.with_suffix(".rows")
+    if log.exists() and rows_file.exists():
+        return log, int(rows_file.read_text())
+    print(f"writing the {mb:g} MB log to {log} (once; later runs reuse it)", flush=True)
+    rows = write_log(log, mb)
+    rows_file.write_text(str(rows))
+    return log, rows
 
 
 def measure(cmd: list[str]) -> tuple[float, float, float]:
@@ -106,45 +126,48 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="100,1000", help="log sizes, MB, comma separated")
     ap.add_argument("--repeat", type=int, default=3, help="runs per figure (median)")
-    ap.add_argument("--dir", help="where to write the logs (default: a temporary directory)")
+    ap.add_argument("--repeat-large", type=int, default=1,
+                    help="runs per figure for logs over 200 MB")
+    ap.add_argument("--dir", help="where the logs are written once and kept "
+                                  "(default: $TMPDIR/calib-bench-import)")
     ap.add_argument("--no-text", action="store_true", help="skip calib import text")
     a = ap.parse_args(argv)
-    tmp = Path(a.dir or tempfile.mkdtemp(prefix="calib-bench-import-"))
+    tmp = Path(a.dir or Path(tempfile.gettempdir()) / "calib-bench-import")
     tmp.mkdir(parents=True, exist_ok=True)
     py = sys.executable
+    work = Path(tempfile.mkdtemp(prefix="calib-bench-import-", dir=tmp))
     try:
-        plan = tmp / "plan.toml"
+        plan = work / "plan.toml"
         plan.write_text(PLAN)
-        base_py = tmp / "baseline.py"
+        base_py = work / "baseline.py"
         base_py.write_text(BASELINE)
         print(f"{'log':>8s} {'rows':>10s} {'reader':28s} {'time s':>8s} {'cpu s':>7s} "
               f"{'peak MB':>8s} {'x time':>7s} {'x cpu':>6s} {'x mem':>6s}")
         for mb in [float(s) for s in a.sizes.split(",") if s]:
-            log = tmp / f"log_{mb:g}MB.csv"
-            rows = write_log(log, mb)
+            log, rows = cached_log(tmp, mb)
             size = os.path.getsize(log) / 1e6
-            out = tmp / "raw.h5"
+            out = work / "raw.h5"
             runs = {"pyarrow open_csv -> float64": [py, str(base_py), str(log)],
                     "calib import csv": [py, "-m", "calib_cli", "-q", "import", "csv", str(log),
                                          "--plan", str(plan), "--out", str(out)]}
             if not a.no_text:
                 runs["calib import text"] = [py, "-m", "calib_cli", "-q", "import", "text",
                                              str(log), "--plan", str(plan), "--out", str(out)]
-            res = {}
-            for name, cmd in runs.items():
-                if name.startswith("calib import text") and mb > 200:
-                    continue  # the text reader is not streaming: 100 MB case only
-                ms = [measure(cmd) for _ in range(a.repeat if mb <= 200 else 1)]
-                res[name] = (statistics.median(m[0] for m in ms), max(m[1] for m in ms),
-                             statistics.median(m[2] for m in ms))
+            ms: dict[str, list] = {name: [] for name in runs}
+            load0 = os.getloadavg()[0]
+            for _ in range(a.repeat if mb <= 200 else a.repeat_large):
+                for name, cmd in runs.items():  # interleaved: the load changes alike for all
+                    ms[name].append(measure(cmd))
+            res = {name: (statistics.median(m[0] for m in v), max(m[1] for m in v),
+                          statistics.median(m[2] for m in v)) for name, v in ms.items()}
             bt, bm, bc = res["pyarrow open_csv -> float64"]
             for name, (t, m, c) in res.items():
                 print(f"{size:7.0f}M {rows:10d} {name:28s} {t:8.2f} {c:7.2f} {m:8.0f} "
                       f"{t / bt:7.2f} {c / bc:6.2f} {m / bm:6.2f}", flush=True)
-            log.unlink()
+            print(f"{'':8s} load average {load0:.1f} -> {os.getloadavg()[0]:.1f} on "
+                  f"{os.cpu_count()} CPUs", flush=True)
     finally:
-        if not a.dir:
-            shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":

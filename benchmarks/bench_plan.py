@@ -45,7 +45,7 @@ def _real_fit(method, rec):
 
 
 def main() -> None:
-    from calib_cli.methods import design
+    from calib_cli import design
     from calib_cli.sim.simulate import simulate
 
     print(f"{'plan':20s} {'check s':>8s} {'sim s':>7s} {'fit s':>7s} {'check/fit':>9s}")

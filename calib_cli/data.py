@@ -7,8 +7,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from calib_cli.model.earth import Site
-from calib_cli.model.effects import Layout
+from calib_cli.geometry import Layout, Site
 
 SI_UNITS = {"accel": "m/s^2", "gyro": "rad/s"}
 SAMPLE_KINDS = ("instant", "interval-mean")

@@ -82,3 +82,49 @@ class OutputError(CalibError):
     error, raised before anything is written)."""
 
     exit_code = 2
+
+
+class CalibWarning(UserWarning):
+    """Something the user should know that does not stop the step (an unused key,
+    a skipped damaged file). The CLI prints it as one line ``calib: warning: ...``
+    (not with -q); a library user gets it through Python's ``warnings``."""
+
+
+_warning_sink = None  # set per thread/task by warnings_to(); a ContextVar, made on first use
+
+
+def _sink_var():
+    global _warning_sink
+    if _warning_sink is None:
+        import contextvars
+
+        _warning_sink = contextvars.ContextVar("calib_warning_sink", default=None)
+    return _warning_sink
+
+
+def warn(line: str) -> None:
+    """Report a warning line from the core: to the sink of the running context
+    (the CLI's printer, a batch step's collector), else as a ``CalibWarning``."""
+    sink = _sink_var().get()
+    if sink is None:
+        import warnings
+
+        warnings.warn(line, CalibWarning, stacklevel=3)
+    else:
+        sink(line)
+
+
+class warnings_to:
+    """``with warnings_to(fn):`` send warn() lines of this thread/task to fn(line)
+    (fn = None: drop them). Context-local, so parallel batch chains do not share it."""
+
+    def __init__(self, sink):
+        self.sink = sink if sink is not None else (lambda line: None)
+
+    def __enter__(self):
+        self._token = _sink_var().set(self.sink)
+        return self
+
+    def __exit__(self, *exc):
+        _sink_var().reset(self._token)
+        return False

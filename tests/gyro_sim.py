@@ -74,7 +74,7 @@ def hand_placed(seed: int):
 def normalized_errors_hand(res, tr) -> np.ndarray:
     """As normalized_errors, with the truth expressed in the frame the
     accelerometers fix (truth accel K = L Q: G and D in that frame are G Q^T, D Q^T)."""
-    from calib_cli.validate_datasets import lower_times_rotation
+    from calib_cli.validation.validate_datasets import lower_times_rotation
 
     _, Q = lower_times_rotation(tr.params["accel_K"])
     want = {"gyro_bias": tr.params["gyro_bias"], "gyro_K": tr.params["gyro_K"] @ Q.T,

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from calib_cli import design
 from calib_cli.io.plan import parse_plan
-from calib_cli.methods import design
 from calib_cli.sim import plan_make as pm
 from calib_cli.sim.simulate import plan_layout, simulate
 from calib_cli.sim.truth import load_truth

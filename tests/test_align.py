@@ -15,8 +15,8 @@ from calib_cli.model import kinematics as kn
 from calib_cli.model.earth import Site
 from calib_cli.model.frames import attitude_to_rotation
 from calib_cli.model.strapdown import integrate_relative
-from calib_cli.sim import align_cases as ac
 from calib_cli.sim.simulate import simulate
+from calib_cli.validation import align_cases as ac
 
 D2R = np.pi / 180
 

@@ -11,7 +11,7 @@ import pytest
 
 from calib_cli.methods.align import fit_align
 from calib_cli.methods.align_classic import fit_classic
-from calib_cli.sim import align_cases as ac
+from calib_cli.validation import align_cases as ac
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "align.md"
 N_SEEDS = 200

@@ -11,8 +11,8 @@ import pytest
 
 from calib_cli.errors import EstimationError
 from calib_cli.methods.align_static import COND_MAX, fit_align_static
-from calib_cli.sim import align_cases as ac
 from calib_cli.sim.simulate import simulate
+from calib_cli.validation import align_cases as ac
 
 
 def _run(args):

@@ -13,7 +13,7 @@ import pytest
 
 from calib_cli.methods.align import fit_align
 from calib_cli.methods.align_static import fit_align_static
-from calib_cli.sim import align_cases as ac
+from calib_cli.validation import align_cases as ac
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "align.md"
 N_SEEDS = 20

@@ -13,10 +13,10 @@ import h5py
 import numpy as np
 import pytest
 
-from calib_cli.batch.archive import make_archive, scalar_plan, unit_serial, write_recording
 from calib_cli.batch.paths import discover, inside, output_key
 from calib_cli.cli.main import main
 from calib_cli.errors import InputError
+from calib_cli.validation.archive import make_archive, scalar_plan, unit_serial, write_recording
 
 
 def run_cli(*args) -> tuple[int, str, str]:

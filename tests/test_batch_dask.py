@@ -16,8 +16,8 @@ import contextlib  # noqa: E402
 import io  # noqa: E402
 import json  # noqa: E402
 
-from calib_cli.batch.archive import make_archive  # noqa: E402
 from calib_cli.cli.main import main  # noqa: E402
+from calib_cli.validation.archive import make_archive  # noqa: E402
 
 
 def run_cli(*args) -> tuple[int, str, str]:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib_cli import validate_datasets as vd
+from calib_cli.validation import validate_datasets as vd
 
 ROOT = Path(os.environ.get("CALIB_DATASETS",
                            Path(__file__).resolve().parents[2] / "shared" / "datasets"))

@@ -239,3 +239,66 @@ def test_stream_import_rotating_plan_same_segments(tmp_path, fast):
     assert [(s.kind, s.start, s.stop) for s in got.segments] == \
         [(s.kind, s.start, s.stop) for s in ref.segments]
     assert [s.kind for s in got.segments] == ["rotating"] * 3
+
+
+TEXT_LAYOUTS = [  # (columns of the file, header, separator, import_text options)
+    (lambda s: [s.time * 1e3, np.degrees(s.gyro), s.accel / 9.80665],
+     ["ms", "Gx", "Gy", "Gz", "Ax", "Ay", "Az"], ",",
+     dict(columns="time=ms,ax=Ax,ay=Ay,az=Az,gx=Gx,gy=Gy,gz=Gz", accel_units="g",
+          gyro_units="deg/s", time_unit="ms")),
+    (lambda s: [s.time, s.accel, s.gyro], None, ";", {}),
+    (lambda s: [s.accel, s.gyro], None, "\t", dict(rate=100.0)),
+    (lambda s: [np.arange(len(s.time)), s.accel, s.gyro, 20 + s.time * 0.01],
+     ["sample", "acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z", "temperature"], ",",
+     dict(rate=100.0)),
+]
+
+
+@pytest.mark.skipif(not have_pyarrow(), reason="the streamed text reader needs pyarrow")
+@pytest.mark.parametrize("layout", range(len(TEXT_LAYOUTS)))
+def test_text_streamed_equals_in_memory(tmp_path, sim, layout, monkeypatch):
+    """import text: a single delimited file goes through the streaming pipeline
+    and gives the in-memory import's samples, units and segments."""
+    from calib_cli.io import textlog
+    from calib_cli.io.textlog import import_text, import_text_to_raw
+
+    cols, header, sep, kw = TEXT_LAYOUTS[layout]
+    p = tmp_path / "log.txt"
+    with open(p, "w") as fh:
+        fh.write("# a comment before the header\n")
+        if header:
+            fh.write(sep.join(header) + "\n")
+        np.savetxt(fh, np.column_stack(cols(sim)), delimiter=sep, fmt="%.9g")
+    plan = parse_plan(sim.plan_text)
+    ref = import_text(p, plan, **kw)
+    called = []
+    real = textlog.import_text
+    monkeypatch.setattr(textlog, "import_text", lambda *a, **k: called.append(1) or real(*a, **k))
+    n, units, segs = import_text_to_raw(tmp_path / "raw.h5", p, plan, inputs=[p], **kw)
+    assert not called  # streamed, not the in-memory path
+    got = read_raw(tmp_path / "raw.h5")
+    assert n == len(ref) and units == ref.units
+    assert np.array_equal(got.time, ref.time) and np.array_equal(got.accel, ref.accel)
+    assert np.array_equal(got.gyro, ref.gyro)
+    assert (got.temp is None) == (ref.temp is None)
+    if ref.temp is not None:
+        assert np.array_equal(got.temp, ref.temp)
+    assert [(s.label, s.start, s.stop) for s in got.segments] == \
+        [(s.label, s.start, s.stop) for s in ref.segments]
+
+
+@pytest.mark.parametrize("body,match", [
+    ("time,ax,ay,az\n0,1,2,3\n0.01,1,x,3\n", "line 3, column 'ay': not a number"),
+    ("time,ax,ay,az\n0,1,2,3\n# c\n0.01,1,2\n", "line 4: 3 cells, expected 4"),
+    ("time,ax,ay,az\n0.02,1,2,3\n0.01,1,2,3\n", "time is not increasing at line 3"),
+    ("time,ax,ay,az\n", "no data rows"),
+])
+def test_text_streamed_errors_from_the_in_memory_path(tmp_path, body, match):
+    from calib_cli.io.textlog import import_text_to_raw
+
+    p = tmp_path / "bad.csv"
+    p.write_text(body)
+    with pytest.raises(InputError, match=match):
+        import_text_to_raw(tmp_path / "raw.h5", p, parse_plan(
+            'name = "h"\nkind = "static"\n[[segment]]\nlabel = "pos"\nrepeat = "auto"\n'))
+    assert not (tmp_path / "raw.h5").exists()

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
+from calib_cli import design
 from calib_cli.io.plan import parse_plan
-from calib_cli.methods import design
 from calib_cli.sim import plan_make as pm
 from calib_cli.sim.simulate import simulate
 from tests import plan_cases as pc

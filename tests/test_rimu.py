@@ -22,8 +22,8 @@ from calib_cli.methods.rimu import (
     segment_kinematics,
 )
 from calib_cli.model.effects import Layout
-from calib_cli.sim.rimu_truth import rimu_truth
 from calib_cli.sim.simulate import plan_layout, simulate
+from calib_cli.validation.rimu_truth import rimu_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 PLAN = ROOT / "sample_data" / "rimu_six_position.toml"

@@ -14,8 +14,8 @@ from calib_cli.io.plan import parse_plan
 from calib_cli.methods.rimu import _wrap, fit_rimu
 from calib_cli.methods.rimu_fdi import noise_sigma, parity_check, parity_matrix
 from calib_cli.model.effects import Layout
-from calib_cli.sim.rimu_truth import rimu_truth
 from calib_cli.sim.simulate import plan_layout, simulate
+from calib_cli.validation.rimu_truth import rimu_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 SEGMENTS = ROOT.joinpath("sample_data", "rimu_six_position.toml").read_text().split(

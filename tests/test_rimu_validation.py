@@ -11,8 +11,8 @@ import pytest
 
 from calib_cli.io.plan import load_plan
 from calib_cli.methods.rimu import _wrap, body_error_rms, fit_rimu
-from calib_cli.sim.rimu_truth import rimu_truth
 from calib_cli.sim.simulate import plan_layout, simulate
+from calib_cli.validation.rimu_truth import rimu_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 PLAN = ROOT / "sample_data" / "rimu_six_position.toml"

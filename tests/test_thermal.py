@@ -20,9 +20,9 @@ from calib_cli.methods.thermal import fit_thermal
 from calib_cli.model.effects import Layout, lag_temperature, make_effect, temp_poly
 from calib_cli.model.imu_model import ImuModel
 from calib_cli.model.kinematics import Kinematics
-from calib_cli.sim import thermal_cases as TC
 from calib_cli.sim.simulate import simulate
 from calib_cli.sim.truth import effect_from_description
+from calib_cli.validation import thermal_cases as TC
 
 KEYS = ("accel_bias", "accel_K", "accel_temp_bias", "accel_temp_scale", "gyro_bias",
         "gyro_temp_bias")
@@ -180,7 +180,11 @@ def test_cli_fit_show_apply(thermal_files):
     g = read_raw(d / "hold.h5").site.gravity
     err = np.array([v - g for k, v in corrected_norms(d / "corr.h5").items()
                     if not k.startswith("soak")])
-    assert np.sqrt(np.mean(err ** 2)) < 1e-4  # m/s^2: 10 ug (the raw error is several mg)
+    # the raw error is several mg; each 10 s hold at 10 Hz averages 100 samples of
+    # 1e-3 m/s^2 white noise, so its |f| carries ~1e-4 m/s^2 of noise by itself: the RMS
+    # over the 12 holds is within 2.5 x that (the old bound, 1e-4, sat at the noise level
+    # and passed or failed with the noise realisation)
+    assert np.sqrt(np.mean(err ** 2)) < 2.5e-4
 
 
 def test_apply_refusals(thermal_files, capsys):
@@ -237,6 +241,8 @@ def test_c_header_matches_apply(thermal_files, single):
                          check=True).stdout
     got = np.array([[float(x) for x in ln.split()] for ln in out.splitlines()])
     ref = ref[idx]
+    print("C header vs apply:", "float rel" if single else "double abs",
+          np.max(np.abs(got - ref) / (np.abs(ref).max(axis=0) if single else 1.0)))
     if single:
         scale = np.abs(ref).max(axis=0)
         assert np.max(np.abs(got - ref) / scale) < 1e-5
@@ -324,3 +330,138 @@ def test_one_temperature_is_exit_4(tmp_path, capsys):
     err = _fails(4, "fit", "thermal", tmp_path / "one.h5", "--out", tmp_path / "c.h5",
                  capsys=capsys)
     assert "degC" in err and not (tmp_path / "c.h5").exists()
+
+
+@pytest.mark.parametrize("design,opts", [
+    ("soak", ["--temps", "5", "--soak", "600", "--unit-tau", "120", "--duration", "30"]),
+    ("ramp", ["--ramp-dpm", "4", "--unit-tau", "60", "--duration", "40"])])
+def test_plan_make_thermal_checks_simulates_and_fits(tmp_path, design, opts):
+    """`calib plan make thermal` writes a plan that `plan check` predicts,
+    `simulate` runs and `fit thermal` fits within sigma of the truth; the
+    predicted sigma is the fit's at the same noise (order 2)."""
+    from calib_cli.io.h5 import read_calibration
+    from calib_cli.io.plan import load_plan
+
+    plan = tmp_path / "plan.toml"
+    _cli("plan", "make", "thermal", "--design", design, *opts, "--out", plan)
+    p = load_plan(plan)
+    temps = [s.extra["chamber_temp_degC"] for s in p.segments if "chamber_temp_degC" in s.extra]
+    if design == "soak":
+        assert temps == [-40.0, -8.8, 22.5, 53.8, 85.0] and len(p.segments) == 35
+    else:
+        assert temps == [-40.0, 85.0, -40.0]
+        assert [s.extra.get("chamber_soak", True) for s in p.segments
+                if "chamber_temp_degC" in s.extra] == [True, False, False]
+    r = _cli("plan", "check", plan, "--json", "--no-suggest")
+    pred = json.loads(r.output)
+    assert pred["method"] == "thermal"
+    assert "gyro_temp_scale[0,0]" in pred["unobservable"]
+    tr = TC.thermal_truth(np.random.default_rng(3))
+    rec = simulate(p, tr, seed=3)
+    write_raw(tmp_path / "raw.h5", rec)
+    _cli("fit", "thermal", tmp_path / "raw.h5", "--order", "2", "--out", tmp_path / "cal.h5")
+    res = read_calibration(tmp_path / "cal.h5")
+    _check_within(res, tr)
+    # the prediction at the simulator's noise is the fit's sigma (same design, same order)
+    nz = tr.noise
+    r = _cli("plan", "check", plan, "--json", "--no-suggest", "--accel-noise",
+             nz["accel_white"], "--gyro-noise", nz["gyro_white"])
+    pred = json.loads(r.output)
+    for k in ("accel_bias", "accel_temp_bias", "gyro_temp_bias"):
+        ratio = np.asarray(res.sigma[k]) / np.asarray(pred["sigma"][k])
+        print(design, k, "fit/predicted sigma", np.round(ratio.ravel(), 3))
+        assert np.all((ratio > 0.9) & (ratio < 1.1)), (k, ratio)
+
+
+def test_plan_make_thermal_refusals(capsys):
+    err = _fails(2, "plan", "make", "thermal", "--design", "ramp", "--temp-range", "20,25",
+                 "--out", "x.toml", capsys=capsys)
+    assert "--temp-range must span at least 10 degC" in err
+
+
+def _ap_params(text):
+    import csv
+
+    rows = csv.reader([ln for ln in text.splitlines() if ln and not ln.startswith("#")])
+    return {r[0]: float(r[1]) for r in rows}
+
+
+def _ap_correct(prm, sensor, v, temp, caltemp, m=1):
+    """ArduPilot's TCal::correct_sensor, written out from
+    AP_InertialSensor_tempcal.cpp (TEMP_REFERENCE 35, SCALE_FACTOR 1e6)."""
+    short = {"accel": "ACC", "gyro": "GYR"}[sensor]
+    tmin, tmax = prm[f"INS_TCAL{m}_TMIN"], prm[f"INS_TCAL{m}_TMAX"]
+    c = [np.array([prm[f"INS_TCAL{m}_{short}{k}_{a}"] for a in "XYZ"]) for k in (1, 2, 3)]
+
+    def poly(tdiff):
+        return (c[0] + (c[1] + c[2] * tdiff) * tdiff) * tdiff * 1.0e-6
+
+    t = min(max(temp, tmin), tmax)
+    ct = min(max(caltemp, tmin), tmax)
+    return v - poly(t - 35.0) + poly(ct - 35.0)
+
+
+@pytest.mark.parametrize("float32", [False, True])
+def test_export_ardupilot_tcal_matches_the_bias_drift(thermal_files, float32):
+    """INS_TCAL1_*: ArduPilot's correction (its own formula, clamped to
+    TMIN..TMAX, relative to INS_ACC1_CALTEMP) followed by the offsets removes
+    exactly calib's bias at every temperature of the calibrated range."""
+    from calib_cli.io.h5 import read_calibration
+    from calib_cli.model.effects import temp_poly
+
+    d = thermal_files
+    _cli("export", d / "cal.h5", "--format", "ardupilot", "--out", d / "cal.parm")
+    text = (d / "cal.parm").read_text()
+    prm = _ap_params(text)
+    if float32:  # the autopilot keeps its parameters as float
+        prm = {k: float(np.float32(v)) for k, v in prm.items()}
+    cal = read_calibration(d / "cal.h5")
+    t_ref, (lo, hi) = cal.stats["temp_ref_degC"], cal.stats["temp_range_degC"]
+    assert prm["INS_TCAL1_ENABLE"] == 1 and prm["INS_TCAL1_TMIN"] == pytest.approx(lo, abs=1e-5)
+    assert prm["INS_TCAL1_TMAX"] == pytest.approx(hi, abs=1e-5)
+    assert prm["INS_ACC1_CALTEMP"] == prm["INS_GYR1_CALTEMP"] == t_ref
+    assert all(prm[f"INS_TCAL1_{s}3_{a}"] == 0 for s in ("ACC", "GYR") for a in "XYZ")  # order 2
+    assert "scale terms are not held" in text and "accel_temp_scale" in text
+    assert "accel_temp_bias: temperature terms" not in text  # held, not dropped
+    for sensor, off in (("accel", "INS_ACCOFFS_"), ("gyro", "INS_GYROFFS_")):
+        offs = np.array([prm[off + a] for a in "XYZ"])
+        coef = np.asarray(cal.params[f"{sensor}_temp_bias"])
+        for T in np.linspace(lo, hi, 9):
+            want = cal.params[f"{sensor}_bias"] + temp_poly(coef, np.array([T - t_ref]))[0]
+            got = -(_ap_correct(prm, sensor, np.zeros(3), T, t_ref) - offs)
+            drift = np.abs(temp_poly(coef, np.array([lo - t_ref, hi - t_ref]))).max()
+            tol = 1e-5 * drift + 1e-6 * np.abs(want).max() if float32 else 1e-12 + 1e-9 * drift
+            assert np.all(np.abs(got - want) <= tol), (sensor, T, got - want)
+
+
+def test_ardupilot_reexpansion_about_35():
+    from calib_cli.io.export_autopilot import reexpand
+
+    b = np.array([[1e-3, 2e-5, -3e-7], [0.0, 1e-5, 0.0], [-2e-3, 0.0, 4e-7]])
+    c = reexpand(b, 20.0)
+    T = np.linspace(-40, 85, 11)
+    want = temp_poly(b, T - 20.0)
+    got = np.stack([sum(c[:, j] * (t - 35.0) ** j for j in range(4)) for t in T])
+    assert np.allclose(got, want, rtol=0, atol=1e-12)
+
+
+def test_export_ardupilot_tref_outside_the_range(thermal_files):
+    """T_ref above TMAX: ArduPilot would clamp CALTEMP, so CALTEMP is TMAX and the
+    offsets are calib's biases at TMAX; the correction is still exact."""
+    from calib_cli.io.h5 import read_calibration
+    from calib_cli.model.effects import temp_poly
+
+    d = thermal_files
+    _cli("fit", "thermal", d / "raw.h5", "--order", "2", "--temp-ref", "80",
+         "--out", d / "cal80.h5")
+    r = _cli("export", d / "cal80.h5", "--format", "ardupilot")
+    prm = _ap_params(r.output)
+    cal = read_calibration(d / "cal80.h5")
+    lo, hi = cal.stats["temp_range_degC"]
+    assert prm["INS_ACC1_CALTEMP"] == pytest.approx(hi) and hi < 80
+    offs = np.array([prm["INS_ACCOFFS_" + a] for a in "XYZ"])
+    for T in np.linspace(lo, hi, 5):
+        want = cal.params["accel_bias"] + temp_poly(cal.params["accel_temp_bias"],
+                                                    np.array([T - 80.0]))[0]
+        got = -(_ap_correct(prm, "accel", np.zeros(3), T, prm["INS_ACC1_CALTEMP"]) - offs)
+        assert np.allclose(got, want, rtol=0, atol=1e-10)

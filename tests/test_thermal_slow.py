@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib_cli.sim import thermal_validate as V
+from calib_cli.validation import thermal_validate as V
 
 pytestmark = pytest.mark.slow
 N = int(os.environ.get("CALIB_THERMAL_N", "20"))

@@ -58,7 +58,7 @@ def test_table_encoder_angle_channel():
             + profile_plan_text(3, "trapezoid-100", duration_s=300.0))
     rec = simulate(parse_plan(text), None, 3)
     truth = rec.truth["params"]
-    enc = fit_turntable(rec, TurntableOptions())
+    enc = fit_turntable(rec, TurntableOptions(table_encoder="angle"))
     imu = fit_turntable(rec, TurntableOptions(table_encoder="off"))
     assert enc.stats["table_encoder"]["mode"] == "angle"
     for k, s in imu.sigma.items():
@@ -68,8 +68,21 @@ def test_table_encoder_angle_channel():
     assert max(float(np.abs(v).max()) for v in z.values()) < 4.5
     opr = np.hypot(*enc.stats["table_encoder"]["once_per_rev_mrad"])
     assert abs(opr - np.radians(0.05) * 1e3) < 0.02
+    # auto: both channels; the rate channel's 2e-3 scale error found within its sigma,
+    # every sigma at or below the angle-only one
+    both = fit_turntable(rec, TurntableOptions())
+    te = both.stats["table_encoder"]
+    assert te["mode"] == "both"
+    assert abs(te["rate_scale_error"] - 2e-3) < 4 * te["rate_scale_error_sigma"]
+    assert 0.8 < te["rate_normalized_innovation_rms"] < 1.2
+    for k, s in enc.sigma.items():
+        m = np.isfinite(s) & (s > 0)
+        assert np.all(both.sigma[k][m] <= s[m] * 1.0001), k
+    z = normalized_errors(both, truth)
+    assert max(float(np.abs(v).max()) for v in z.values()) < 4.5
     # the generator's default table channel is the nominal profile: not an encoder
     rec2, _ = profile_record(3, "trapezoid-100", duration_s=200.0, wobble=True, wide=False)
     res = fit_turntable(rec2, TurntableOptions())
     assert res.stats["table_encoder"]["mode"] == "off"
     assert "does not follow the gyros" in res.stats["table_encoder"]["notes"][0]
+    assert any("table rate does not follow" in n for n in res.stats["table_encoder"]["notes"])

@@ -1,7 +1,8 @@
 """A virtual IMU (and turntable) speaking a profile's protocol over a pty or CAN.
 
 The unit's motion comes from ``model.kinematics`` and its outputs from the
-truth model (``ImuModel.predict`` plus white noise, as ``sim/`` does), so a
+truth model (``ImuModel.predict`` plus the noise effects' seeded realisation,
+exactly as ``sim/`` does: ``Emulator.samples``), so a
 recording of the emulator can be fitted and compared with the truth. The
 virtual table obeys the commands of a table profile and moves the unit.
 
@@ -30,11 +31,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calib_cli.acquire.profile import ImuProfile, TableProfile
+from calib_cli.errors import InputError
 from calib_cli.model import kinematics as kn
 from calib_cli.model.earth import Site
 from calib_cli.model.effects import Layout
 from calib_cli.model.frames import attitude_to_rotation, rotation_to_attitude
-from calib_cli.sim.truth import Truth, default_truth
+from calib_cli.model.truth import Truth, default_truth
 
 D2R = np.pi / 180.0
 NP_TYPES = {"u8": "u1", "i8": "i1", "u16": "u2", "i16": "i2", "u32": "u4", "i32": "i4",
@@ -319,6 +321,120 @@ class VirtualTable:
 
 
 # ---------------------------------------------------------------------------
+# the virtual climatic chamber (issue 21)
+
+
+class ChamberPhysics:
+    """The chamber air moves towards the setpoint at its ramp rate (the rate
+    commanded, at most the profile's ``max_ramp_dpm``; 5 degC/min when
+    neither is given), and the unit follows the air with a first-order
+    response of time constant ``tau`` (s): exact per sample for the air
+    constant over a sample period. The unit starts soaked at ``start``."""
+
+    def __init__(self, start: float, tau: float, max_ramp_dpm: float | None, fs: float):
+        self.air = self.unit = self.setpoint = float(start)
+        self.tau, self.fs = max(float(tau), 1e-9), fs
+        self.max_rate = max_ramp_dpm
+        self.rate = max_ramp_dpm or 5.0  # degC/min
+
+    def set_rate(self, dpm: float) -> None:
+        self.rate = min(abs(float(dpm)), self.max_rate) if self.max_rate else abs(float(dpm))
+
+    def advance(self, n: int) -> np.ndarray:
+        """The unit's temperature at the next n samples."""
+        from scipy.signal import lfilter
+
+        step = self.rate / 60.0 / self.fs
+        gap = self.setpoint - self.air
+        air = self.air + np.sign(gap) * np.minimum(step * np.arange(1, n + 1), abs(gap))
+        a = np.exp(-1.0 / (self.fs * self.tau))
+        unit, _ = lfilter([1.0 - a], [1.0, -a], air, zi=[a * self.unit])
+        self.air, self.unit = float(air[-1]), float(unit[-1])
+        return unit
+
+
+class VirtualChamber:
+    """Answers a chamber profile's protocol: SCPI-style lines (the profile's
+    command templates and reply templates) or Modbus RTU frames (a slave
+    with the profile's registers; a frame with a bad CRC gets no reply)."""
+
+    def __init__(self, prof, phys: ChamberPhysics):
+        self.prof, self.phys = prof, phys
+        self.inbuf = b""
+        self.log: list = []
+        if prof.kind == "scpi":
+            self.patterns = {k: _template_regex(v) for k, v in prof.commands.items()}
+
+    def feed(self, data: bytes) -> bytes:
+        self.inbuf += data
+        return self._scpi() if self.prof.kind == "scpi" else self._modbus()
+
+    def _reply(self, name: str, **kw) -> bytes:
+        tpl = self.prof.replies.get(name, {"ack": "OK", "error": "ERR",
+                                           "temp": "{temp_degC:.2f}"}.get(name, ""))
+        return (tpl.format(**kw) + self.prof.terminator).encode()
+
+    def _scpi(self) -> bytes:
+        out = b""
+        while True:
+            m = re.search(rb"\r\n|\r|\n", self.inbuf)
+            if not m:
+                return out
+            line = self.inbuf[:m.start()].decode("ascii", "replace").strip()
+            self.inbuf = self.inbuf[m.end():]
+            if not line:
+                continue
+            self.log.append(line)
+            for name, pat in self.patterns.items():
+                mm = pat.match(line)
+                if not mm:
+                    continue
+                vals = {k: float(v) for k, v in mm.groupdict().items()}
+                if name == "set_temp":
+                    self.phys.setpoint = vals["temp_degC"]
+                elif name == "set_ramp":
+                    self.phys.set_rate(vals["rate_dpm"])
+                elif name == "query_temp":
+                    out += self._reply("temp", temp_degC=self.phys.air)
+                    break
+                out += self._reply("ack")
+                break
+            else:
+                out += self._reply("error")
+
+    def _modbus(self) -> bytes:
+        from calib_cli.acquire import modbus
+
+        mb = self.prof.modbus
+        out = b""
+        while len(self.inbuf) >= 8:
+            fr, self.inbuf = self.inbuf[:8], self.inbuf[8:]
+            if not modbus.check(fr) or fr[0] != int(mb["slave"]):
+                self.log.append(("bad", fr.hex()))
+                self.inbuf = b""  # resynchronise on the next request
+                continue
+            fn, addr = fr[1], int.from_bytes(fr[2:4], "big")
+            val = int.from_bytes(fr[4:6], "big")
+            self.log.append((fn, addr, val))
+            scale = float(mb["scale_degC"])
+            signed = mb.get("signed", True)
+            if fn == modbus.WRITE_SINGLE and addr == int(mb["setpoint_register"]):
+                self.phys.setpoint = (modbus.to_signed(val) if signed else val) * scale
+                out += fr
+            elif fn == modbus.WRITE_SINGLE and addr == mb.get("ramp_register"):
+                self.phys.set_rate(val * float(mb["ramp_scale_dpm"]))
+                out += fr
+            elif fn == int(mb.get("temp_function", 3)) and addr == int(mb["temp_register"]) \
+                    and val == 1:
+                c = int(round(self.phys.air / scale)) & 0xFFFF
+                out += modbus.frame(fr[0], fn, bytes([2]) + c.to_bytes(2, "big"))
+            else:
+                code = 1 if fn not in (3, 4, 6) else 2
+                out += modbus.frame(fr[0], fn | 0x80, bytes([code]))
+        return out
+
+
+# ---------------------------------------------------------------------------
 # pseudo-terminals
 
 
@@ -421,14 +537,14 @@ class Emulator:
                  faults: Faults | None = None, seed: int = 0, layout: Layout | None = None,
                  attitude_deg=(0.0, 0.0, 0.0), temp_c: float = 25.0, link_dir: str | None = None,
                  can_interface: str = "virtual", can_channel: str | None = None,
-                 chunk_s: float = 0.005):
+                 chunk_s: float = 0.005, chamber=None, chamber_tau: float = 300.0):
         site = site or Site()
         layout = layout or Layout()
         self.prof, self.site = prof, site
         self.fs = float(rate or prof.rate_hz)
         self.rng = np.random.default_rng(seed)
         self.seed = seed
-        self._noise_cache: dict = {}
+        self._noise, self._noise_k = None, 0  # the truth's noise realisation, next sample
         self.truth = truth or default_truth(layout, self.rng)
         self.faults = faults or Faults()
         self.frng = np.random.default_rng(self.faults.seed)
@@ -462,50 +578,55 @@ class Emulator:
         if self.table is not None:
             self.table_port = PtyPort(os.path.join(self.dir, "table"))
             self.paths["table"] = self.table_port.link
+        # a climatic chamber: the unit's temperature follows it (temp_c is the start)
+        self.chamber = self.chamber_port = None
+        if chamber is not None and chamber.kind != "manual":
+            if self.truth.model.has("thermal_lag"):
+                raise InputError("the emulator does not model thermal_lag (the truth file has "
+                                 "it); leave it out", chamber.path)
+            self.chamber_phys = ChamberPhysics(temp_c, chamber_tau, chamber.max_ramp_dpm, self.fs)
+            self.chamber = VirtualChamber(chamber, self.chamber_phys)
+            self.chamber_port = PtyPort(os.path.join(self.dir, "chamber"))
+            self.paths["chamber"] = self.chamber_port.link
         self._disc = None  # (k_start, k_end) of the disconnect
 
     # -- values of one chunk -------------------------------------------------
-    NOISE_BLOCK = 4096
-
-    def _noise(self, sensor: str, k0: int, n: int, dim: int) -> np.ndarray:
-        """Unit white noise for samples k0..k0+n-1, a function of the sample
-        index alone (blocks seeded by (seed, sensor, block)), so a run is
-        reproducible whatever the chunking of the real-time loop."""
-        B = self.NOISE_BLOCK
-        out = np.empty((n, dim))
-        k = k0
-        while k < k0 + n:
-            b = k // B
-            key = (sensor, b)
-            if self._noise_cache.get(sensor, (None,))[0] != key:
-                rng = np.random.default_rng([self.seed, 0 if sensor == "accel" else 1, b])
-                self._noise_cache[sensor] = (key, rng.standard_normal((B, dim)))
-            blk = self._noise_cache[sensor][1]
-            a = k - b * B
-            m = min(B - a, k0 + n - k)
-            out[k - k0:k - k0 + m] = blk[a:a + m]
-            k += m
-        return out
+    def samples(self, k0: int, n: int, temp: np.ndarray | None = None) -> dict:
+        """The generator: SI outputs {"accel": (n, ns), "gyro": (n, ns)} of samples
+        k0..k0+n-1 (in order; the noise realisation is stateful). The truth's noise
+        (white, bias random walk, flicker) is realised by the model's effects with the
+        seed, exactly as ``calib simulate`` does: the same truth and seed give the same
+        samples bit for bit (tests/test_noise_effects.py). ``temp`` (n,) degC: the unit's
+        temperature (a chamber's), else the constant start temperature."""
+        if self._noise is None or k0 != self._noise_k:
+            if k0 != 0:
+                raise ValueError(f"samples are generated in order: next is {self._noise_k}, "
+                                 f"asked for {k0}")
+            model, params = self.truth.noise_model()
+            self._noise = model.noise_realisation(params, self.fs, self.seed)
+        if temp is None:
+            temp = np.full(n, self.temp_c)
+        kin = self.unit.kinematics(k0, n).with_(temp=temp)
+        out = self.truth.model.predict(self.truth.params, kin)
+        noise = self._noise.next(kin)
+        self._noise_k = k0 + n
+        return {s: out[s] + noise[s] for s in ("accel", "gyro")}
 
     def _values(self, k0: int, n: int) -> dict:
-        kin = self.unit.kinematics(k0, n).with_(temp=np.full(n, self.temp_c))
-        out = self.truth.model.predict(self.truth.params, kin)
+        temp = self.chamber_phys.advance(n) if self.chamber is not None else np.full(n, self.temp_c)
+        ys = self.samples(k0, n, temp)
         p = self.prof
         vals = {}
         names = list(p.channels)
         nsens = self.truth.model.layout.n
         for s in ("accel", "gyro"):
-            white = np.asarray(self.truth.noise.get(f"{s}_white", 0.0), dtype=float)
-            if f"{s}_white_density" in self.truth.noise:
-                white = np.asarray(self.truth.noise[f"{s}_white_density"], float) * \
-                    np.sqrt(self.fs)
-            y = out[s] + self._noise(s, k0, n, out[s].shape[1]) * white
+            y = ys[s]
             chan = (["ax", "ay", "az"] if s == "accel" else ["gx", "gy", "gz"]) \
                 if not p.redundant else [f"{s[0]}{i}" for i in range(nsens)]
             for j, c in enumerate(chan):
                 vals[c] = y[:, j]
         if "temp" in names:
-            vals["temp"] = np.full(n, self.temp_c)
+            vals["temp"] = temp
         fields = {f.name: f for f in p.all_fields()}
         raw = {c: vals[c] / fields[c].factor for c in names}
         ks = k0 + np.arange(n)
@@ -590,6 +711,11 @@ class Emulator:
                     rep = self.table.feed(data, self.k)
                     self.table_port.write(rep)
                 self.table_port.pump()
+            if self.chamber_port is not None:
+                data = self.chamber_port.read()
+                if data:
+                    self.chamber_port.write(self.chamber.feed(data))
+                self.chamber_port.pump()
             if f.disconnect_at is not None and self.imu_port is not None:
                 if self._disc is None and now >= f.disconnect_at:
                     k1 = self.k + int(round(f.disconnect_for * self.fs))
@@ -617,7 +743,7 @@ class Emulator:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(5)
-        for p in (self.imu_port, self.table_port):
+        for p in (self.imu_port, self.table_port, self.chamber_port):
             if p is not None:
                 p.close()
         if self.bus is not None:

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calib_cli.acquire.chamber import soak_segment
 from calib_cli.acquire.codec import SampleStream, make_decoder
 from calib_cli.acquire.journal import META_COLS, JournalWriter, read_journal
 from calib_cli.acquire.profile import ImuProfile
@@ -28,7 +29,7 @@ from calib_cli.errors import InputError
 from calib_cli.io.csvlog import segments_from_column
 from calib_cli.io.plan import Plan, parse_plan
 from calib_cli.model.effects import Layout
-from calib_cli.sim.simulate import plan_layout
+from calib_cli.plan import plan_layout
 
 
 @dataclass
@@ -99,6 +100,9 @@ class Session:
         self.no_data_s: float | None = None  # no valid frame this long after start: stop
         self.gravity_tol_deg: float | None = None  # position check against attitude_deg
         self._t_open: float | None = None
+        # climatic chamber (issue 21, acquire/chamber.py); the CLI sets them
+        self.chamber = None
+        self.chamber_profile = None
 
     # -- reader thread -------------------------------------------------------
     def _read_loop(self) -> None:
@@ -333,6 +337,7 @@ class Session:
                 current_att = seg.attitude
             elif manual:
                 table.move(None, seg.label)
+            soak_segment(self, seg)  # a chamber setpoint: wait for the soak
             if kind == "static":
                 self.wait_settled()
                 self._check_gravity(seg, table, manual)

@@ -68,11 +68,9 @@ def scan(directory, serial: str | None = None) -> list[CalEntry]:
             try:
                 c = read_calibration(p)
             except InputError as exc:  # one damaged file must not fail every unit's check
-                from calib_cli.cli.common import Ctx, err_console
+                from calib_cli.errors import warn
 
-                if not Ctx.quiet:
-                    err_console.print(f"calib: warning: skipped {exc.line()}", markup=False,
-                                      soft_wrap=True)
+                warn(f"skipped {exc.line()}")
                 continue
             out.append(CalEntry(str(p), p.relative_to(root).as_posix(), ser, c.method, rec, cre,
                                 c.params, c.sigma, c.units))

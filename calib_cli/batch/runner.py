@@ -20,7 +20,6 @@ import contextlib
 import fcntl
 import json
 import os
-import threading
 import time
 import uuid
 from datetime import datetime, timezone
@@ -100,28 +99,13 @@ def _serial_of(path: str) -> str | None:
     return _attr_of(path, "unit_serial")
 
 
-_quiet_lock = threading.Lock()
-_quiet_depth = [0, False]  # chains running in this process, saved Ctx.quiet
-
-
-@contextlib.contextmanager
 def _quiet_cli():
-    """Silence the CLI helpers the steps reuse while any chain runs here
-    (Dask workers may run several chains in threads of one process)."""
-    from calib_cli.cli.common import Ctx
+    """The core's warning lines (errors.warn) are dropped while a chain runs: the
+    batch report carries each input's outcome. Context-local (errors.warnings_to),
+    so chains in threads of one Dask worker do not share a flag."""
+    from calib_cli.errors import warnings_to
 
-    with _quiet_lock:
-        if _quiet_depth[0] == 0:
-            _quiet_depth[1] = Ctx.quiet
-            Ctx.quiet = True
-        _quiet_depth[0] += 1
-    try:
-        yield
-    finally:
-        with _quiet_lock:
-            _quiet_depth[0] -= 1
-            if _quiet_depth[0] == 0:
-                Ctx.quiet = _quiet_depth[1]
+    return warnings_to(None)
 
 
 def run_chain(task: dict) -> dict:
@@ -259,8 +243,8 @@ def _preload(task: dict) -> None:
             s.definition().function()
     with contextlib.suppress(Exception):
         import calib_cli.batch.steps  # noqa: F401
-        import calib_cli.cli.cmd_apply  # noqa: F401
-        import calib_cli.cli.cmd_show  # noqa: F401
+        import calib_cli.io.apply_file  # noqa: F401
+        import calib_cli.io.contract_json  # noqa: F401
         import calib_cli.io.csvlog  # noqa: F401
         import calib_cli.io.h5  # noqa: F401
 

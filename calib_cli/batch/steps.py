@@ -22,91 +22,68 @@ def import_step(run: StepRun) -> None:
 
 
 def fit_step(run: StepRun, fn) -> None:
-    """raw.h5 -> cal.h5 through a registered fit function."""
+    """raw.h5 -> cal.h5 through a registered fit function. The built-in methods go
+    through the fit registry (methods/registry.py), exactly as `calib fit METHOD`."""
     from calib_cli.io.h5 import read_raw, write_calibration
 
-    rec = read_raw(run.inputs["raw"])
+    raw = run.inputs["raw"]
+    rec = read_raw(raw)
     extra = {f"{k}_path": v for k, v in run.inputs.items() if k not in ("raw", "source")}
-    res = fn(rec, **run.options, **extra)
-    from calib_cli.methods.gross import check_result, screen_fit
+    if getattr(fn, "registry_method", None):
+        res = fn(rec, path=raw, **run.options)
+    else:  # a fit registered from outside (registry.py's conventions)
+        res = fn(rec, **run.options, **extra)
+        from calib_cli.methods.gross import check_result, screen_fit
 
-    screen_fit(res, rec, lambda r: fn(r, **run.options, **extra))
-    check_result(res, rec)  # an impossible calibration is exit 4, not "done"
-    write_calibration(run.out, res, [run.inputs["raw"], *extra.values()])
-
-
-def fit_align_step(rec, method: str = "two-position", rotation: str = "auto", gyro: str = "auto",
-                   gyro_k_ppm: float | None = None, turn_sigma_deg: float = 0.0):
-    """`calib fit align` with the command's options (same names, same defaults)."""
-    import numpy as np
-
-    if method == "classic":
-        from calib_cli.methods.align_classic import fit_classic
-
-        return fit_classic(rec, rotation=rotation)
-    from calib_cli.methods.align import fit_align
-
-    return fit_align(rec, rotation=rotation, gyro=gyro,
-                     gyro_k_prior=None if gyro_k_ppm is None else float(gyro_k_ppm) * 1e-6,
-                     turn_sigma=float(np.radians(turn_sigma_deg)))
+        screen_fit(res, rec, lambda r: fn(r, **run.options, **extra))
+        check_result(res, rec)  # an impossible calibration is exit 4, not "done"
+    write_calibration(run.out, res, [raw, *extra.values()])
 
 
-def fit_gyro_step(rec, g_sensitivity: str = "auto"):
-    """`calib fit gyro` without --accel (the accelerometers are fitted from the same recording)."""
-    from calib_cli.methods.gyro import fit_gyro
+def registry_fit(method: str):
+    """The batch's fit function of a method of the fit registry: options as in a
+    pipeline's step table (the command line's names), checked by the registry."""
 
-    return fit_gyro(rec, None, g_sensitivity)
+    def fit(rec, path=None, **options):
+        from calib_cli.methods import registry
 
+        return registry.run(method, rec, dict(options), path)
 
-def fit_turntable_step(rec, lever_arm: str = "estimate", proof_mass: str = "auto",
-                       tangential: str = "on", block_s: float = 0.2, axis_sigma_mrad: float = 1.0,
-                       table_tilt_deg: float = 0.05, table_encoder: str = "auto"):
-    """`calib fit turntable` with the command's options (same names)."""
-    import numpy as np
-
-    from calib_cli.methods.turntable import TurntableOptions, fit_turntable
-
-    return fit_turntable(rec, TurntableOptions(lever_arm=lever_arm, proof_mass=proof_mass,
-                                               tangential=tangential in ("on", True),
-                                               block_s=float(block_s),
-                                               axis_sigma=float(axis_sigma_mrad) * 1e-3,
-                                               table_tilt_sigma=float(np.radians(table_tilt_deg)),
-                                               table_encoder=table_encoder))
+    fit.registry_method = method
+    fit.__name__ = f"fit_{method}"
+    return fit
 
 
-# plan kind -> the fit method `method = "auto"` runs for it
-AUTO_METHODS = {"static": "accel", "align": "align", "rimu": "rimu", "turntable": "turntable"}
-
-
-def fit_auto_step(rec, **options):
+def fit_auto(rec, path=None, **options):
     """Pick the fit from the recording's plan kind (an archive of mixed experiments
     runs through one pipeline); options go to that fit unchanged."""
-    from calib_cli.batch.registry import FITS
     from calib_cli.errors import EstimationError
+    from calib_cli.methods import registry
 
-    method = AUTO_METHODS.get(rec.plan_kind)
-    if method not in FITS:
-        raise EstimationError(f"no batch fit for plan kind {rec.plan_kind!r} "
-                              f"(known: {', '.join(k for k, v in AUTO_METHODS.items() if v in FITS)})")
-    d = FITS[method]
-    bad = sorted(set(options) - set(d.options or ()))
+    method = registry.METHOD_OF_PLAN.get(rec.plan_kind)
+    if method not in registry.FITS:
+        raise EstimationError(f"no batch fit for plan kind {rec.plan_kind!r} (known: "
+                              f"{', '.join(registry.METHOD_OF_PLAN)})")
+    bad = sorted(set(options) - set(registry.FITS[method].option_names()))
     if bad:
         raise EstimationError(f"fit {method} (plan kind {rec.plan_kind}) takes no option {bad[0]!r}")
-    return d.function()(rec, **options)
+    return registry.run(method, rec, dict(options), path)
+
+
+fit_auto.registry_method = "auto"
 
 
 def apply_step(run: StepRun) -> None:
     """cal.h5 + raw.h5 -> corrected.h5: exactly `calib apply` (chunked)."""
-    from calib_cli.cli.cmd_apply import apply_cmd
+    from calib_cli.io.apply_file import apply_file
 
-    apply_cmd.callback(run.inputs["calibration"], run.inputs["raw"], run.out)
+    apply_file(run.inputs["calibration"], run.inputs["raw"], run.out)
 
 
 def export_step(run: StepRun) -> None:
     """cal.h5 -> the contract's JSON object (as `calib show --json`), plus a
     "batch" key with the provenance the up-to-date check reads back."""
-    from calib_cli.cli.cmd_show import calibration_json
-    from calib_cli.cli.common import to_jsonable
+    from calib_cli.io.contract_json import calibration_json, to_jsonable
 
     obj = calibration_json(run.inputs["calibration"], bool(run.options.get("covariance")))
     obj["batch"] = dict(run.stamp)
@@ -122,17 +99,16 @@ register_step("apply", "calib_cli.batch.steps:apply_step", needs=("calibration",
 register_step("export", "calib_cli.batch.steps:export_step", needs=("calibration",),
               makes="export", suffix=".json", options=("covariance",))
 
-# fit methods: one line each
-register_fit("accel", "calib_cli.methods.accel_lsq:fit_accel", options=("method",))
-register_fit("align", "calib_cli.batch.steps:fit_align_step",
-             options=("method", "rotation", "gyro", "gyro_k_ppm", "turn_sigma_deg"))
-register_fit("gyro", "calib_cli.batch.steps:fit_gyro_step", options=("g_sensitivity",))
-register_fit("rimu", "calib_cli.methods.rimu:fit_rimu")
-register_fit("turntable", "calib_cli.batch.steps:fit_turntable_step",
-             options=("lever_arm", "proof_mass", "tangential", "block_s", "axis_sigma_mrad",
-                      "table_tilt_deg", "table_encoder"))
-# any option name is passed on: the chosen fit checks it
-register_fit("auto", "calib_cli.batch.steps:fit_auto_step",
-             options=("method", "rotation", "gyro", "gyro_k_ppm", "turn_sigma_deg", "g_sensitivity",
-                      "lever_arm", "proof_mass", "tangential", "block_s", "axis_sigma_mrad",
-                      "table_tilt_deg", "table_encoder"))
+# fit methods: every method of the fit registry (methods/registry.py), with its options
+def _register_fits() -> None:
+    from calib_cli.methods.registry import FITS
+
+    names = set()
+    for name, m in FITS.items():
+        register_fit(name, registry_fit(name), options=m.option_names())
+        names |= set(m.option_names())
+    # any option name is passed on: the chosen fit checks it
+    register_fit("auto", fit_auto, options=tuple(sorted(names)))
+
+
+_register_fits()

@@ -37,36 +37,15 @@ def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_
                   as_json):
     """Accelerometer and gyro biases and the attitude of the first position from
     two (or more) static positions related by a known rotation."""
-    import numpy as np
+    from calib_cli.methods import registry
 
-    from calib_cli.errors import InputError
-
-    if gyro_k_ppm is not None and not (np.isfinite(gyro_k_ppm) and gyro_k_ppm >= 0):
-        raise InputError(f"--gyro-k-ppm must be >= 0, got {gyro_k_ppm}")
-    if not (np.isfinite(turn_sigma_deg) and turn_sigma_deg >= 0):
-        raise InputError(f"--turn-sigma-deg must be >= 0, got {turn_sigma_deg}")
+    opts = registry.options_from("align", method=method, rotation=rotation, gyro=gyro_mode,
+                                 gyro_k_ppm=gyro_k_ppm, turn_sigma_deg=turn_sigma_deg)
     rec = read_raw(raw)
-    if method == "classic":
-        from calib_cli.methods.align_classic import fit_classic
-
-        res = fit_classic(rec, rotation=rotation)
-    elif method == "static":
-        from calib_cli.methods.align_static import fit_align_static
-
-        res = fit_align_static(rec)
-        if res.stats.get("degeneracy"):
-            info(f"[yellow]degenerate positions:[/] {res.stats['degeneracy']}; not observable: "
-                 + ", ".join(res.stats["unobservable"]))
-    else:
-        from calib_cli.methods.align import fit_align
-
-        kw = dict(rotation=rotation, gyro=gyro_mode,
-                  gyro_k_prior=None if gyro_k_ppm is None else gyro_k_ppm * 1e-6,
-                  turn_sigma=np.radians(turn_sigma_deg))
-        res = fit_align(rec, **kw)
-        from calib_cli.methods.gross import screen_fit
-
-        screen_fit(res, rec, lambda r: fit_align(r, **kw))  # a misplaced position: exit 4
+    res = registry.run("align", rec, opts, raw)
+    if method == "static" and res.stats.get("degeneracy"):
+        info(f"[yellow]degenerate positions:[/] {res.stats['degeneracy']}; not observable: "
+             + ", ".join(res.stats["unobservable"]))
     if not res.stats.get("earth_rate_used", True):
         info(f"[yellow]earth rate not used:[/] {res.stats.get('grade_check')}; heading not "
              "estimated, accelerometer biases and tilt only")

@@ -1,5 +1,5 @@
-"""calib emulate --imu PROFILE [--table PROFILE] [--truth TRUTH.toml] [--rate HZ]
-with fault injection (docs/acquisition.md)."""
+"""calib emulate --imu PROFILE [--table PROFILE] [--chamber PROFILE] [--truth TRUTH.toml]
+[--rate HZ] with fault injection (docs/acquisition.md)."""
 
 from __future__ import annotations
 
@@ -47,10 +47,22 @@ from calib_cli.cli.main import cli
 @click.option("--can-channel", help="CAN channel name.")
 @click.option("--truth-out", type=click.Path(dir_okay=False),
               help="Write the truth parameters as JSON here.")
+@click.option("--chamber", "chamber", shell_complete=complete_profile("chamber"),
+              help="Climatic chamber profile of a virtual chamber (SCPI or Modbus RTU) whose "
+              "temperature the unit follows (docs/thermal.md).")
+@click.option("--chamber-tau", default=300.0, show_default=True,
+              type=click.FloatRange(0, min_open=True),
+              help="The unit's first-order thermal time constant to the chamber air, s.")
+@click.option("--chamber-ramp-dpm", type=click.FloatRange(0, min_open=True),
+              help="The virtual chamber's ramp-rate limit, degC/min (default: the profile's).")
+@click.option("--temp-start", default=25.0, show_default=True, type=float,
+              help="Temperature of the unit (and chamber) at the start, degC.")
 def emulate_cmd(imu, table, truth_path, plan_path, rate, seed, duration, attitude_deg, speed_dps,
                 corrupt, corrupt_where, drop, garbage, disconnect_at, disconnect_for, fault_seed,
-                link_dir, can_interface, can_channel, truth_out):
-    """Emulate an IMU (and a turntable) on pseudo-terminals or a virtual CAN bus.
+                link_dir, can_interface, can_channel, truth_out, chamber, chamber_tau,
+                chamber_ramp_dpm, temp_start):
+    """Emulate an IMU (and a turntable, a climatic chamber) on pseudo-terminals or a
+    virtual CAN bus.
 
     Prints one JSON line with the port paths on stdout, streams until Ctrl-C
     or --duration, then prints one JSON line with the injected faults."""
@@ -60,10 +72,10 @@ def emulate_cmd(imu, table, truth_path, plan_path, rate, seed, duration, attitud
     from calib_cli.acquire.profile import load_imu_profile, load_table_profile
     from calib_cli.errors import InputError
     from calib_cli.io.plan import load_plan
+    from calib_cli.io.truth import load_truth
     from calib_cli.model.earth import Site
     from calib_cli.model.effects import Layout
-    from calib_cli.sim.simulate import plan_layout
-    from calib_cli.sim.truth import load_truth
+    from calib_cli.plan import plan_layout
 
     prof = load_imu_profile(imu)
     if link_dir:  # the documented example names a directory that does not exist yet
@@ -92,11 +104,25 @@ def emulate_cmd(imu, table, truth_path, plan_path, rate, seed, duration, attitud
     else:
         layout = Layout()
     truth = load_truth(truth_path, layout) if truth_path else None
+    cprof = None
+    if chamber:
+        from calib_cli.acquire.chamber import load_chamber_profile
+
+        cprof = load_chamber_profile(chamber)
+        if cprof.kind == "manual":
+            raise click.UsageError("--chamber: a manual chamber has nothing to emulate")
+        if chamber_ramp_dpm:
+            cprof = dataclasses.replace(cprof, max_ramp_dpm=chamber_ramp_dpm)
+        if truth is None and not prof.redundant:  # a unit with temperature drift
+            from calib_cli.sim.thermal_cases import thermal_truth
+
+            truth = thermal_truth(np.random.default_rng(seed))
     faults = Faults(corrupt=corrupt, corrupt_where=corrupt_where, drop=drop, garbage=garbage,
                     disconnect_at=disconnect_at, disconnect_for=disconnect_for, seed=fault_seed)
     em = Emulator(prof, tprof, truth=truth, site=site, rate=rate, faults=faults, seed=seed,
                   layout=layout, attitude_deg=attitude_deg, link_dir=link_dir,
-                  can_interface=can_interface, can_channel=can_channel)
+                  can_interface=can_interface, can_channel=can_channel, chamber=cprof,
+                  chamber_tau=chamber_tau, temp_c=temp_start)
     if truth_out:
         with open(truth_out, "w") as fh:
             json.dump(to_jsonable({k: np.asarray(v) for k, v in em.truth.params.items()}), fh)

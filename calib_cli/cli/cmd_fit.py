@@ -44,8 +44,9 @@ def save(res, raw, out, extra_inputs=(), rec=None, as_json: bool = False):
 @json_option
 def fit_accel_cmd(raw, out, method, as_json):
     """Static multi-position accelerometer fit: A = b + K f."""
-    from calib_cli.methods.accel_lsq import fit_accel
+    from calib_cli.methods import registry
 
+    opts = registry.options_from("accel", method=method)
     rec = read_raw(raw)
-    res = fit_accel(rec, method)
+    res = registry.run("accel", rec, opts, raw)
     save(res, raw, out, rec=rec, as_json=as_json)

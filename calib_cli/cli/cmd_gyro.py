@@ -24,13 +24,13 @@ from calib_cli.io.h5 import read_calibration, read_raw
 def fit_gyro_cmd(raw, out, accel_path, g_sensitivity, as_json):
     """Gyro bias, scale factors and misalignments (and g-sensitivity) from the
     rotations between static positions and turns of known angle (docs/gyro.md)."""
-    from calib_cli.methods.gyro import fit_gyro
+    from calib_cli.errors import InputError
+    from calib_cli.methods import registry
 
+    registry.options_from("gyro", g_sensitivity=g_sensitivity)
     rec = read_raw(raw)
     acc = read_calibration(accel_path) if accel_path else None
     if acc is not None and "accel_K" not in acc.params:
-        from calib_cli.errors import InputError
-
         raise InputError("not an accelerometer calibration (no accel_K)", accel_path)
     independent = False
     if acc is not None:
@@ -45,11 +45,8 @@ def fit_gyro_cmd(raw, out, accel_path, g_sensitivity, as_json):
         info("accelerometer calibration " + ("from other data: its uncertainty is propagated "
                                              "into the gyro parameters" if independent else
                                              "from this recording"))
-    res = fit_gyro(rec, acc, g_sensitivity, accel_independent=independent)
-    from calib_cli.methods.gross import screen_fit
-
-    screen_fit(res, rec, lambda r: fit_gyro(r, acc, g_sensitivity,
-                                            accel_independent=independent))
+    opts = registry.GyroOptions(g_sensitivity, acc, independent)
+    res = registry.run("gyro", rec, opts, raw)
     save(res, raw, out, [accel_path] if accel_path else [], rec=rec, as_json=as_json)
     st = res.stats
     for w in st.get("warnings", []):

@@ -6,7 +6,6 @@ import click
 
 from calib_cli.cli.common import info
 from calib_cli.cli.main import cli
-from calib_cli.io.h5 import write_raw
 from calib_cli.io.plan import load_plan
 
 COMPLETE_COMMAND = True  # every `calib import` subcommand lives here (cli/main.py)
@@ -91,19 +90,19 @@ def import_text_cmd(acc, gyro, plan_path, out, columns, gyro_columns, accel_unit
     """Import a text log in another layout: whitespace or CSV, with or without a
     header, raw counts or other units, accelerometer and gyro in one file or in
     two files sharing timestamps (docs/import.md)."""
-    from calib_cli.io.textlog import import_text
+    from calib_cli.io.textlog import import_text_to_raw
 
     plan = load_plan(plan_path)
-    rec = import_text(acc, plan, gyro, columns, gyro_columns, accel_units, gyro_units, rate,
-                      time_unit, delimiter, header, sort, segments_json, window_s, multiplier,
-                      min_static_s)
     inputs = [acc] + ([gyro] if gyro else []) + [plan_path] + ([segments_json] if segments_json
                                                              else [])
-    rec = rec.with_(sample_kind=sample_kind)
-    write_raw(out, rec, inputs)
-    n_static = len(rec.static_segments())
-    info(f"imported {len(rec)} samples ({rec.units['accel']}, {rec.units['gyro']}), "
-         f"{len(rec.segments)} segments ({n_static} static) -> {out}")
+    # streamed when the layout allows it, else in memory (the same data and errors)
+    n, units, segments = import_text_to_raw(
+        out, acc, plan, gyro, columns, gyro_columns, accel_units, gyro_units, rate, time_unit,
+        delimiter, header, sort, segments_json, window_s, multiplier, min_static_s, inputs,
+        sample_kind)
+    n_static = sum(1 for s in segments if s.kind == "static")
+    info(f"imported {n} samples ({units['accel']}, {units['gyro']}), "
+         f"{len(segments)} segments ({n_static} static) -> {out}")
 
 
 def _detection_options(f):

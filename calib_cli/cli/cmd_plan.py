@@ -39,7 +39,7 @@ def plan_group():
 
 
 def _noise(plan, like, accel_noise, gyro_noise, rate, truth=None):
-    from calib_cli.methods.design import Noise, default_noise, noise_like
+    from calib_cli.design import Noise, default_noise, noise_like
 
     if like and (accel_noise or gyro_noise or rate):
         raise click.UsageError("--like takes the noise and rate from the recording: give "
@@ -113,9 +113,10 @@ def check_json(pr) -> dict:
 @click.option("--truth", "truth_path", type=click.Path(dir_okay=False),
               help="Predict at this truth model (default: a neutral unit, K = I, biases 0).")
 @click.option("--method", type=click.Choice(["auto", "vector", "scalar", "gyro", "align",
-                                             "rimu"]), default="auto", show_default=True,
+                                             "rimu", "thermal"]), default="auto",
+              show_default=True,
               help="The fit to predict (auto: as fit would choose; a static plan with turns "
-                   "goes to fit gyro).")
+                   "goes to fit gyro, one with chamber setpoints to fit thermal).")
 @click.option("--g-sensitivity", type=click.Choice(["auto", "on", "off"]), default="auto",
               show_default=True, help="fit gyro's option.")
 @click.option("--no-suggest", is_flag=True, help="Skip the ranked additions (faster).")
@@ -124,10 +125,10 @@ def plan_check_cmd(plan, like, accel_noise, gyro_noise, rate, truth_path, method
                    no_suggest, as_json):
     """Predict the 1-sigma of every parameter PLAN's fit will report, the
     unobservable ones, and the additions that help most."""
+    from calib_cli.design import check
     from calib_cli.io.plan import load_plan
-    from calib_cli.methods.design import check
-    from calib_cli.sim.simulate import plan_layout
-    from calib_cli.sim.truth import load_truth
+    from calib_cli.io.truth import load_truth
+    from calib_cli.plan import plan_layout
 
     if rate is not None and rate <= 0:
         raise click.BadParameter("--rate must be positive")
@@ -154,7 +155,7 @@ def _vec(text, n, name):
 
 @plan_group.command("make")
 @click.argument("method", type=click.Choice(["static", "ferraris", "align", "turntable",
-                                             "rimu"]))
+                                             "rimu", "thermal"]))
 @click.option("--out", required=True, type=click.Path(dir_okay=False))
 @click.option("--positions", type=click.Choice(["6", "12", "18", "24"]), default="12",
               show_default=True, help="static: number of positions.")
@@ -162,9 +163,10 @@ def _vec(text, n, name):
               show_default=True, help="static: known attitudes (vector) or spread unknown "
                                       "ones (scalar).")
 @click.option("--duration", type=float, help="Seconds per position (static 10, ferraris 10, "
-                                             "align 300, rimu 10) or per axial cycle "
-                                             "(turntable 600).")
-@click.option("--rate", "sample_rate", type=float, help="Sample rate, Hz (100; align 50).")
+                                             "align 300, rimu 10, thermal soak 60, ramp 120) "
+                                             "or per axial cycle (turntable 600).")
+@click.option("--rate", "sample_rate", type=float, help="Sample rate, Hz (100; align 50; "
+                                                        "thermal 10).")
 @click.option("--turn-duration", type=float, default=10.0, show_default=True,
               help="ferraris: seconds per 360 deg turn.")
 @click.option("--axis", default="0,0,1", show_default=True, help="align: turn axis (body).")
@@ -190,9 +192,26 @@ def _vec(text, n, name):
 @click.option("--max-duration", type=float, help="turntable: the longest run, s.")
 @click.option("--rate-profile", "rate_family", type=click.Choice(["steps", "smooth"]),
               default="steps", show_default=True, help="turntable: rate profile family.")
+@click.option("--design", type=click.Choice(["soak", "ramp"]), default="soak",
+              show_default=True, help="thermal: soak steps, or a ramp in a few positions.")
+@click.option("--temps", type=click.IntRange(5, 7), default=7, show_default=True,
+              help="thermal soak: number of temperatures.")
+@click.option("--temp-range", default="-40,85", show_default=True,
+              help="thermal: LO,HI degC.")
+@click.option("--soak", type=float, help="thermal: seconds of the soak segment at each "
+                                         "temperature (soak 1800; ramp 6 x --unit-tau).")
+@click.option("--ramp-dpm", type=float, help="thermal: chamber ramp rate, degC/min (soak 3, "
+                                             "ramp 1).")
+@click.option("--unit-tau", type=float, help="thermal: the unit's thermal time constant for "
+                                             "simulate, s (soak 300, ramp 120).")
+@click.option("--ramp-positions", type=click.IntRange(3, 6), default=6, show_default=True,
+              help="thermal ramp: positions visited in turn.")
+@click.option("--cycles", type=click.Choice(["heat", "heat-cool"]), default="heat-cool",
+              show_default=True, help="thermal ramp: heat only, or heat then cool.")
 def plan_make_cmd(method, out, positions, fit_method, duration, sample_rate, turn_duration, axis,
                   angle, start, latitude, rimu_profile, table_rate, tilted, tilt_deg,
-                  tilted_duration, max_rate, max_accel, max_duration, rate_family):
+                  tilted_duration, max_rate, max_accel, max_duration, rate_family, design,
+                  temps, temp_range, soak, ramp_dpm, unit_tau, ramp_positions, cycles):
     """Write a plan of METHOD's family (its parameters in a [generator] table)."""
     from calib_cli.io.h5 import atomic_path
     from calib_cli.io.plan import parse_plan
@@ -216,6 +235,10 @@ def plan_make_cmd(method, out, positions, fit_method, duration, sample_rate, tur
                   latitude=latitude)
     elif method == "rimu":
         kw.update(profile=rimu_profile, table_rate=table_rate)
+    elif method == "thermal":
+        kw.update(design=design, temps=temps, temp_range=_vec(temp_range, 2, "--temp-range"),
+                  soak=soak, ramp_dpm=ramp_dpm, unit_tau=unit_tau, positions=ramp_positions,
+                  cycles=cycles)
     else:
         kw.update(tilted=tilted, tilt_deg=tilt_deg, tilted_duration=tilted_duration,
                   max_rate=max_rate, max_accel=max_accel, max_duration=max_duration,
@@ -257,11 +280,11 @@ def plan_optimize_cmd(plan, targets, max_duration, out, like, accel_noise, gyro_
     every --target."""
     import tomllib
 
+    from calib_cli import design
     from calib_cli.io.plan import load_plan
-    from calib_cli.methods import design
+    from calib_cli.io.truth import load_truth
+    from calib_cli.plan import plan_layout
     from calib_cli.sim import plan_make as pm
-    from calib_cli.sim.simulate import plan_layout
-    from calib_cli.sim.truth import load_truth
 
     try:
         tg = [design.parse_target(t) for t in targets]

@@ -1,5 +1,5 @@
-"""calib profiles [--kind imu|turntable|rimu] [--all] [--json]: the device and
-geometry profiles that `--imu NAME`, `--table NAME` and `[rimu] profile = NAME`
+"""calib profiles [--kind imu|turntable|rimu|chamber] [--all] [--json]: the device and
+geometry profiles that `--imu NAME`, `--table NAME`, `--chamber NAME` and `[rimu] profile = NAME`
 find, in search order ($CALIB_PROFILE_PATH, ~/.config/calib/profiles, shipped)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ COMPLETE_COMMAND = True
 
 
 @cli.command("profiles")
-@click.option("--kind", type=click.Choice(["imu", "turntable", "rimu"]),
+@click.option("--kind", type=click.Choice(["imu", "turntable", "rimu", "chamber"]),
               help="Only this kind of profile.")
 @click.option("--all", "show_all", is_flag=True,
               help="Also list profiles hidden by one of the same name earlier in the path.")
@@ -22,7 +22,7 @@ def profiles_cmd(kind, show_all, as_json):
 
     A NAME is looked up in each directory of $CALIB_PROFILE_PATH (separated by
     ':'), then ~/.config/calib/profiles, then the shipped profiles; each holds
-    imu/, turntable/ and rimu/ subdirectories of NAME.toml. The first match
+    imu/, turntable/, rimu/ and chamber/ subdirectories of NAME.toml. The first match
     wins; a path (with '/' or ending in .toml) is used as it is."""
     from rich.table import Table
 

@@ -1,4 +1,5 @@
 """calib record --imu PROFILE --port PORT [--table PROFILE --table-port PORT]
+[--chamber PROFILE --chamber-port PORT]
 (--plan PLAN | --duration S) --out RAW.h5 (docs/acquisition.md)"""
 
 from __future__ import annotations
@@ -117,10 +118,14 @@ def _raise_interrupt(*_):
 @click.option("--force", is_flag=True, help="Replace an existing recording at --out, and set "
               "an existing journal aside (renamed, never deleted).")
 @click.option("--no-check", is_flag=True, help="Skip the plan check before recording.")
+@click.option("--chamber", "chamber", shell_complete=complete_profile("chamber"),
+              help="Climatic chamber profile (path, shipped name, or 'manual') for plans with "
+              "chamber_temp_degC (docs/thermal.md).")
+@click.option("--chamber-port", help="Serial port of the chamber.")
 def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_path, duration,
                rate, out, journal_path, keep_journal, settle_window, accel_still, gyro_still,
                settle_timeout, segment_duration, reconnect_timeout, gravity_tolerance,
-               no_data_timeout, force, no_check):
+               no_data_timeout, force, no_check, chamber, chamber_port):
     """Record an experiment plan (or a free-running log) from an IMU into raw.h5."""
     from calib_cli.acquire.profile import load_imu_profile
     from calib_cli.acquire.session import free_run_plan
@@ -137,11 +142,18 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
         raise click.UsageError(f"profile {prof.name!r} is a serial device: give --port")
     plan = load_plan(plan_path) if plan_path else parse_plan(free_run_plan(duration), "free-run")
     if plan_path and not no_check:  # issue 20: warn when the plan cannot deliver
-        from calib_cli.methods.design import record_warning
+        from calib_cli.design import record_warning
 
         warning = record_warning(plan, prof.rate_hz)
         if warning:
             err_console.print(f"calib: warning: {warning}", markup=False, soft_wrap=True)
+    from calib_cli.acquire.chamber import check_plan, load_chamber_profile
+
+    cprof = load_chamber_profile(chamber) if chamber else None
+    if cprof is not None and cprof.kind != "manual" and not chamber_port:
+        raise click.UsageError("a serial chamber needs --chamber-port")
+    for w in check_plan(plan, cprof):  # setpoints within the chamber's range
+        err_console.print(f"calib: warning: {w}", markup=False, soft_wrap=True)
     out_dir = os.path.dirname(os.path.abspath(out))
     if not os.path.isdir(out_dir):
         raise InputError("output directory does not exist", out)
@@ -167,7 +179,7 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
         return _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
                        duration, out, journal_path, keep_journal, settle_window, accel_still,
                        gyro_still, settle_timeout, segment_duration, reconnect_timeout,
-                       gravity_tolerance, no_data_timeout, prof, plan)
+                       gravity_tolerance, no_data_timeout, prof, plan, cprof, chamber_port)
 
 
 def _source(prof, transport) -> str:
@@ -181,7 +193,7 @@ def _source(prof, transport) -> str:
 def _record(imu, port, can_interface, can_channel, table, table_port, plan_path, duration,
             out, journal_path, keep_journal, settle_window, accel_still, gyro_still,
             settle_timeout, segment_duration, reconnect_timeout, gravity_tolerance,
-            no_data_timeout, prof, plan):
+            no_data_timeout, prof, plan, cprof=None, chamber_port=None):
     from calib_cli.acquire.profile import load_table_profile
     from calib_cli.acquire.session import Session, SettleConfig, journal_to_recording
     from calib_cli.acquire.table import ManualTable, SerialTable
@@ -209,6 +221,12 @@ def _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
         driver = ManualTable(ask)  # no motor: the operator places the unit
     else:
         driver = None
+    chamber_drv = None
+    if cprof is not None:  # issue 21: setpoints and soaks (acquire/chamber.py)
+        from calib_cli.acquire.chamber import open_chamber
+
+        chamber_drv = open_chamber(cprof, chamber_port, ask)
+        chamber_drv.start()
     import tomllib
 
     try:
@@ -240,7 +258,9 @@ def _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
     session = Session(prof, transport, plan, journal_path, table=driver, settle=cfg,
                       display=display,
                       header_extra={"imu_profile_path": prof.path,
-                                    "table_profile": tprof.name if tprof else None})
+                                    "table_profile": tprof.name if tprof else None,
+                                    "chamber_profile": cprof.name if cprof else None})
+    session.chamber, session.chamber_profile = chamber_drv, cprof
     session.source = _source(prof, transport)
     session.no_data_s = no_data_timeout
     session.gravity_tol_deg = gravity_tolerance
@@ -287,13 +307,17 @@ def _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
     finally:
         signal.signal(signal.SIGTERM, old_term)
     display.close(session)
+    if session.chamber is not None:  # the chamber stays at its last setpoint
+        with contextlib.suppress(Exception):
+            session.chamber.close()
     if driver is not None:
         with contextlib.suppress(Exception):
             driver.stop()
             driver.close()
     counts = session.close()
     rec = journal_to_recording(journal_path)
-    inputs = [p for p in (plan_path, prof.path, tprof.path if tprof else None) if p]
+    inputs = [p for p in (plan_path, prof.path, tprof.path if tprof else None,
+                         cprof.path if cprof and cprof.kind != "manual" else None) if p]
     write_raw(out, rec, inputs)
     if not keep_journal:
         os.unlink(journal_path)

@@ -22,16 +22,10 @@ _SHOW = {"accel": (1e3 / 9.80665, "mg"), "gyro": (R2D, "deg/s")}
 @json_option
 def fit_rimu_cmd(raw, out, as_json):
     """Redundant unit: per sensor bias, scale error, dEl, dAz (docs/rimu.md)."""
-    from calib_cli.methods.rimu import fit_rimu
+    from calib_cli.methods import registry
 
     rec = read_raw(raw)
-    if not rec.layout.redundant:
-        raise InputError("not a redundant-unit recording (plan kind \"rimu\" with a [rimu] "
-                         "geometry)", raw)
-    res = fit_rimu(rec)
-    from calib_cli.methods.gross import screen_fit
-
-    screen_fit(res, rec, fit_rimu)  # a misplaced position is named (exit 4)
+    res = registry.run("rimu", rec, None, raw)  # a misplaced position is named (exit 4)
     save(res, raw, out, rec=rec, as_json=as_json)
 
 

@@ -9,20 +9,10 @@ from rich.table import Table
 from calib_cli.cli.common import Ctx, out_console, print_json
 from calib_cli.cli.main import cli
 from calib_cli.cli.render import params_table
+from calib_cli.io.contract_json import calibration_json  # noqa: F401  (re-exported)
 from calib_cli.io.escape import term_text
 from calib_cli.io.h5 import file_kind, provenance, read_calibration, read_raw
 from calib_cli.units import g_figures_line
-
-
-def calibration_json(path, covariance: bool = False) -> dict:
-    """The contract's JSON object for a calibration file."""
-    c = read_calibration(path)
-    obj = {"method": c.method, "unit": {"serial": c.serial},
-           "params": c.params, "sigma": c.sigma, "units": c.units, "stats": c.stats}
-    if covariance:
-        obj["covariance"] = {"order": [[k, i] for k, i in c.cov_order],
-                             "matrix": c.covariance}
-    return obj
 
 
 def raw_json(path) -> dict:

@@ -10,8 +10,9 @@ from calib_cli.errors import InputError
 from calib_cli.io.csvlog import write_csv
 from calib_cli.io.h5 import write_raw
 from calib_cli.io.plan import load_plan
-from calib_cli.sim.simulate import plan_layout, simulate
-from calib_cli.sim.truth import load_truth
+from calib_cli.io.truth import load_truth
+from calib_cli.plan import plan_layout
+from calib_cli.sim.simulate import simulate
 
 
 @cli.command("simulate")

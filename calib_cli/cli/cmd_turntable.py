@@ -41,10 +41,12 @@ from calib_cli.io.h5 import read_raw
 @click.option("--noise", "noise_spec", metavar="accel=SIGMA,gyro=SIGMA",
               help="Per-sample white noise (SI: m/s^2, rad/s) instead of the estimate from the "
                    "data; one value for all axes of a sensor.")
-@click.option("--table-encoder", "table_encoder", type=click.Choice(["auto", "off", "angle"]),
+@click.option("--table-encoder", "table_encoder",
+              type=click.Choice(["auto", "off", "angle", "rate", "both"]),
               default="auto", show_default=True,
-              help="The table's angle channel as a measurement (zero, once-per-revolution error "
-                   "and clock offset estimated): auto uses it where the log has it.")
+              help="The table's angle and/or rate channels as measurements (angle: zero, "
+                   "once-per-revolution error and clock offset estimated; rate: scale error "
+                   "and offset estimated): auto uses those the log has that pass the checks.")
 @click.option("--json", "as_json", is_flag=True,
               help="Print the result as JSON (docs/contract.md section 5) on stdout.")
 @click.option("--plot", type=click.Path(dir_okay=False),
@@ -53,17 +55,7 @@ def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis
                       table_tilt_deg, grade, priors, noise_spec, table_encoder, as_json, plot):
     """Accelerometer b, K (lower triangular), gyro d, G, D, lever arms and proof-mass
     offsets from rotation cycles on a single-axis table of imprecise angle and rate."""
-    import numpy as np
-
-    from calib_cli.errors import InputError
-    from calib_cli.methods.turntable import TurntableOptions, fit_turntable
-
-    if not (np.isfinite(block_s) and 0 < block_s <= 5):
-        raise InputError(f"--block must be in (0, 5] s, got {block_s}")
-    if not (np.isfinite(axis_sigma_mrad) and axis_sigma_mrad > 0):
-        raise InputError(f"--axis-sigma-mrad must be > 0, got {axis_sigma_mrad}")
-    if not (np.isfinite(table_tilt_deg) and 0 <= table_tilt_deg <= 10):
-        raise InputError(f"--table-tilt-deg must be in [0, 10], got {table_tilt_deg}")
+    from calib_cli.methods import registry
     from calib_cli.methods.turntable import PRIOR_KEYS
 
     prior = _key_values(priors, "--prior")
@@ -76,19 +68,14 @@ def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis
         kv = _key_values(noise_spec.split(","), "--noise")
         if set(kv) != {"accel", "gyro"}:
             raise UsageError("--noise needs accel=SIGMA,gyro=SIGMA")
-        noise = {k: np.full(3, v) for k, v in kv.items()}
+        noise = kv
+    opt = registry.options_from("turntable", lever_arm=lever_arm, proof_mass=proof_mass,
+                                tangential=tangential, block_s=block_s,
+                                axis_sigma_mrad=axis_sigma_mrad, table_tilt_deg=table_tilt_deg,
+                                grade=grade, prior=prior or None, noise=noise,
+                                table_encoder=table_encoder)
     rec = read_raw(raw)
-    opt = TurntableOptions(lever_arm=lever_arm, proof_mass=proof_mass,
-                           tangential=tangential == "on", block_s=block_s,
-                           axis_sigma=axis_sigma_mrad * 1e-3,
-                           table_tilt_sigma=float(np.radians(table_tilt_deg)),
-                           grade=grade, priors=prior or None, noise=noise,
-                           table_encoder=table_encoder)
-    try:
-        res = fit_turntable(rec, opt)
-    except InputError as exc:
-        exc.path = exc.path or raw
-        raise
+    res = registry.run("turntable", rec, opt, raw)
     clipped = res.stats.get("accel_clipped_samples") or []
     if any(clipped):
         info(f"[yellow]warning:[/] {sum(clipped)} accelerometer samples sit at full scale "
@@ -97,9 +84,6 @@ def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis
     if res.stats.get("accel_noise_inflation", 1.0) > 1.0:
         info(f"[yellow]the model does not explain the accelerometer data:[/] noise widened "
              f"x{res.stats['accel_noise_inflation']:.1f} (lever arms or proof masses missing?)")
-    from calib_cli.methods.gross import check_result
-
-    check_result(res, rec)  # an impossible calibration is exit 4 (issue 15)
     if as_json:
         from calib_cli.cli.cmd_show import calibration_json
         from calib_cli.cli.common import print_json

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import json
-import math
 import sys
 
-import numpy as np
 from rich.console import Console
+
+from calib_cli.io.contract_json import to_jsonable  # noqa: F401  (re-exported)
 
 # status and tables go to stderr so that --json output on stdout stays clean
 err_console = Console(stderr=True, highlight=False)
@@ -28,24 +28,6 @@ def interactive() -> bool:
 def info(msg: str) -> None:
     if not Ctx.quiet:
         err_console.print(msg)
-
-
-def to_jsonable(x):
-    """numpy arrays -> nested lists, NaN/inf -> None (JSON null)."""
-    if isinstance(x, dict):
-        return {str(k): to_jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [to_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return to_jsonable(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        v = float(x)
-        return None if not math.isfinite(v) else v
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
 
 
 def print_json(obj) -> None:

@@ -9,7 +9,7 @@ import click
 
 from calib_cli import __version__
 from calib_cli.cli.common import Ctx, err_console
-from calib_cli.errors import CalibError
+from calib_cli.errors import CalibError, warnings_to
 
 EXIT_INTERNAL = 70  # not in the contract: an unexpected error inside calib (a bug)
 
@@ -65,6 +65,14 @@ def cli(debug: bool, quiet: bool) -> None:
     """
     Ctx.debug = debug
     Ctx.quiet = quiet
+    # warnings of the core (errors.warn) print as one line unless -q, for this run only
+    ctx = click.get_current_context()
+    ctx.with_resource(warnings_to(_print_warning))
+
+
+def _print_warning(line: str) -> None:
+    if not Ctx.quiet:
+        err_console.print(f"calib: warning: {line}", markup=False, soft_wrap=True)
 
 
 _loaded = False

@@ -412,12 +412,95 @@ class _CommentFilter:
         self.closed = True
 
 
-def _arrow_chunks(path, header, offset, head, cols, hasher):
-    """The pyarrow reader: yields chunks; raises _Fallback on anything unusual."""
+class _FileHash:
+    """SHA-256 of a whole file, computed by a background thread while the
+    import reads it (hashlib releases the GIL on large blocks)."""
+
+    def __init__(self, path):
+        import hashlib
+        import threading
+
+        self.h = hashlib.sha256()
+        self.err = None
+        self.th = threading.Thread(target=self._run, args=(path,), daemon=True)
+        self.th.start()
+
+    def _run(self, path):
+        try:
+            with open(path, "rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    self.h.update(block)
+        except OSError as exc:  # pragma: no cover - the file vanished mid-import
+            self.err = exc
+
+    def hexdigest(self):
+        self.th.join()
+        return None if self.err else self.h.hexdigest()
+
+
+class _Assembler:
+    """pyarrow's record batches (about 1 MB of text each) regrouped into chunks
+    of exactly ``CHUNK_ROWS`` rows (the raw file's HDF5 chunk: whole chunks are
+    written once, never read back and rewritten), one copy per value."""
+
+    def __init__(self, cols):
+        self.cols = cols  # (time, accel, gyro, optional, segment) column indices
+        self.pending: list[list[np.ndarray]] = []
+        self.n = 0
+
+    def add(self, data):
+        self.pending.append(data)
+        self.n += len(data[0])
+
+    def take(self, m):
+        """A chunk of the first m pending rows."""
+        from calib_cli.io.stream_import import Chunk
+
+        ti, ai, gi, oi, si = self.cols
+        t = np.empty(m)
+        acc = np.empty((m, len(ai)))
+        gyr = None if gi is None else np.empty((m, len(gi)))
+        opt = {k: np.empty(m) for k in oi}
+        seg = None if si is None else np.empty(m)
+        off = 0
+        while off < m:
+            data = self.pending[0]
+            k = min(len(data[0]), m - off)
+            sl = slice(off, off + k)
+            t[sl] = data[ti][:k]
+            for j, i in enumerate(ai):
+                acc[sl, j] = data[i][:k]
+            if gi is not None:
+                for j, i in enumerate(gi):
+                    gyr[sl, j] = data[i][:k]
+            for name, i in oi.items():
+                opt[name][sl] = data[i][:k]
+            if si is not None:
+                seg[sl] = data[si][:k]
+            if k == len(data[0]):
+                self.pending.pop(0)
+            else:
+                self.pending[0] = [c[k:] for c in data]
+            off += k
+        self.n -= m
+        return Chunk(time=t, accel=acc, gyro=gyr, opt=opt, segment=seg)
+
+
+def _arrow_chunks(path, header, offset, head, cols, hasher, direct=False):
+    """The pyarrow reader: yields chunks; raises _Fallback on anything unusual.
+
+    ``direct``: pyarrow reads the file itself (no Python in its reading
+    threads) from the line after the header, and any comment or blank-only
+    line in the body is a parse error, hence a _Fallback to the filtering
+    stream (``_CommentFilter``); the hash is then computed by a thread."""
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
-    stream = _CommentFilter(path, offset, head, hasher)
+    if direct:
+        stream = pa.OSFile(path)
+        stream.seek(offset)
+    else:
+        stream = _CommentFilter(path, offset, head, hasher)
     try:
         reader = pacsv.open_csv(
             stream,
@@ -434,15 +517,7 @@ def _arrow_chunks(path, header, offset, head, cols, hasher):
         raise _Fallback(str(exc)) from None
     t_last = None
     ti, si = cols[0], cols[4]
-    pending: list[list[np.ndarray]] = []
-    rows = 0
-
-    def flush():
-        data = [np.concatenate([p[i] for p in pending]) for i in range(len(header))] \
-            if len(pending) > 1 else pending[0]
-        pending.clear()
-        return _chunk(data, cols)
-
+    asm = _Assembler(cols)
     try:
         while True:
             try:
@@ -452,22 +527,24 @@ def _arrow_chunks(path, header, offset, head, cols, hasher):
             except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
                 raise _Fallback(str(exc)) from None
             data = [batch.column(i).to_numpy(zero_copy_only=False) for i in range(len(header))]
-            if not all(np.isfinite(c).all() for c in data):
+            if not len(data[0]):
+                continue
+            # one reduction per column; the exact test only when the sums are not finite
+            # (NaN or inf anywhere, or an overflow of the sum)
+            if not np.isfinite(sum(float(np.add.reduce(c)) for c in data)) and \
+                    not all(np.isfinite(c).all() for c in data):
                 raise _Fallback("non-finite")
             t = data[ti]
-            if len(t) and (np.any(np.diff(t) <= 0) or (t_last is not None and t[0] <= t_last)):
+            if (t_last is not None and t[0] <= t_last) or np.any(t[1:] <= t[:-1]):
                 raise _Fallback("time")
             if si is not None and np.any(data[si] != np.round(data[si])):
                 raise _Fallback("segment")
-            if len(t):
-                t_last = t[-1]
-                pending.append(data)
-                rows += len(t)
-                if rows >= STREAM_ROWS:  # pyarrow's blocks are small: write in larger ones
-                    yield flush()
-                    rows = 0
-        if pending:
-            yield flush()
+            t_last = t[-1]
+            asm.add(data)
+            while asm.n >= STREAM_ROWS:  # pyarrow's blocks are small: write in larger ones
+                yield asm.take(STREAM_ROWS)
+        if asm.n:
+            yield asm.take(asm.n)
     finally:
         stream.close()
 
@@ -579,7 +656,7 @@ def import_csv_stream(path, plan: Plan, out, inputs=(), window_s: float = 1.0,
     same data and the same error messages either way). Returns ImportSummary."""
     import hashlib
 
-    from calib_cli.io.stream_import import import_to_raw, plan_layout
+    from calib_cli.io.stream_import import import_to_raw, plan_layout, prefetch
 
     path = str(path)
     layout = plan_layout(plan)
@@ -592,12 +669,22 @@ def import_csv_stream(path, plan: Plan, out, inputs=(), window_s: float = 1.0,
     kw = dict(window_s=window_s, multiplier=multiplier, min_static_s=min_static_s,
               accel_units=accel_units, gyro_units=gyro_units, sample_kind=sample_kind)
     if use_fast and not isinstance(cols, InputError):
+        # pyarrow reading the file itself; on a comment line (or anything else it does
+        # not take exactly as the reference reader does) through the comment filter;
+        # then the reference reader
+        fh = _FileHash(path)
+        try:
+            return import_to_raw(out, prefetch(_arrow_chunks(path, header, offset, head, cols,
+                                                             None, direct=True)),
+                                 plan, path, inputs, hashes=lambda: {path: fh.hexdigest()}, **kw)
+        except _Fallback:
+            pass
         hasher = hashlib.sha256()
         try:
-            return import_to_raw(out, _arrow_chunks(path, header, offset, head, cols, hasher),
+            return import_to_raw(out, prefetch(_arrow_chunks(path, header, offset, head, cols,
+                                                             hasher)),
                                  plan, path, inputs,
                                  hashes=lambda: {path: hasher.hexdigest()}, **kw)
         except _Fallback:
             pass
-    hasher = hashlib.sha256()
     return import_to_raw(out, _text_chunks(path, header, cols), plan, path, inputs, **kw)

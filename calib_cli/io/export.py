@@ -39,9 +39,16 @@ from calib_cli.methods.apply import model_of
 from calib_cli.model.kinematics import Kinematics
 
 FORMATS = ("json", "yaml", "c-header", "csv")
-LINEAR_EFFECTS = {"bias", "scale_misalignment", "misalignment", "g_sensitivity"}
-THERMAL_EFFECTS = {"temperature_drift", "thermal_lag"}  # evaluated first (docs/thermal.md)
-NOT_APPLIED = {"lever_arm", "proof_mass_offsets"}  # input-side terms, not part of the correction
+def _effects(export: str) -> set:
+    """Catalogue effects by how export writes them (``Effect.export``)."""
+    from calib_cli.model.effects import CATALOGUE
+
+    return {n for n, c in CATALOGUE.items() if c.export == export}
+
+
+LINEAR_EFFECTS = _effects("linear")  # bias, scale_misalignment, misalignment, g_sensitivity
+THERMAL_EFFECTS = _effects("thermal")  # evaluated first (docs/thermal.md)
+NOT_APPLIED = _effects("input")  # input-side terms (lever arm, proof masses), not in the correction
 FORMULA = {"accel": "f = K^-1 (A - b)", "gyro": "w = G^-1 (W - d - D f)"}
 
 
@@ -58,7 +65,7 @@ def affine_correction(cal: CalibrationResult, path: str = "<calibration>") -> di
         raise InputError("a redundant-unit (RIMU) calibration has no triad K^-1; export it "
                          "as json, yaml or csv", path)
     names = {d.get("name") for d in cal.model}
-    bad = sorted(names - LINEAR_EFFECTS - NOT_APPLIED - THERMAL_EFFECTS)
+    bad = sorted(names - _effects("linear") - _effects("input") - _effects("thermal"))
     if "temperature_drift" in names and "misalignment" in names:
         bad.append("misalignment with temperature_drift")
     if any(d.get("name") == "temperature_drift" and d.get("order") is None for d in cal.model):
@@ -194,7 +201,7 @@ def export_object(cal: CalibrationResult, prov: dict, source: str) -> dict:
         obj["correction"] = {s: {k: _lists(v) for k, v in d.items()} for s, d in corr.items()}
         if th:
             obj["thermal"] = th
-        not_applied = sorted({d.get("name") for d in cal.model} & NOT_APPLIED)
+        not_applied = sorted({d.get("name") for d in cal.model} & _effects("input"))
         if not_applied:
             obj["not_applied"] = not_applied
     obj["params"] = {k: _lists(v) for k, v in cal.params.items()}
@@ -379,48 +386,10 @@ def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = 
         "",
     ]
     th = thermal_info(cal)
-    if th is not None:
-        return "\n".join(head + _c_thermal_body(cal, corr, th, single, P, p, T, units)
-                         + [f"#endif /* {P}_CORRECTION_H */", ""])
-    body = []
-    if "accel" in corr:
-        a = corr["accel"]
-        body += [f"#define {P}_HAS_ACCEL 1",
-                 "/* units of the accelerometer output A */",
-                 _c_str_const(f"{P}_ACCEL_UNITS", units.get("accel") or "m/s^2"),
-                 "/* accelerometer bias b */", _c_vec(f"{P}_ACCEL_BIAS", a["b"], single, T),
-                 "/* K^-1, the inverse of the accelerometer scale/misalignment matrix K */",
-                 _c_mat(f"{P}_ACCEL_KINV", a["K_inv"], single, T), "",
-                 "/* f = K^-1 (A - b) */",
-                 f"static inline void {p}_correct_accel(const {T} A[3], {T} f[3])",
-                 "{",
-                 f"    {T} u[3];",
-                 f"    for (int i = 0; i < 3; ++i) u[i] = A[i] - {P}_ACCEL_BIAS[i];",
-                 "    for (int i = 0; i < 3; ++i)",
-                 f"        f[i] = {P}_ACCEL_KINV[i][0] * u[0] + {P}_ACCEL_KINV[i][1] * u[1]"
-                 f" + {P}_ACCEL_KINV[i][2] * u[2];",
-                 "}", ""]
-    if "gyro" in corr:
-        g = corr["gyro"]
-        body += [f"#define {P}_HAS_GYRO 1",
-                 "/* units of the gyro output W */",
-                 _c_str_const(f"{P}_GYRO_UNITS", units.get("gyro") or "rad/s"),
-                 "/* gyro bias d */", _c_vec(f"{P}_GYRO_BIAS", g["d"], single, T),
-                 "/* G^-1, the inverse of the gyro scale/misalignment matrix G */",
-                 _c_mat(f"{P}_GYRO_GINV", g["G_inv"], single, T),
-                 "/* D, g-sensitivity, (rad/s)/(m/s^2) (zero when not estimated) */",
-                 _c_mat(f"{P}_GYRO_D", g["D"], single, T), "",
-                 "/* w = G^-1 (W - d - D f), f the corrected specific force */",
-                 f"static inline void {p}_correct_gyro(const {T} W[3], const {T} f[3], {T} w[3])",
-                 "{",
-                 f"    {T} u[3];",
-                 "    for (int i = 0; i < 3; ++i)",
-                 f"        u[i] = W[i] - {P}_GYRO_BIAS[i] - ({P}_GYRO_D[i][0] * f[0]"
-                 f" + {P}_GYRO_D[i][1] * f[1] + {P}_GYRO_D[i][2] * f[2]);",
-                 "    for (int i = 0; i < 3; ++i)",
-                 f"        w[i] = {P}_GYRO_GINV[i][0] * u[0] + {P}_GYRO_GINV[i][1] * u[1]"
-                 f" + {P}_GYRO_GINV[i][2] * u[2];",
-                 "}", ""]
+    body = [] if th is None else _c_thermal_common(corr, th, single, P, p, T)
+    for sensor in ("accel", "gyro"):
+        if sensor in corr:
+            body += _c_sensor(sensor, corr[sensor], th is not None, single, P, p, T, units)
     return "\n".join(head + body + [f"#endif /* {P}_CORRECTION_H */", ""])
 
 
@@ -430,9 +399,9 @@ def _c_rows(name, m, single, T):
     return f"static const {T} {name}[3][{m.shape[1]}] = {{\n    {rows}\n}};"
 
 
-def _c_thermal_body(cal, corr, th, single, P, p, T, units) -> list[str]:
-    """The thermal header (docs/thermal.md): the firmware evaluates the
-    temperature polynomial, then the static correction, as calib apply."""
+def _c_thermal_common(corr, th, single, P, p, T) -> list[str]:
+    """What a thermal header adds before the sensors (docs/thermal.md): T_ref,
+    the range, the polynomial and (thermal_lag) the filter of the reading."""
     N = int(next(iter(corr.values()))["temp_bias"].shape[1])
     lo, hi = th["temp_range_degC"]
     out = [f"#define {P}_HAS_THERMAL 1",
@@ -465,55 +434,81 @@ def _c_thermal_body(cal, corr, th, single, P, p, T, units) -> list[str]:
                 "    state[1] = T_now;",
                 "    return state[0];",
                 "}", ""]
-    if "accel" in corr:
-        a = corr["accel"]
-        out += [f"#define {P}_HAS_ACCEL 1",
-                "/* units of the accelerometer output A */",
-                _c_str_const(f"{P}_ACCEL_UNITS", units.get("accel") or "m/s^2"),
-                "/* accelerometer bias b at T_ref */", _c_vec(f"{P}_ACCEL_BIAS", a["b"], single, T),
-                "/* K^-1 at T_ref */", _c_mat(f"{P}_ACCEL_KINV", a["K_inv"], single, T),
-                "/* bias polynomial bT[i][k], coefficient of dT^(k+1), m/s^2/degC^(k+1) */",
-                _c_rows(f"{P}_ACCEL_TEMP_BIAS", a["temp_bias"], single, T),
-                "/* scale polynomial sT[i][k] on row i of K f, 1/degC^(k+1) */",
-                _c_rows(f"{P}_ACCEL_TEMP_SCALE", a["temp_scale"], single, T), "",
-                "/* u_i = (A_i - b_i - bT_i(dT)) / (1 + sT_i(dT)), f = K^-1 u, dT = temp - T_ref */",
-                f"static inline void {p}_correct_accel(const {T} A[3], {T} temp, {T} f[3])",
-                "{",
-                f"    {T} u[3], dT = temp - {P}_TEMP_REF;",
-                "    for (int i = 0; i < 3; ++i)",
-                f"        u[i] = (A[i] - {P}_ACCEL_BIAS[i] - {p}_temp_poly({P}_ACCEL_TEMP_BIAS[i], dT))"
-                f" / (1 + {p}_temp_poly({P}_ACCEL_TEMP_SCALE[i], dT));",
-                "    for (int i = 0; i < 3; ++i)",
-                f"        f[i] = {P}_ACCEL_KINV[i][0] * u[0] + {P}_ACCEL_KINV[i][1] * u[1]"
-                f" + {P}_ACCEL_KINV[i][2] * u[2];",
-                "}", ""]
-    if "gyro" in corr:
-        g = corr["gyro"]
-        out += [f"#define {P}_HAS_GYRO 1",
-                "/* units of the gyro output W */",
-                _c_str_const(f"{P}_GYRO_UNITS", units.get("gyro") or "rad/s"),
-                "/* gyro bias d at T_ref */", _c_vec(f"{P}_GYRO_BIAS", g["d"], single, T),
-                "/* G^-1 at T_ref */", _c_mat(f"{P}_GYRO_GINV", g["G_inv"], single, T),
-                "/* D, g-sensitivity, (rad/s)/(m/s^2) (zero when not estimated) */",
-                _c_mat(f"{P}_GYRO_D", g["D"], single, T),
-                "/* bias polynomial, rad/s/degC^(k+1) */",
-                _c_rows(f"{P}_GYRO_TEMP_BIAS", g["temp_bias"], single, T),
-                "/* scale polynomial on row i of G w (zero where not observable) */",
-                _c_rows(f"{P}_GYRO_TEMP_SCALE", g["temp_scale"], single, T), "",
-                "/* u_i = (W_i - d_i - dT_i(dT) - (D f)_i) / (1 + gT_i(dT)), w = G^-1 u */",
-                f"static inline void {p}_correct_gyro(const {T} W[3], const {T} f[3], {T} temp,"
-                f" {T} w[3])",
-                "{",
-                f"    {T} u[3], dT = temp - {P}_TEMP_REF;",
-                "    for (int i = 0; i < 3; ++i)",
-                f"        u[i] = (W[i] - {P}_GYRO_BIAS[i] - {p}_temp_poly({P}_GYRO_TEMP_BIAS[i], dT)"
-                f" - ({P}_GYRO_D[i][0] * f[0] + {P}_GYRO_D[i][1] * f[1] + {P}_GYRO_D[i][2] * f[2]))"
-                f" / (1 + {p}_temp_poly({P}_GYRO_TEMP_SCALE[i], dT));",
-                "    for (int i = 0; i < 3; ++i)",
-                f"        w[i] = {P}_GYRO_GINV[i][0] * u[0] + {P}_GYRO_GINV[i][1] * u[1]"
-                f" + {P}_GYRO_GINV[i][2] * u[2];",
-                "}", ""]
     return out
+
+
+# one template for both sensors, static or thermal: the sensor's names and words
+_C_SENSOR = {
+    "accel": dict(S="ACCEL", what="accelerometer", In="A", out="f", bias="b", M="K",
+                  MINV="KINV", inv="K_inv", unit="m/s^2", args="", dfree="",
+                  tb_unit="m/s^2/degC^(k+1)", ts_doc="on row i of K f, 1/degC^(k+1)",
+                  static_doc="f = K^-1 (A - b)",
+                  thermal_doc="u_i = (A_i - b_i - bT_i(dT)) / (1 + sT_i(dT)), f = K^-1 u, "
+                              "dT = temp - T_ref"),
+    "gyro": dict(S="GYRO", what="gyro", In="W", out="w", bias="d", M="G", MINV="GINV",
+                 inv="G_inv", unit="rad/s", args="const {T} f[3], ", dfree=" - ({P}_GYRO_D[i][0]"
+                 " * f[0] + {P}_GYRO_D[i][1] * f[1] + {P}_GYRO_D[i][2] * f[2])",
+                 tb_unit="rad/s/degC^(k+1)",
+                 ts_doc="on row i of G w (zero where not observable)",
+                 static_doc="w = G^-1 (W - d - D f), f the corrected specific force",
+                 thermal_doc="u_i = (W_i - d_i - dT_i(dT) - (D f)_i) / (1 + gT_i(dT)), "
+                             "w = G^-1 u"),
+}
+
+
+def _c_sensor(sensor, c, thermal, single, P, p, T, units) -> list[str]:
+    """One sensor's constants and correction function; with ``thermal`` the
+    bias and scale polynomials are evaluated first (as calib apply)."""
+    w = _C_SENSOR[sensor]
+    S, In, out, MINV = w["S"], w["In"], w["out"], w["MINV"]
+    at = " at T_ref" if thermal else ""
+    lines = [f"#define {P}_HAS_{S} 1",
+             f"/* units of the {w['what']} output {In} */",
+             _c_str_const(f"{P}_{S}_UNITS", units.get(sensor) or w["unit"]),
+             f"/* {w['what']} bias {w['bias']}{at} */",
+             _c_vec(f"{P}_{S}_BIAS", c[w["bias"]], single, T)]
+    if thermal:
+        lines += [f"/* {w['M']}^-1 at T_ref */", _c_mat(f"{P}_{S}_{MINV}", c[w["inv"]], single, T)]
+    else:
+        lines += [f"/* {w['M']}^-1, the inverse of the {w['what']} scale/misalignment matrix "
+                  f"{w['M']} */", _c_mat(f"{P}_{S}_{MINV}", c[w["inv"]], single, T)]
+    if sensor == "gyro":
+        lines += ["/* D, g-sensitivity, (rad/s)/(m/s^2) (zero when not estimated) */",
+                  _c_mat(f"{P}_GYRO_D", c["D"], single, T)]
+    dfree = w["dfree"].format(P=P)
+    args = w["args"].format(T=T)
+    if thermal:
+        if sensor == "accel":
+            lines += [f"/* bias polynomial bT[i][k], coefficient of dT^(k+1), {w['tb_unit']} */"]
+        else:
+            lines += [f"/* bias polynomial, {w['tb_unit']} */"]
+        lines += [_c_rows(f"{P}_{S}_TEMP_BIAS", c["temp_bias"], single, T),
+                  f"/* scale polynomial {'sT[i][k] ' if sensor == 'accel' else ''}"
+                  f"{w['ts_doc']} */",
+                  _c_rows(f"{P}_{S}_TEMP_SCALE", c["temp_scale"], single, T), "",
+                  f"/* {w['thermal_doc']} */",
+                  f"static inline void {p}_correct_{sensor}(const {T} {In}[3], {args}{T} temp, "
+                  f"{T} {out}[3])",
+                  "{",
+                  f"    {T} u[3], dT = temp - {P}_TEMP_REF;",
+                  "    for (int i = 0; i < 3; ++i)",
+                  f"        u[i] = ({In}[i] - {P}_{S}_BIAS[i] - {p}_temp_poly({P}_{S}_TEMP_BIAS[i],"
+                  f" dT){dfree}) / (1 + {p}_temp_poly({P}_{S}_TEMP_SCALE[i], dT));"]
+    else:
+        lines += ["", f"/* {w['static_doc']} */",
+                  f"static inline void {p}_correct_{sensor}(const {T} {In}[3], {args}{T} {out}[3])",
+                  "{",
+                  f"    {T} u[3];"]
+        if sensor == "accel":
+            lines += [f"    for (int i = 0; i < 3; ++i) u[i] = A[i] - {P}_ACCEL_BIAS[i];"]
+        else:
+            lines += ["    for (int i = 0; i < 3; ++i)",
+                      f"        u[i] = W[i] - {P}_GYRO_BIAS[i]{dfree};"]
+    lines += ["    for (int i = 0; i < 3; ++i)",
+              f"        {out}[i] = {P}_{S}_{MINV}[i][0] * u[0] + {P}_{S}_{MINV}[i][1] * u[1]"
+              f" + {P}_{S}_{MINV}[i][2] * u[2];",
+              "}", ""]
+    return lines
 
 
 # Formats for other tools (Kalibr imu.yaml, PX4 and ArduPilot parameters) live in

@@ -87,6 +87,78 @@ def kalibr_from_raw_noise(sigma_accel, sigma_gyro, dt) -> tuple:
 
 
 # ---------------------------------------------------------------------------
+# ArduPilot's temperature calibration (INS_TCALn_*), docs/export.md
+#
+# From ArduPilot's libraries/AP_InertialSensor/AP_InertialSensor_tempcal.cpp:
+# per IMU, INS_TCALn_ENABLE, _TMIN, _TMAX and vectors ACC1..ACC3, GYR1..GYR3,
+# the coefficients of a polynomial without constant term in T - 35 degC
+# (TEMP_REFERENCE), stored times 1e6 (SCALE_FACTOR):
+#     P(T) = (c1 + (c2 + c3 d) d) d * 1e-6,  d = T - 35,
+# applied in the sensor frame before the offsets and scales
+# (AP_InertialSensor_Backend::_rotate_and_correct_accel/gyro):
+#     v -= P(clamp(T)) ; v += P(clamp(CALTEMP)),  clamp to [TMIN, TMAX],
+# CALTEMP being INS_ACCn_CALTEMP / INS_GYRn_CALTEMP, the temperature the
+# offsets hold at. Units: m/s^2 and rad/s, as the offsets.
+
+AP_TEMP_REFERENCE = 35.0  # degC, TEMP_REFERENCE
+AP_SCALE_FACTOR = 1.0e6  # SCALE_FACTOR
+AP_TCAL_ORDER = 3
+
+
+def reexpand(coef, t_ref: float, t0: float = AP_TEMP_REFERENCE) -> np.ndarray:
+    """B(T) = sum_k coef[:, k] (T - t_ref)^(k+1) as sum_j c[:, j] (T - t0)^j,
+    j = 0..N (column 0 the constant B(t0)). coef: (3,) or (3, N)."""
+    from math import comb
+
+    b = np.asarray(coef, dtype=float).reshape(3, -1)
+    n = b.shape[1]
+    delta = t0 - t_ref
+    c = np.zeros((3, n + 1))
+    for k in range(1, n + 1):  # (v + delta)^k = sum_j C(k, j) v^j delta^(k - j)
+        for j in range(k + 1):
+            c[:, j] += b[:, k - 1] * comb(k, j) * delta ** (k - j)
+    return c
+
+
+def ap_poly(params_c: np.ndarray, temp, tmin: float, tmax: float) -> np.ndarray:
+    """ArduPilot's polynomial_eval at clamp(temp): params_c (3, 3) as stored (x 1e6)."""
+    d = np.clip(np.asarray(temp, float), tmin, tmax) - AP_TEMP_REFERENCE
+    c = np.asarray(params_c, float) / AP_SCALE_FACTOR
+    return ((c[:, 0][:, None] + (c[:, 1][:, None] + c[:, 2][:, None] * d) * d) * d).T
+
+
+def ardupilot_tcal(cal: CalibrationResult, instance: int, path: str):
+    """({sensor: (3, 3) stored coefficients}, tmin, tmax, caltemp, {sensor: bias at
+    caltemp}) of a thermal calibration, or None without bias drift terms."""
+    p, st = cal.params, cal.stats
+    sensors = [s for s in ("accel", "gyro")
+               if np.any(np.nan_to_num(np.asarray(p.get(f"{s}_temp_bias", 0.0), float)))]
+    if not sensors:
+        return None
+    if not 0 <= instance <= 2:
+        raise InputError("ArduPilot holds temperature calibrations for IMUs 1-3 "
+                         "(INS_TCAL1..3): use --instance 0, 1 or 2", path)
+    coef = {s: np.asarray(p[f"{s}_temp_bias"], float).reshape(3, -1) for s in sensors}
+    if max(c.shape[1] for c in coef.values()) > AP_TCAL_ORDER:
+        raise InputError("ArduPilot's temperature polynomials are third order at most", path)
+    t_ref = float(st.get("temp_ref_degC", 25.0))
+    rng = st.get("temp_range_degC") or [t_ref, t_ref]
+    tmin, tmax = float(rng[0]), float(rng[1])
+    # the offsets hold at CALTEMP; ArduPilot clamps it to [TMIN, TMAX] too
+    caltemp = float(np.clip(t_ref, tmin, tmax))
+    stored, bias_at = {}, {}
+    for s, c in coef.items():
+        e = reexpand(c, t_ref)  # the constant e[:, 0] cancels between T and CALTEMP
+        full = np.zeros((3, AP_TCAL_ORDER))
+        full[:, :e.shape[1] - 1] = e[:, 1:]
+        stored[s] = full * AP_SCALE_FACTOR
+        from calib_cli.model.effects import temp_poly
+
+        bias_at[s] = np.asarray(p[f"{s}_bias"], float) + temp_poly(c, np.array([caltemp - t_ref]))[0]
+    return stored, tmin, tmax, caltemp, bias_at
+
+
+# ---------------------------------------------------------------------------
 # PX4 / ArduPilot: per-axis offsets and scales
 
 
@@ -106,8 +178,18 @@ def _diag_model(cal: CalibrationResult, sensor: str, path: str):
     for k in (f"{sensor}_temp_bias", f"{sensor}_temp_scale"):  # docs/thermal.md
         v = np.nan_to_num(np.asarray(p.get(k, 0.0), dtype=float))
         if np.any(v != 0):
-            dropped[f"{k}: temperature terms (the values at T_ref are written; largest "
-                    "coefficient)"] = float(np.abs(v).max())
+            if k.endswith("temp_scale"):
+                rng = cal.stats.get("temp_range_degC") or [0.0, 0.0]
+                t_ref = float(cal.stats.get("temp_ref_degC", 25.0))
+                from calib_cli.model.effects import temp_poly
+
+                dts = np.linspace(float(rng[0]), float(rng[1]), 51) - t_ref
+                size = float(np.abs(temp_poly(v.reshape(3, -1), dts)).max())
+                dropped[f"{k}: scale-factor change with temperature (not held by the "
+                        "autopilot; largest relative change over the calibrated range)"] = size
+            else:
+                dropped[f"{k}: temperature terms (the values at T_ref are written; largest "
+                        "coefficient)"] = float(np.abs(v).max())
     if K is None:
         return bias, np.ones(3), dropped
     K = np.asarray(K, dtype=float).reshape(3, 3)
@@ -147,6 +229,13 @@ def autopilot_params(cal: CalibrationResult, target: str, instance: int = 0,
                      "device ids (sensor_accel/sensor_gyro device_id in a ULog)")
     elif target == "ardupilot":
         n = "" if instance == 0 else str(instance + 1)
+        tcal = ardupilot_tcal(cal, instance, path)
+        if tcal is not None:  # the bias drift goes to INS_TCALn_*, offsets at CALTEMP
+            stored, tmin, tmax, caltemp, bias_at = tcal
+            for s in stored:
+                dropped = {k: v for k, v in dropped.items() if not k.startswith(f"{s}_temp_bias")}
+            a_off = bias_at.get("accel", a_off)
+            g_off = bias_at.get("gyro", g_off)
         for i in range(3):
             if a_off is not None:
                 params.append((f"INS_ACC{n}OFFS_{axes[i]}", float(a_off[i])))
@@ -157,6 +246,28 @@ def autopilot_params(cal: CalibrationResult, target: str, instance: int = 0,
             if g_off is not None:
                 params.append((f"INS_GYR{n}OFFS_{axes[i]}", float(g_off[i])))
         notes.append("ArduPilot re-learns the gyro offsets at every boot unless INS_GYR_CAL = 0")
+        if tcal is not None:
+            m = instance + 1
+            params.append((f"INS_TCAL{m}_ENABLE", 1.0))
+            params.append((f"INS_TCAL{m}_TMIN", tmin))
+            params.append((f"INS_TCAL{m}_TMAX", tmax))
+            for s, short in (("accel", "ACC"), ("gyro", "GYR")):
+                c = stored.get(s, np.zeros((3, 3)))
+                for k in range(AP_TCAL_ORDER):
+                    for i in range(3):
+                        params.append((f"INS_TCAL{m}_{short}{k + 1}_{axes[i]}", float(c[i, k])))
+            for s, short in (("accel", "ACC"), ("gyro", "GYR")):
+                if s in stored:
+                    params.append((f"INS_{short}{m}_CALTEMP", caltemp))
+            notes.append(
+                f"INS_TCAL{m}_*: the bias-drift polynomials re-expanded about ArduPilot's "
+                f"fixed 35 degC reference (AP_InertialSensor_tempcal.cpp: third order, no "
+                f"constant term, times 1e6), valid over TMIN..TMAX = {tmin:g}..{tmax:g} degC; "
+                f"the offsets hold at INS_*_CALTEMP = {caltemp:g} degC; scale terms are not "
+                "held (see below)")
+            if "gyro" in stored:
+                notes.append("with INS_GYR_CAL = 1 ArduPilot re-learns the gyro offsets at "
+                             "boot and sets INS_GYRn_CALTEMP to that temperature itself")
     else:
         raise InputError(f"unknown autopilot {target!r}", path)
     if g_scale is not None and np.any(np.abs(g_scale - 1) > 0):

@@ -35,7 +35,7 @@ def shipped_profiles() -> Path:
 
 PROFILE_DIR = shipped_profiles() / "rimu"
 
-KINDS = ("imu", "turntable", "rimu")
+KINDS = ("imu", "turntable", "rimu", "chamber")
 USER_DIR = Path("~/.config/calib/profiles")
 
 

@@ -25,7 +25,13 @@ PLAN_TOP = {"name", "kind", "protocol", "description", "site", "unit", "segment"
             "sim_table_rate_error", "sim_table_wobble_dps", "sim_table_wobble_hz", "sim_grade",
             "sim_proof_mass_sigma_m", "sim_oversample", "sample_kind",
             "sim_table_encoder_counts", "sim_table_encoder_opr_deg",
-            "sim_table_encoder_opr_phase_deg", "sim_table_rate_scale_error", "generator"}
+            "sim_table_encoder_opr_phase_deg", "sim_table_rate_scale_error", "generator",
+            # climatic chamber (issue 21, docs/thermal.md): ramp-rate limit and soak rule
+            # (record), the unit's thermal time constant (simulate)
+            "chamber_ramp_dpm", "unit_tau_s", "chamber_soak_tol_degC", "chamber_soak_s",
+            "chamber_soak_timeout_s"}
+CHAMBER_KEYS = ("chamber_ramp_dpm", "unit_tau_s", "chamber_soak_tol_degC", "chamber_soak_s",
+                "chamber_soak_timeout_s")
 PLAN_SITE = {"latitude_deg", "height_m", "g", "longitude_deg", "name", "allow_any_g"}
 PLAN_UNIT = {"serial", "model", "name", "profile", "accel_range_g", "gyro_range_dps"}
 PLAN_RIMU = {"el0_deg", "az0_deg", "profile"}
@@ -33,7 +39,8 @@ PLAN_SEGMENT = {"label", "attitude_deg", "attitude_sigma_deg", "table_axis_enu",
                 "table_rate_dps", "lever_arm_m", "duration_s", "rotation_axis_body",
                 "rotation_angle_deg", "repeat", "rate_profile", "rate_shape", "rate_jerk_dps3",
                 "rate_oscillation", "transition_s",
-                "chamber_temp_degC", "sample_kind", "sim_attitude_deg", "sim_repeat",
+                "chamber_temp_degC", "chamber_soak", "chamber_ramp_dpm", "chamber_soak_tol_degC",
+                "chamber_soak_s", "chamber_soak_timeout_s", "sample_kind", "sim_attitude_deg", "sim_repeat",
                 "sim_table_axis_enu", "sim_lever_arm_m"}
 PLAN_TABLES = {"": PLAN_TOP, "site": PLAN_SITE, "unit": PLAN_UNIT, "rimu": PLAN_RIMU,
                "segment": PLAN_SEGMENT}
@@ -104,14 +111,12 @@ def check_table(table: dict, known, path: str, where: str, unknown: list) -> Non
 
 def warn_unknown(unknown: list, path: str) -> None:
     if unknown:
-        from calib_cli.cli.common import Ctx, err_console
+        from calib_cli.errors import warn
 
         shown = ", ".join(unknown[:8]) + (f" and {len(unknown) - 8} more" if len(unknown) > 8
                                           else "")
-        if not Ctx.quiet:
-            err_console.print(f"calib: warning: {path}: keys not used by calib: {shown} "
-                              "(prefix your own keys with x_ to silence this)", markup=False,
-                              soft_wrap=True)
+        warn(f"{path}: keys not used by calib: {shown} "
+             "(prefix your own keys with x_ to silence this)")
 
 
 def check_plan_keys(raw: dict, path: str) -> None:
@@ -152,6 +157,21 @@ def check_plan_values(raw: dict, path: str) -> None:
     tr = raw.get("transition_s")
     if tr is not None and (not num(tr) or not 0 <= tr <= 1e5):
         raise InputError(f"transition_s must be a number in [0, 1e5] s, got {tr!r}", path)
+    for key in CHAMBER_KEYS:  # issue 21: > 0 where given, top level or per segment
+        for i, t in [(None, raw)] + list(enumerate(raw.get("segment") or [])):
+            v = t.get(key) if isinstance(t, dict) else None
+            if v is not None and (not num(v) or not v > 0):
+                where = "" if i is None else f"segment {i + 1}: "
+                raise InputError(f"{where}{key} must be a number > 0, got {v!r}", path)
+    for i, t in enumerate(raw.get("segment") or []):
+        v = t.get("chamber_soak") if isinstance(t, dict) else None
+        if v is not None and not isinstance(v, bool):
+            raise InputError(f"segment {i + 1}: chamber_soak must be true or false, got {v!r}",
+                             path)
+        v = t.get("chamber_temp_degC") if isinstance(t, dict) else None
+        if v is not None and (not num(v) or not -273.15 < v <= 1000):
+            raise InputError(f"segment {i + 1}: chamber_temp_degC must be a temperature in "
+                             f"degC, got {v!r}", path)
     site = raw.get("site")
     if isinstance(site, dict) and site.get("g") is not None and site.get("allow_any_g") is not True:
         g = site["g"]
@@ -221,7 +241,7 @@ def known_param_keys() -> set[str]:
     import numpy as np
 
     from calib_cli.model.effects import Layout
-    from calib_cli.sim.truth import _key_owner
+    from calib_cli.model.truth import _key_owner
 
     keys = set(_key_owner(Layout(), {}))
     keys |= set(_key_owner(Layout(n=6, el0=np.zeros(6), az0=np.zeros(6)), {}))

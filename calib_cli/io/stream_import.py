@@ -13,7 +13,7 @@ bag, ULog and DataFlash imports all go through here.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -29,9 +29,9 @@ from calib_cli.io.h5 import (
     write_segments,
     write_site_layout,
 )
-from calib_cli.io.plan import Plan
 from calib_cli.methods.static_stream import StreamDetector
 from calib_cli.model.effects import Layout
+from calib_cli.plan import Plan, plan_layout  # noqa: F401  (plan_layout re-exported)
 
 CHUNK_ROWS = 65536
 READ_ROWS = 1 << 18
@@ -56,11 +56,16 @@ class ImportSummary:
 
 
 class _Sink:
-    """Resizable chunked datasets in /samples, appended block by block."""
+    """Resizable chunked datasets in /samples, appended block by block.
+
+    Rows are written in whole HDF5 chunks (``CHUNK_ROWS``): a partial chunk
+    waits for the next block, so no chunk is written, read back through its
+    checksum and written again; ``flush()`` writes the last partial chunk."""
 
     def __init__(self, smp: h5py.Group):
         self.smp = smp
         self.ds: dict[str, h5py.Dataset] = {}
+        self.tail: dict[str, np.ndarray] = {}
         self.n = 0
 
     def _ds(self, name, width):
@@ -76,9 +81,29 @@ class _Sink:
     def append(self, name, arr):
         arr = np.asarray(arr, dtype=float)
         d = self._ds(name, None if arr.ndim == 1 else arr.shape[1])
-        m = len(arr)
-        d.resize(self.n + m, axis=0)
-        d[self.n:self.n + m] = arr
+        tail = self.tail.pop(name, None)
+        have = d.shape[0] + (0 if tail is None else len(tail))
+        if have < self.n:  # a column absent from earlier blocks: zeros there, as resize gives
+            gap = np.zeros((self.n - have,) + arr.shape[1:])
+            tail = gap if tail is None else np.concatenate([tail, gap])
+        if tail is not None:
+            arr = np.concatenate([tail, arr])
+        m = len(arr) // CHUNK_ROWS * CHUNK_ROWS
+        if m < len(arr):
+            self.tail[name] = np.array(arr[m:])
+        if m:
+            self._write(d, arr[:m])
+
+    @staticmethod
+    def _write(d, arr):
+        k = d.shape[0]
+        d.resize(k + len(arr), axis=0)
+        d[k:k + len(arr)] = arr
+
+    def flush(self):
+        for name, arr in self.tail.items():
+            self._write(self.ds[name], arr)
+        self.tail.clear()
 
     def times(self, rows=READ_ROWS):
         """Fresh iterator of the time blocks alone."""
@@ -114,13 +139,7 @@ class _SpillStore:
         self.fh.write(memoryview(arr).cast("B"))
         self.rows += len(arr)
 
-    def times(self, rows=READ_ROWS):
-        """Fresh iterator of the time blocks alone."""
-        t = self.ds["time"]
-        for i in range(0, self.n, rows):
-            yield t[i:min(self.n, i + rows)]
-
-    def blocks(self, rows=READ_ROWS):
+    def blocks(self, rows=CHUNK_ROWS):
         self.fh.flush()
         self.fh.seek(0)
         left = self.rows
@@ -159,6 +178,58 @@ class _SegRuns:
         self.last = int(seg[-1])
 
 
+def prefetch(source: Iterable[Chunk], depth: int = 3) -> Iterator[Chunk]:
+    """``source`` iterated by a background thread, at most ``depth`` chunks
+    ahead: a reader that releases the GIL (pyarrow's) parses the next blocks
+    while this thread writes and detects (memory: ``depth`` chunks more).
+    Its exceptions are raised here, in order; closing this iterator (or an
+    exception here) stops the thread and closes ``source`` there."""
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    end = object()
+
+    def put(item):
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def run():
+        it = iter(source)
+        try:
+            for ch in it:
+                if not put((ch, None)):
+                    break
+            else:
+                put((end, None))
+        except BaseException as exc:  # handed over to the consumer
+            put((None, exc))
+        finally:
+            close = getattr(it, "close", None)
+            if close is not None:
+                close()
+
+    th = threading.Thread(target=run, name="calib-import-reader", daemon=True)
+    th.start()
+    try:
+        while True:
+            item, exc = q.get()
+            if exc is not None:
+                raise exc
+            if item is end:
+                return
+            yield item
+    finally:
+        stop.set()
+        th.join()
+
+
 def segments_from_runs(vals, starts, n, plan: Plan, path: str):
     """csvlog.segments_from_column, from the runs of the column."""
     from calib_cli.io.csvlog import segments_from_column
@@ -175,14 +246,33 @@ def segments_from_runs(vals, starts, n, plan: Plan, path: str):
     return out
 
 
-def plan_layout(plan: Plan) -> Layout:
-    """``sim.simulate.plan_layout`` without importing the simulator (and SciPy)
-    into every import (tests/test_import_stream.py checks they agree)."""
-    n_cycles = sum(1 for s in plan.segments if s.kind == "rotating")
-    if plan.kind == "rimu":
-        return Layout(n=len(plan.rimu_el0), el0=plan.rimu_el0, az0=plan.rimu_az0,
-                      n_cycles=n_cycles)
-    return Layout(n_cycles=n_cycles)
+_ALLOCATOR_TUNED = False
+
+
+def keep_freed_memory() -> None:
+    """On glibc, keep freed memory in the process for reuse (``mallopt``):
+    every block of the import allocates and frees the same few arrays of a
+    few MB, and by default glibc maps them fresh (or trims the heap and
+    grows it again) each time, so that the kernel zeroes every page again:
+    about half the page faults of an import. Peak memory is unchanged (the
+    freed blocks are those the next block reuses). Elsewhere: nothing."""
+    global _ALLOCATOR_TUNED
+    if _ALLOCATOR_TUNED:
+        return
+    _ALLOCATOR_TUNED = True
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+        libc.mallopt(M_MMAP_THRESHOLD, 64 << 20)
+        libc.mallopt(M_TRIM_THRESHOLD, 256 << 20)
+    except (OSError, AttributeError):  # not glibc (musl, ...)
+        pass
 
 
 def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=(),
@@ -196,8 +286,21 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
     ``path`` names the log in error messages; ``inputs`` are hashed into the
     provenance (``hashes()`` may supply hashes already computed while
     streaming); ``check(sink, segments)`` may veto the segments (gap checks) and returns
-    counters to record.
+    counters to record. ``source`` is closed on return (a generator's ``close``).
     """
+    keep_freed_memory()
+    try:
+        return _import_to_raw(out, source, plan, path, inputs, window_s, multiplier,
+                              min_static_s, accel_units, gyro_units, hashes, counters, check,
+                              sample_kind)
+    finally:
+        close = getattr(source, "close", None)
+        if close is not None:  # a reader thread (``prefetch``) stops now, not at exit
+            close()
+
+
+def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_static_s,
+                   accel_units, gyro_units, hashes, counters, check, sample_kind):
     from calib_cli.io.csvlog import check_time_range
     from calib_cli.io.textlog import convert_units
 
@@ -230,6 +333,7 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
                 runs = runs or _SegRuns()
                 runs.feed(ch.segment, sink.n)
             sink.n += m
+        sink.flush()
         n = sink.n
         if n == 0:
             raise InputError("no samples", path)

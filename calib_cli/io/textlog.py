@@ -426,3 +426,192 @@ def _segment_indices(col, plan: Plan, lines, path) -> np.ndarray:
                 raise InputError(f"line {lines[i]}: segment {c!r} is neither a plan label nor "
                                  f"an index (plan labels: {', '.join(labels)})", path) from None
     return out
+
+
+# ---------------------------------------------------------------------------
+# streaming (issue 19): the common layout goes block by block into the raw
+# file (io/stream_import.py); anything else, and every error, takes the
+# in-memory path above, which gives the data or the exact message.
+
+
+class _NotStreamable(Exception):
+    """The streamed reader does not take this file or these options."""
+
+
+def _text_stream_plan(path: str, columns, delimiter: str, header: str, rate, time_unit: str):
+    """(separator, data offset, column names, field -> column index, time unit,
+    rate) for pyarrow's streaming reader, or _NotStreamable."""
+    try:
+        fh = open(path, "rb")
+    except OSError:
+        raise _NotStreamable from None
+    with fh:
+        offset = 0
+        while True:
+            raw = fh.readline()
+            if not raw:
+                raise _NotStreamable
+            try:
+                first = raw.decode("utf-8").strip()
+            except UnicodeDecodeError:
+                raise _NotStreamable from None
+            if first and not first.startswith(("#", "%")):
+                break
+            offset += len(raw)
+    seps = {"comma": ",", "semicolon": ";", "tab": "\t", "whitespace": None}
+    if delimiter == "auto":
+        sep = next((s for s in (",", ";", "\t") if s in first), None)
+    else:
+        sep = seps.get(delimiter)
+    if sep is None:
+        raise _NotStreamable
+    cells0 = [c.strip() for c in first.split(sep)]
+    has_header = any(not _is_number(c) for c in cells0) if header == "auto" else header == "yes"
+    names = cells0 if has_header else None
+    if names is not None and len(set(names)) != len(names):
+        raise _NotStreamable
+    k = len(cells0)
+    try:  # a bad column map: the in-memory path gives its error after the file's own
+        cmap = parse_column_map(columns, path) or _default_map(names, k, "both")
+    except InputError:
+        raise _NotStreamable from None
+    if "segment" in cmap or not all(f in cmap for f in ("ax", "ay", "az")):
+        raise _NotStreamable
+    if cmap.pop("_time_unit", None) == "sample" and time_unit == "s":
+        time_unit = "sample"
+    idx = {}
+    for f, ref in cmap.items():
+        if isinstance(ref, int):
+            if not 1 <= ref <= k:
+                raise _NotStreamable
+            idx[f] = ref - 1
+        else:
+            if names is None or ref not in names:
+                raise _NotStreamable
+            idx[f] = names.index(ref)
+    scale = TIME_UNITS.get(time_unit, 0.0)
+    if (scale is None or "time" not in idx) and (not rate or rate <= 0):
+        raise _NotStreamable  # the in-memory path asks for --rate
+    start = offset + (len(raw) if has_header else 0)
+    return sep, start, k, idx, scale
+
+
+def _text_chunks_arrow(path, sep, start, k, idx, scale, rate):
+    """Chunks of a delimited text log through pyarrow; _NotStreamable on
+    anything unusual (a comment or blank-only line in the body, a cell that is
+    not a number, NaN, time not increasing)."""
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    from calib_cli.io.csvlog import ARROW_BLOCK, STREAM_ROWS, USE_THREADS, _Assembler
+
+    names = [f"c{i}" for i in range(k)]
+    stream = pa.OSFile(path)
+    stream.seek(start)
+    try:
+        reader = pacsv.open_csv(
+            stream, read_options=pacsv.ReadOptions(column_names=names, block_size=ARROW_BLOCK,
+                                                   use_threads=USE_THREADS),
+            parse_options=pacsv.ParseOptions(delimiter=sep, quote_char=False),
+            convert_options=pacsv.ConvertOptions(column_types={c: pa.float64() for c in names},
+                                                 strings_can_be_null=False, null_values=[],
+                                                 quoted_strings_can_be_null=False))
+    except (pa.ArrowInvalid, pa.ArrowTypeError):
+        stream.close()
+        raise _NotStreamable from None
+    # the chunk layout of csvlog: (time, accel, gyro, optional, segment) column indices;
+    # a time column computed from the row number is appended as column k
+    ti = idx.get("time", k)
+    gi = [idx[f] for f in ("gx", "gy", "gz")] if all(f in idx for f in ("gx", "gy", "gz")) \
+        else None
+    cols = (ti, [idx[f] for f in ("ax", "ay", "az")], gi,
+            {"temp": idx["temp"]} if "temp" in idx else {}, None)
+    asm = _Assembler(cols)
+    t_last, n = None, 0
+    try:
+        while True:
+            try:
+                batch = reader.read_next_batch()
+            except StopIteration:
+                break
+            except (pa.ArrowInvalid, pa.ArrowTypeError):
+                raise _NotStreamable from None
+            data = [batch.column(i).to_numpy(zero_copy_only=False) for i in range(k)]
+            m = len(data[0])
+            if not m:
+                continue
+            if not all(np.isfinite(c).all() for c in data):
+                raise _NotStreamable
+            # time in seconds, as import_text computes it
+            if "time" not in idx:
+                t = np.arange(n, n + m, dtype=float) / rate
+            elif scale is None:
+                t = data[ti] / rate
+            else:
+                t = data[ti] * scale
+            if (t_last is not None and t[0] <= t_last) or np.any(t[1:] <= t[:-1]):
+                raise _NotStreamable  # the in-memory path: the error, or --sort
+            data.append(t)
+            if ti != k:
+                data[ti] = t
+            t_last = t[-1]
+            n += m
+            asm.add(data)
+            while asm.n >= STREAM_ROWS:
+                yield asm.take(STREAM_ROWS)
+        if n == 0:
+            raise _NotStreamable  # "no data rows", from the in-memory path
+        if asm.n:
+            yield asm.take(asm.n)
+    finally:
+        stream.close()
+
+
+def import_text_to_raw(out, acc_path, plan: Plan, gyro_path=None, columns: str | None = None,
+                       gyro_columns: str | None = None, accel_units: str = "m/s^2",
+                       gyro_units: str = "rad/s", rate: float | None = None,
+                       time_unit: str = "s", delimiter: str = "auto", header: str = "auto",
+                       sort: bool = False, segments_json: str | None = None,
+                       window_s: float = 1.0, multiplier: float = 3.0,
+                       min_static_s: float = 1.0, inputs=(), sample_kind: str = "instant"):
+    """``import_text`` written to the raw file ``out``: (samples, units,
+    segments). A single delimited file without --sort, --segments or a
+    segment column is streamed block by block (memory independent of its
+    length) when pyarrow is installed; anything else, and any problem in the
+    file, goes through ``import_text`` in memory, which gives the same data
+    or the exact error message (line numbers included)."""
+    from calib_cli.io.csvlog import have_pyarrow
+
+    acc_path = str(acc_path)
+    streamable = (gyro_path is None and not sort and segments_json is None and have_pyarrow()
+                  and time_unit in TIME_UNITS and not plan_is_redundant(plan))
+    if streamable:
+        from calib_cli.io.csvlog import _FileHash
+        from calib_cli.io.stream_import import import_to_raw, prefetch
+
+        try:
+            sep, start, k, idx, scale = _text_stream_plan(acc_path, columns, delimiter, header,
+                                                          rate, time_unit)
+            fh = _FileHash(acc_path)  # the provenance's SHA-256, by a thread meanwhile
+            res = import_to_raw(out, prefetch(_text_chunks_arrow(acc_path, sep, start, k, idx,
+                                                                 scale, rate)),
+                                plan, acc_path, inputs, window_s, multiplier, min_static_s,
+                                accel_units, gyro_units, sample_kind=sample_kind,
+                                hashes=lambda: {acc_path: fh.hexdigest()})
+            return res.n, res.units, res.segments
+        except _NotStreamable:
+            pass
+    from calib_cli.io.h5 import write_raw
+
+    rec = import_text(acc_path, plan, gyro_path, columns, gyro_columns, accel_units, gyro_units,
+                      rate, time_unit, delimiter, header, sort, segments_json, window_s,
+                      multiplier, min_static_s)
+    rec = rec.with_(sample_kind=sample_kind)
+    write_raw(out, rec, inputs)
+    return len(rec), rec.units, rec.segments
+
+
+def plan_is_redundant(plan: Plan) -> bool:
+    from calib_cli.io.stream_import import plan_layout
+
+    return plan_layout(plan).redundant

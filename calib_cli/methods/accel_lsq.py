@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from calib_cli.data import CalibrationResult, Recording
-from calib_cli.errors import EstimationError
+from calib_cli.errors import EstimationError, InputError
 from calib_cli.methods import lsq
 from calib_cli.methods.result import build_result
 from calib_cli.methods.segstats import StaticStats, static_stats
@@ -115,7 +115,7 @@ def _finish(method, model, packing, fit, base, rec, st, resid, extra_stats) -> C
 
 def _with_noise(st: StaticStats, noise) -> StaticStats:
     """The segment statistics with a stated per-sample noise (experiment design,
-    methods/design.py) instead of the one measured in the recording."""
+    design.py) instead of the one measured in the recording."""
     if noise is None:
         return st
     from dataclasses import replace
@@ -346,7 +346,7 @@ def fit_accel(rec: Recording, method: str = "auto", *, noise=None,
     """The contract's ``fit accel``: auto = vector when every static segment
     has an attitude, else scalar."""
     if rec.layout.redundant:
-        raise EstimationError("this is a redundant-unit recording: use `calib fit rimu`")
+        raise InputError("this is a redundant-unit recording: use `calib fit rimu`")
     statics = rec.static_segments()
     if not statics:
         raise EstimationError("the recording has no static segments to fit")

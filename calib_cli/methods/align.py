@@ -36,7 +36,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calib_cli.data import CalibrationResult, Recording, Segment
-from calib_cli.errors import EstimationError
+from calib_cli.errors import EstimationError, InputError
 from calib_cli.methods import lsq
 from calib_cli.model.earth import EARTH_RATE
 from calib_cli.model.effects import Bias, Layout, ScaleMisalignment
@@ -130,7 +130,7 @@ def collect(rec: Recording, rotation: str = "auto", turn_sigma: float = 0.0) -> 
     continuously, else plan). turn_sigma: 1-sigma error (rad, per axis) of a
     plan-stated turn."""
     if rec.layout.redundant:
-        raise EstimationError("this is a redundant-unit recording: use `calib fit rimu`")
+        raise InputError("this is a redundant-unit recording: use `calib fit rimu`")
     if rec.gyro is None:
         raise EstimationError("the recording has no gyro data; alignment needs both sensors "
                               "(use `calib fit accel` for accelerometers alone)")
@@ -371,7 +371,7 @@ def fit_align(rec: Recording, rotation: str = "auto", gyro: str = "auto",
     misalignment), dimensionless; None: 30 ppm when the earth rate is usable,
     3000 ppm otherwise. turn_sigma: rad, for plan-stated turns. noise: {"accel":
     sigma, "gyro": sigma} per sample to weight with instead of the measured noise
-    (experiment design, methods/design.py)."""
+    (experiment design, design.py)."""
     site = rec.site
     inp = collect(rec, rotation, turn_sigma)
     if noise is not None:

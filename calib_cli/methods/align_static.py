@@ -38,7 +38,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calib_cli.data import CalibrationResult, Recording
-from calib_cli.errors import EstimationError
+from calib_cli.errors import EstimationError, InputError
 from calib_cli.methods import lsq
 from calib_cli.methods.align import KEYS, UNITS, _euler_cov, _means, earth_rate_usable, g_error_stats
 from calib_cli.model.earth import EARTH_RATE
@@ -126,7 +126,7 @@ def fit_align_static(rec: Recording) -> CalibrationResult:
     means alone (no turn needed; docs/align.md, "Static-only alignment")."""
     site = rec.site
     if rec.layout.redundant:
-        raise EstimationError("this is a redundant-unit recording: use `calib fit rimu`")
+        raise InputError("this is a redundant-unit recording: use `calib fit rimu`")
     if rec.gyro is None:
         raise EstimationError("the recording has no gyro data; static alignment needs both "
                               "sensors")

@@ -8,7 +8,7 @@ from calib_cli.data import CalibrationResult
 from calib_cli.errors import InputError
 from calib_cli.model.correction import correct
 from calib_cli.model.imu_model import ImuModel
-from calib_cli.sim.truth import effect_from_description
+from calib_cli.model.truth import effect_from_description
 
 
 def model_of(cal: CalibrationResult) -> ImuModel:

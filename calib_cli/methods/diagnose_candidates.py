@@ -130,7 +130,26 @@ def candidates(pb: Problem, model, base_structure: str, tried_names: set
     else:
         for name in ("lever_arm", "proof_mass_offsets", "time_offset"):
             why[name] = "needs rotation (a turntable): the experiment has only static positions"
+    # any other catalogue effect (a new class in model/effects.py): tried on every
+    # sensor where it is diagnosable and applies to this layout (Effect attributes)
+    from calib_cli.model.effects import CATALOGUE
+
+    for name, cls in CATALOGUE.items():
+        if name in RULED or not cls.diagnosable:
+            continue
+        if ("redundant" if redundant else "triad") not in cls.layouts:
+            why[name] = f"not defined for a {'redundant' if redundant else 'triad'} unit"
+            continue
+        for s in ([""] if cls.sensorless else pb.sensors):
+            add(name, s)
     return out, why
+
+
+# effects whose candidacy the rules above decide (the others: their class attributes)
+RULED = {"bias", "scale_misalignment", "installation", "misalignment", "accel_nonlinearity",
+         "scale_asymmetry", "g_sensitivity", "temperature_drift", "thermal_lag",
+         "bias_random_walk", "bias_instability", "lever_arm", "proof_mass_offsets",
+         "time_offset", "white_noise"}
 
 
 def temperature_note(pb: Problem) -> str | None:
@@ -238,4 +257,4 @@ def describe(c: Candidate, params: dict, sigma: dict, pb: Problem | None = None)
                     f"{figures} {u}")
         return (f"{s} bias random walk: the bias wanders slowly over the record (density "
                 f"{figures} {u}/sqrt(s))")
-    return n
+    return c.effect.describe(params, sigma)  # any other effect: its own words

@@ -45,7 +45,7 @@ from calib_cli.model.kinematics import Kinematics
 from calib_cli.model.strapdown import quat_exp as _qexp
 from calib_cli.model.strapdown import quat_matrix as _qmat
 from calib_cli.model.strapdown import quat_mul as _qmul
-from calib_cli.sim.truth import effect_from_description
+from calib_cli.model.truth import effect_from_description
 
 GAP_FACTOR = 1.5  # a sample interval > 1.5 x the median is a gap: no integration across it
 
@@ -334,11 +334,11 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
     this recording's noise and are propagated (``_independent_accel``).
     noise: {"accel": sigma, "gyro": sigma} per sample, to weight with instead of
     the measured noise; strict=False reports unobservable entries instead of
-    failing (both for experiment design, methods/design.py)."""
+    failing (both for experiment design, design.py)."""
     if rec.gyro is None:
         raise EstimationError("the recording has no gyro data")
     if rec.layout.redundant:
-        raise EstimationError("this is a redundant-unit recording: use `calib fit rimu`")
+        raise InputError("this is a redundant-unit recording: use `calib fit rimu`")
     accel_independent = accel_independent and accel is not None  # fitted here: same data
     if accel is None:
         from calib_cli.methods.accel_lsq import fit_accel

@@ -7,7 +7,7 @@ import numpy as np
 from calib_cli.data import CalibrationResult
 from calib_cli.methods.lsq import LsqFit
 from calib_cli.model.imu_model import ImuModel, Packing
-from calib_cli.sim.truth import describe_effect
+from calib_cli.model.truth import describe_effect
 
 _COUNT_UNITS = {
     "accel_bias": "count", "accel_K": "count/(m/s^2)",

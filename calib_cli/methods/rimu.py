@@ -37,7 +37,7 @@ from calib_cli.model import kinematics as kn
 from calib_cli.model.effects import Bias, Installation, Layout
 from calib_cli.model.frames import attitude_to_rotation
 from calib_cli.model.imu_model import ImuModel, base_model
-from calib_cli.sim.truth import describe_effect
+from calib_cli.model.truth import describe_effect
 
 SENSORS = ("accel", "gyro")
 NAMES = ("bias", "scale_error", "dEl", "dAz")
@@ -262,7 +262,7 @@ def fit_rimu(rec: Recording, *, noise: dict | None = None,
     """The contract's ``fit rimu``: every sensor's b, ks, dEl, dAz with covariance.
     noise: {"accel": sigma (n,), "gyro": sigma (n,)} per sample to weight with
     instead of the measured noise; strict=False returns even when no parameter
-    is determined (both for experiment design, methods/design.py)."""
+    is determined (both for experiment design, design.py)."""
     layout = rec.layout
     if not layout.redundant:
         raise EstimationError("this is not a redundant-unit recording (plan kind \"rimu\" "

@@ -120,17 +120,20 @@ def _window_std(buf, buf_start, i0, i1, w, h, n):
     np.cumsum(seg, axis=0, out=c1[1:])
     c2 = np.empty_like(c1)
     c2[0] = 0.0
-    np.cumsum(np.square(seg), axis=0, out=c2[1:])
+    np.multiply(seg, seg, out=c2[1:])
+    np.cumsum(c2[1:], axis=0, out=c2[1:])
     lo = lo - a
-    if lo[-1] - lo[0] == len(lo) - 1:  # contiguous windows: slices, not gathers
+    if lo[-1] - lo[0] == len(lo) - 1:  # contiguous windows: slices, not gathers (in place)
         j0, j1 = int(lo[0]), int(lo[-1]) + 1
-        s1 = c1[j0 + w:j1 + w] - c1[j0:j1]
-        s2 = c2[j0 + w:j1 + w] - c2[j0:j1]
+        s1 = c1[j0 + w:j1 + w]
+        s1 -= c1[j0:j1]
+        s2 = c2[j0 + w:j1 + w]
+        s2 -= c2[j0:j1]
     else:
         s1 = c1[lo + w] - c1[lo]
         s2 = c2[lo + w] - c2[lo]
     # var = (s2 - s1^2 / w) / (w - 1), in place
-    np.square(s1, out=s1)
+    np.multiply(s1, s1, out=s1)
     s1 *= 1.0 / w
     s2 -= s1
     s2 *= 1.0 / (w - 1)
@@ -185,17 +188,21 @@ def stream_percentile(values: Callable[[], Iterable[np.ndarray]], n: int, q: flo
         imax = np.full(len(todo), -np.inf)
         kept: list[list[np.ndarray]] | None = [[] for _ in todo]
         for blk in values():
-            x = blk[:, todo]
-            below += np.sum(x < lo_t, axis=0)
-            ins = (x >= lo_t) & (x <= hi_t)
-            inside += ins.sum(axis=0)
-            for j in range(len(todo)):
-                xj = x[ins[:, j], j]
-                if len(xj):
-                    imin[j] = min(imin[j], xj.min())
-                    imax[j] = max(imax[j], xj.max())
-                    if kept is not None:
-                        kept[j].append(xj)
+            # one column at a time, contiguous (a transposed copy of the block)
+            xt = np.ascontiguousarray(np.asarray(blk)[:, todo].T)
+            for j, c in enumerate(xt):
+                below[j] += np.count_nonzero(c < lo_t[j])
+                ins = c >= lo_t[j]
+                ins &= c <= hi_t[j]
+                cnt = np.count_nonzero(ins)
+                if not cnt:
+                    continue
+                inside[j] += cnt
+                xj = c[ins]
+                imin[j] = min(imin[j], xj.min())
+                imax[j] = max(imax[j], xj.max())
+                if kept is not None:
+                    kept[j].append(xj)
             if kept is not None and np.any(inside > BRACKET_CAP):
                 kept = None  # too many values in the bracket: narrow it first
         done = []
@@ -495,13 +502,41 @@ def _detect(blocks, times, stds, sample, n, dt, w, window_s, multiplier, min_dur
     ks = sorted(set(MULTIPLIERS) | {multiplier})
     trackers = {k: _RunTracker() for k in ks}
     n_quiet = 0
+    i_mult = ks.index(multiplier)
+    prev = None  # level of the last row of the previous block
+    off = 0
+    inv = 1.0 / f_all
     for s in stds():  # one pass: quiet masks for every multiplier, kept as runs
-        r = np.max(s / f_all, axis=1)  # s_j < k f_j for every axis j <=> r < k
+        r = s[:, 0] * inv[0]  # s_j < k f_j for every axis j <=> r < k (r = max_j s_j / f_j)
+        for j in range(1, s.shape[1]):
+            np.maximum(r, s[:, j] * inv[j], out=r)
+        # level: how many multipliers r reaches; quiet at k <=> level <= index of k
+        lvl = np.zeros(len(r), dtype=np.int8)
         for k in ks:
-            q = r < k
-            trackers[k].feed(q)
-            if k == multiplier:
-                n_quiet += int(q.sum())
+            lvl += r >= k
+        n_quiet += int(np.count_nonzero(lvl <= i_mult))
+        # the masks change only where the level does: the runs of every multiplier from
+        # those rows alone
+        ch = np.flatnonzero(lvl[1:] != lvl[:-1]) + 1
+        if prev is None:
+            idx = np.concatenate([[0], ch])
+            before = np.full(1 + len(ch), len(ks), dtype=np.int8)  # "not quiet" before row 0
+            before[1:] = lvl[ch - 1]
+        else:
+            idx = np.concatenate([[0], ch])
+            before = np.empty(1 + len(ch), dtype=np.int8)
+            before[0] = prev
+            before[1:] = lvl[ch - 1]
+        after = lvl[idx]
+        for i, k in enumerate(ks):
+            qb, qa = before <= i, after <= i
+            trackers[k].starts.append(idx[qa & ~qb] + off)
+            trackers[k].stops.append(idx[qb & ~qa] + off)
+            trackers[k].prev = bool(lvl[-1] <= i)
+        prev = lvl[-1]
+        off += len(r)
+    for k in ks:
+        trackers[k].off = off
     run_pairs = {k: trackers[k].result() for k in ks}
     half = w // 2
     # the times the interval rule needs, read in one pass

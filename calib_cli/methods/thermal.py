@@ -262,8 +262,10 @@ def hysteresis(bl: Blocks, res: np.ndarray, sig_block: np.ndarray, temp: np.ndar
 
 def fit_thermal(rec: Recording, order: int | None = None, temp_ref: float = TEMP_REF_C,
                 sensors=("accel", "gyro"), base: CalibrationResult | None = None,
-                lag: bool = False) -> CalibrationResult:
-    """``calib fit thermal`` (pure): see the module docstring."""
+                lag: bool = False, noise: dict | None = None) -> CalibrationResult:
+    """``calib fit thermal`` (pure): see the module docstring. ``noise``: the
+    per-sample white noise per sensor ({"accel": (3,), "gyro": (3,)}) instead of
+    the estimate from the data (``plan check`` predicts on noise-free data)."""
     if rec.layout.redundant:
         raise EstimationError("thermal fit: triads only (a redundant unit is not supported yet)")
     if any(rec.in_counts(s) for s in sensors):
@@ -277,7 +279,8 @@ def fit_thermal(rec: Recording, order: int | None = None, temp_ref: float = TEMP
         raise EstimationError(f"the usable data spans only {span:.1f} degC of temperature; a "
                               "thermal fit needs several temperatures (soak steps or a ramp)")
     parts = [(int(a), int(b)) for a, b in zip(bl.start, bl.stop)]
-    sig = {s: _noise(getattr(rec, s), parts) for s in sensors}
+    sig = {s: (np.broadcast_to(np.asarray(noise[s], float), (3,)).copy()
+               if noise is not None else _noise(getattr(rec, s), parts)) for s in sensors}
     base_params = None if base is None else {k: np.asarray(v, float)
                                              for k, v in base.params.items()}
     if base_params is not None and "accel_bias" in base_params and "accel" in sensors:

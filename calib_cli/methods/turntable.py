@@ -59,7 +59,9 @@ class TurntableOptions:
     stats.unobservable), "estimate" (the same), "off" (held at 0, reported
     with sigma null).
     tangential: include dw/dt x r. block_s: measurement block (s).
-    passes: filter passes (>= 3 recommended: see _START_DATA_FRACTION). axis_sigma: how well the table
+    passes: the most filter passes; from the third on they stop once the last pass moved
+    no parameter by more than ``converge_sigma`` of its sigma, or the next would not
+    (Gauss-Newton on the whole record: three are typical). axis_sigma: how well the table
     axis stays fixed (rad, 1-sigma per block). history_every: sigma history
     sample interval (s)."""
 
@@ -67,7 +69,12 @@ class TurntableOptions:
     proof_mass: str = "auto"
     tangential: bool = True
     block_s: float = 0.2
-    passes: int = 3
+    passes: int = 8
+    # the first two passes (which only bring the linearisation point near the solution) use
+    # blocks this many times longer: the block model is exact at any length, the later
+    # passes' result depends on where they start only to second order (half the time)
+    coarse_factor: int = 2
+    converge_sigma: float = 0.1
     axis_sigma: float = 1e-3
     # prior 1-sigma (rad) of each table axis's tilt from the plan's direction (estimated);
     # 0: the plan's axis is exact. The tilt out of the horizontal is pinned by the data
@@ -77,8 +84,11 @@ class TurntableOptions:
     accel_skip: float = 0.02  # rad/s^2: with tangential off, blocks accelerating faster are skipped
     history_every: float = 2.0
     noise: dict | None = None  # {"accel": (3,), "gyro": (3,)} per-sample sigma; else from data
-    # the table's angle channel as a measurement: "auto" (where the log has it), "angle", "off"
+    # the table's channels as measurements: "auto" (those the log has and that pass the
+    # checks), "angle", "rate", "both", "off"
     table_encoder: str = "auto"
+    rate_scale_sigma: float = 0.01  # prior of the rate channel's relative scale error
+    rate_bias_sigma: float = float(np.radians(0.1))  # rad/s, prior of its offset
     encoder_sigma: float | None = None  # rad per reading; else from the channel's quantum
     encoder_opr_sigma: float = 2e-3  # rad, prior of the once-per-revolution error terms
     encoder_clock_sigma: float = 0.02  # s, prior of the encoder's clock offset to the IMU
@@ -122,6 +132,7 @@ class _Layout:
     est_p: bool
     n_axes: int = 0  # table axes whose tilt from the plan's direction is estimated
     est_enc: bool = False  # the table's angle encoder: a zero per cycle, once-per-rev, clock
+    est_rate: bool = False  # the table's rate channel: its scale error and offset
     idx: dict = field(default_factory=dict)
     size: int = 0
 
@@ -145,6 +156,9 @@ class _Layout:
             add("eo", 2)
             add("ec", 1)
             add("es", 1)
+        if self.est_rate:
+            add("rk", 1)
+            add("rb", 1)
 
     @property
     def gyro(self) -> np.ndarray:
@@ -257,6 +271,12 @@ class _Blocks:
     wg: np.ndarray  # (3, nb, 3, 21) mean dR^T [e_c x] cumulative sum
     wabs: np.ndarray  # (nb,) mean |w|
     w_start: np.ndarray  # (nb, 3) corrected rate at the first sample of each block
+    # (nb, 3, 3, 21): d(C r)/d theta_gyro = sum_c r_c cg[:, c], C = the block's mean
+    # centripetal (+ tangential) operator, r a position in body axes
+    cg: np.ndarray
+    mbar: np.ndarray  # (nb, 3, 21) block mean of dw/dtheta_gyro
+    wbar: np.ndarray  # (nb, 3) block mean of the corrected rates
+    dw_var: np.ndarray  # (nb,) variance of the block's mean angular acceleration (corners)
     dw_raw: np.ndarray  # (nb, 3) mean angular acceleration (also with the tangential term off)
     m: int  # samples per block
 
@@ -308,7 +328,9 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
     ex = [skew(e) for e in np.eye(3)]
     for m in range(block_n):
         step = wmb[:, m] * dtb[:, m, None]
-        RG = (R * dtb[:, m, None, None]) @ Ginv
+        # a rate change during the step moves the attitude at its end by R J_l(step) dw dt,
+        # J_l = I + [step x]/2 + ... (the left Jacobian of SO(3)); R alone lags half a step
+        RG = ((R @ (np.eye(3) + 0.5 * _skew_n(step))) * dtb[:, m, None, None]) @ Ginv
         dq = np.zeros((nb, 3, 21))
         dq[:, :, 0:3] = -RG
         dq[:, :, 3:12] = -(RG[:, :, :, None] * wmb[:, m, None, None, :]).reshape(nb, 3, 9)
@@ -335,21 +357,102 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
     e1 = e0 + block_n
     dw_raw = ((wpad[e1] + wpad[e1 - 1]) - (wpad[e0] + wpad[e0 - 1])) / (2 * dtb.sum(axis=1)[:, None])
     dwm = dw_raw if tangential else np.zeros((nb, 3))
+    # Where the angular acceleration jumps (a ramp's corners) the accelerometers see the
+    # value at each stamp on one side of the corner, and the central differences see the
+    # mean of both: the block mean's tangential term is off by jump * (u - 1/2) / m per
+    # corner, u the corner's phase between stamps (uniform): variance jump^2 / 12 / m^2,
+    # 0.2 m/s^2 at 1000 deg/s^2 and 0.5 m. The jump from the second differences,
+    # E sum (d2 / dt^2)^2 / 8 = jump^2 / 12, counted where it stands 4 sigma above the
+    # gyro noise (rad^2/s^4)
+    d2 = np.zeros(len(w))
+    d2[1:-1] = np.sum((w[2:] - 2 * w[1:-1] + w[:-2]) ** 2, axis=1)
+    noise2 = 6.0 * float(np.sum(_third_diff_sigma(W) ** 2))
+    dt2 = float(np.median(dt)) ** 2
+    jump2 = np.where(d2 > 16.0 * noise2, (d2 - noise2) / dt2**2, 0.0)
+    dw_var = jump2[:n].reshape(nb, block_n).sum(axis=1) / 8.0 / block_n**2
+    cg, mbar = _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, dtb.sum(axis=1), tangential)
     return _Blocks(t=t[:n:block_n], a_mean=A[:n].reshape(nb, block_n, 3).mean(axis=1),
-                   r_mean=r_sum / block_n, r_end=R, cen=cen, dw=dwm, q=q,
+                   r_mean=r_sum / block_n, r_end=R, cen=cen, dw=dwm, q=q, cg=cg, mbar=mbar,
+                   wbar=wb.mean(axis=1), dw_var=dw_var if tangential else np.zeros(nb),
                    qbar=qbar / block_n, wg=wg / block_n, dw_raw=dw_raw,
                    wabs=np.linalg.norm(wb, axis=2).mean(axis=1), m=block_n,
                    w_start=wb[:, 0].copy())
+
+
+def _skew_n(v: np.ndarray) -> np.ndarray:
+    """Skew matrices (..., 3, 3) of vectors (..., 3)."""
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return S
+
+
+def _rate_sensitivity(w: np.ndarray, f: np.ndarray, Ginv: np.ndarray) -> np.ndarray:
+    """dw/dtheta_gyro (N, 3, 21) of the corrected rates w = G^-1 (W - d - D f) at each
+    sample: -G^-1 [I | e_j w_k | e_j f_k] (theta_gyro = d, G row-major, D row-major)."""
+    N = len(w)
+    M = np.empty((N, 3, 21))
+    M[:, :, 0:3] = -Ginv
+    M[:, :, 3:12] = -(Ginv[None, :, :, None] * w[:, None, None, :]).reshape(N, 3, 9)
+    M[:, :, 12:21] = -(Ginv[None, :, :, None] * f[:, None, None, :]).reshape(N, 3, 9)
+    return M
+
+
+def _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, T, tangential):
+    """Sensitivity (nb, 3, 3, 21) of the block means of the rigid-body terms to the gyro
+    parameters: the centripetal and tangential accelerations at a point r are computed
+    from the corrected gyros, so a gyro scale error changes them too (at 0.5 m and
+    200 deg/s, 12 m/s^2 per unit of scale). d(C r)/dtheta = sum_c r_c out[:, c] with
+    C r = mean(w (w.r) - r |w|^2) + dw x r; d(w (w.r) - r |w|^2)/dw = (w.r) I + w r^T
+    - 2 r w^T. Also returns the block means of dw/dtheta_gyro (nb, 3, 21)."""
+    nb = n // block_n
+    M = _rate_sensitivity(w, f, Ginv)
+    Mb = M[:n].reshape(nb, block_n, 3, 21)
+    wb = w[:n].reshape(nb, block_n, 3)
+    wM = np.einsum("bma,bmap->bp", wb, Mb) / block_n  # mean w^T M
+    mbar = Mb.mean(axis=1)
+    out = np.empty((nb, 3, 3, 21))
+    for c in range(3):
+        t = np.einsum("bm,bmap->bap", wb[:, :, c], Mb) / block_n
+        t += np.einsum("bma,bmp->bap", wb, Mb[:, :, c, :]) / block_n
+        t[:, c, :] -= 2.0 * wM
+        out[:, c] = t
+    if tangential:  # mean dw/dt from the rates at the block edges, as in _blocks
+        Mpad = np.concatenate([M[:1], M, M[n - 1:n] if n == len(w) else M[n:n + 1]])
+        e0 = np.arange(nb) * block_n + 1
+        e1 = e0 + block_n
+        dD = ((Mpad[e1] + Mpad[e1 - 1]) - (Mpad[e0] + Mpad[e0 - 1])) / (2 * T[:, None, None])
+        for c in range(3):  # dw x e_c = -[e_c x] dw
+            out[:, c] -= np.einsum("ab,nbp->nap", skew(np.eye(3)[c]), dD)
+    return out, mbar
+
+
+_I3 = np.eye(3)
+_LOW_RATE = float(np.radians(0.5))  # rad/s: blocks slower than this give the low-rate |g| figures
+
+
+def _sk(v) -> np.ndarray:
+    """Skew matrix of one vector (frames.skew without its checks: called per block)."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _rotvec(M: np.ndarray) -> np.ndarray:
+    """Rotation vector of one rotation matrix of angle below 180 deg (SciPy's per-call
+    overhead doubled the fit's time at one call per block)."""
+    v = 0.5 * np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+    sn = float(np.sqrt(v @ v))
+    th = np.arctan2(sn, 0.5 * (M[0, 0] + M[1, 1] + M[2, 2] - 1.0))
+    return v * (th / sn) if sn > 1e-12 else v
 
 
 def _rot(phi):
     """Rotation matrix of one small rotation vector (Rodrigues; SciPy's per-call overhead
     is most of the filter's time at one call per block)."""
     a = float(np.sqrt(phi @ phi))
-    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    K = _sk(phi)
     if a < 1e-8:
-        return np.eye(3) + K + 0.5 * (K @ K)
-    return np.eye(3) + (np.sin(a) / a) * K + ((1.0 - np.cos(a)) / a**2) * (K @ K)
+        return _I3 + K + 0.5 * (K @ K)
+    return _I3 + (np.sin(a) / a) * K + ((1.0 - np.cos(a)) / a**2) * (K @ K)
 
 
 def _select(rec: Recording) -> list[_Cycle]:
@@ -404,12 +507,13 @@ def _encoder_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
     regressing the encoder's angle on the raw gyros' integrated angle: a slope outside
     +-(1 +- 5 %) drops that cycle's encoder (never trusted blindly)."""
     mode = opt.table_encoder
-    if mode not in ("auto", "angle", "off"):
-        raise InputError(f"table_encoder must be auto, angle or off, got {mode!r}")
+    if mode not in ENCODER_MODES:
+        raise InputError(f"table_encoder must be one of {', '.join(ENCODER_MODES)}, got {mode!r}")
+    need = mode in ("angle", "both")
     ang = rec.table_angle
-    if mode == "off" or ang is None:
-        if mode == "angle":
-            raise InputError("--table-encoder angle: the recording has no table_angle column")
+    if mode in ("off", "rate") or ang is None:
+        if need:
+            raise InputError(f"--table-encoder {mode}: the recording has no table_angle column")
         return None, 0.0, []
     out, notes = [], []
     interval = rec.sample_kind == "interval-mean"
@@ -417,8 +521,8 @@ def _encoder_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
     for cy in cycles:
         th = ang[cy.sl]
         if not np.all(np.isfinite(th)) or len(th) < 2 * block_n:
-            if mode == "angle":
-                raise InputError(f"--table-encoder angle: rotating segment "
+            if need:
+                raise InputError(f"--table-encoder {mode}: rotating segment "
                                  f"{rec.segments[cy.seg_index].label!r} has no table angle")
             out.append(None)
             notes.append(f"{rec.segments[cy.seg_index].label}: no table angle")
@@ -468,6 +572,79 @@ def _encoder_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
     return out, float(sig), notes
 
 
+ENCODER_MODES = ("auto", "angle", "rate", "both", "off")
+
+
+@dataclass(frozen=True)
+class _RateChannel:
+    """One cycle's table-rate readings: z (nb,) block means times the sign (rad/s, about
+    table_axis_enu), sign +-1 against the gyros."""
+
+    z: np.ndarray
+    sign: float
+
+
+def _rate_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
+    """The table's rate channel per cycle (None where unusable), its per-sample 1-sigma
+    (rad/s) and notes. Read as the rate at each stamp. Checked like the angle: the slope
+    against the gyros' rate about the plan's axis within 1 +- 5 %, and the readings must
+    follow the gyros over 2 s windows (a logged setpoint misses the wobble)."""
+    mode = opt.table_encoder
+    need = mode in ("rate", "both")
+    rt = rec.table_rate
+    if mode not in ("auto", "rate", "both") or rt is None:
+        if need:
+            raise InputError(f"--table-encoder {mode}: the recording has no table_rate column")
+        return None, 0.0, []
+    out, notes, sig = [], [], []
+    dt = float(np.median(np.diff(rec.time)))
+    interval = rec.sample_kind == "interval-mean"
+    for cy in cycles:
+        label = rec.segments[cy.seg_index].label
+        r = rt[cy.sl]
+        if not np.all(np.isfinite(r)) or len(r) < 2 * block_n:
+            if need:
+                raise InputError(f"--table-encoder {mode}: rotating segment {label!r} has no "
+                                 "table rate")
+            out.append(None)
+            notes.append(f"{label}: no table rate")
+            continue
+        g = rec.gyro[cy.sl] @ cy.a_nom
+        slope = float(g @ r / max(float(g @ g), 1e-30))
+        if not 0.95 < abs(slope) < 1.05:
+            out.append(None)
+            notes.append(f"{label}: table rate / gyro rate = {slope:.3f}, rate channel not used")
+            continue
+        # the block means must follow the raw gyros' (scale and offset fitted; robust
+        # spread, so the ramps' timing does not count): a logged setpoint misses the
+        # table's wobble, which averages out over longer windows
+        n = (len(r) // block_n) * block_n
+        gm = g[:n].reshape(-1, block_n).mean(axis=1)
+        if interval:  # interval-mean gyros lag the stamps by half a sample
+            gm = gm + 0.5 * dt * np.gradient(gm, block_n * dt)
+        y = r[:n].reshape(-1, block_n).mean(axis=1)
+        A = np.column_stack([gm, np.ones(len(gm))])
+        res = y - A @ np.linalg.lstsq(A, y, rcond=None)[0]
+        spread = 1.4826 * float(np.median(np.abs(res - np.median(res))))
+        sig_r = float(np.mean(_third_diff_sigma(r[:, None])))
+        sig_gyro = float(np.sqrt(np.mean(_third_diff_sigma(rec.gyro[cy.sl]) ** 2)))
+        expected = np.sqrt((sig_gyro**2 + sig_r**2) / block_n)
+        # (plus 0.2 deg/s: the raw unit's own g-sensitivity, bias and cross-axis terms
+        # about the plan's axis reach 0.1 deg/s at the wide MEMS truths)
+        if spread > 3.0 * expected + float(np.radians(0.2)):
+            out.append(None)
+            notes.append(f"{label}: the table rate does not follow the gyros "
+                         f"({np.degrees(spread):.3f} deg/s spread per block, noise "
+                         f"{np.degrees(expected):.3f}), rate channel not used")
+            continue
+        sign = float(np.sign(slope))
+        out.append(_RateChannel(z=sign * y, sign=sign))
+        sig.append(sig_r)
+    if all(c is None for c in out):
+        return None, 0.0, notes
+    return out, float(max(sig)), notes
+
+
 @dataclass
 class _PassOut:
     theta: np.ndarray
@@ -478,11 +655,13 @@ class _PassOut:
     hist_s: list
     lowrate: list
     enc_innov: list = field(default_factory=list)  # normalized encoder innovations
+    rate_innov: list = field(default_factory=list)  # normalized rate-channel innovations
 
 
 def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: TurntableOptions,
                  sig_a, sig_g, block_n, s_known, record_history: bool, first: bool,
                  enc: list | None = None, sig_enc: float = 0.0,
+                 rate: list | None = None, sig_rate: float = 0.0,
                  start_info: np.ndarray | None = None) -> _PassOut:
     par = _unpack(theta_lin, L, cycles)
     par_lin = _unpack(theta_lin, L, cycles)
@@ -510,6 +689,8 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
     else:
         P[3:, 3:] = _scaled_inv(start_info) * np.outer(prior_sd, prior_sd)
     innov, nis, hist_t, hist_s, lowrate, enc_innov = [], [], [], [], [], []
+    rate_innov = []
+    interval = rec.sample_kind == "interval-mean"
     hist_idx = []
     if record_history:
         if L.est_s:
@@ -535,7 +716,17 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         P[:3, :] = 0.0
         P[:, :3] = 0.0
         P[:3, :3] = np.eye(3) * np.radians(2.0) ** 2
-        q_phi = block_n * (sig_g**2).mean() * (1.0 / rec.sample_rate) ** 2
+        sg2 = float((sig_g**2).mean())
+        innov_scale = np.sqrt(b.m) / sig_a
+        q_phi = block_n * sg2 * (1.0 / rec.sample_rate) ** 2
+        Q_phi = _I3 * q_phi
+        Cw_all = b.cen + (_skew_n(b.dw) if opt.tangential else 0.0)
+        if not first:  # linearised pass: the parameter-dependent parts are fixed per cycle
+            s_lin = s_known[c] if s_known is not None else par_lin["s"][c]
+            ab_lin = cy.a_nom + cy.basis @ par_lin["u"][c]
+            ab_lin /= np.linalg.norm(ab_lin)
+            KJ_all = np.einsum("ia,ic,ncap->nip", par_lin["K"], s_lin[None, :] + par_lin["P"],
+                               b.cg)
         Nperp = _perp_basis(cy.a_enu).T  # (2, 3)
         skip = np.zeros(nb, bool)
         if not opt.tangential:
@@ -543,6 +734,13 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             skip = fast | np.roll(fast, 1) | np.roll(fast, -1)
         sA = slice(0, 3)
         ec = enc[c] if enc is not None else None
+        rc = rate[c] if rate is not None else None
+        if rc is not None:
+            irk, irb = 3 + L.idx["rk"][0], 3 + L.idx["rb"][0]
+            we_axis = float(cy.a_enu @ w_e)
+            # per block: the gyro noise of the projected block mean plus the channel's own
+            var_rate = (float((sig_g**2).mean()) + sig_rate**2) / block_n
+            half_dt = 0.5 / rec.sample_rate if interval else 0.0
         if ec is not None:
             iez = 3 + L.idx["ez"][c]
             ieo = 3 + L.idx["eo"]
@@ -564,13 +762,16 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             # is one Gauss-Newton step of the whole record (an extended filter re-evaluated
             # from the prior at every pass keeps the bias of its early, poor linearisation,
             # which bilinear terms such as K (w x w x p) turn into tens of sigma)
-            cur = _unpack(theta_lin + x[3:], L, cycles) if first else par_lin
-            s_c = s_known[c] if s_known is not None else cur["s"][c]
-            a_b = cy.a_nom + cy.basis @ cur["u"][c]
-            a_b /= np.linalg.norm(a_b)
+            if first:
+                cur = _unpack(theta_lin + x[3:], L, cycles)
+                s_c = s_known[c] if s_known is not None else cur["s"][c]
+                a_b = cy.a_nom + cy.basis @ cur["u"][c]
+                a_b /= np.linalg.norm(a_b)
+            else:
+                cur, s_c, a_b = par_lin, s_lin, ab_lin
             Rbar = Rh @ b.r_mean[j]
             gb_ = Rbar.T @ g_n
-            Cw = b.cen[j] + (skew(b.dw[j]) if opt.tangential else 0.0)
+            Cw = Cw_all[j]
             H = np.zeros((5, ns))
             h = np.zeros(5)
             dfdphi = Rbar.T @ g_sk
@@ -580,6 +781,9 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             gam = Rh.T @ g_n
             Wg = gam[0] * b.wg[0, j] + gam[1] * b.wg[1, j] + gam[2] * b.wg[2, j]  # (3, 21)
             KW = Kc @ Wg
+            # the rigid-body terms through the corrected gyros: row i at s + p_i
+            KW = KW + (np.einsum("ia,ic,cap->ip", Kc, s_c[None, :] + cur["P"], b.cg[j])
+                       if first else KJ_all[j])
             KCw = Kc @ Cw
             h[:3] = cur["ab"] + np.einsum("ij,ij->i", Kc, U) + KW @ x[iG]
             H[:3, iG] = KW
@@ -592,21 +796,22 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 H[p_rows, col_p] = KCw[p_rows, p_cols]
             # table axis fixed in ENU: Rbar a_b = a_enu (two components)
             ra = Rbar @ a_b
-            Hg = -Nperp @ skew(ra) @ Rh @ b.qbar[j]
+            Hg = -Nperp @ _sk(ra) @ Rh @ b.qbar[j]
             h[3:] = Nperp @ ra + Hg @ x[iG]
             if L.n_axes:  # the true axis: the plan's tilted by t (the table is not level)
                 ti = 3 + L.idx["t"][2 * cy.axis_group:2 * cy.axis_group + 2]
                 h[3:] -= cur["t"][cy.axis_group]
                 H[3:, ti] = -np.eye(2)
             H[3:, iG] = Hg
-            H[3:, sA] = -Nperp @ skew(ra)
+            H[3:, sA] = -Nperp @ _sk(ra)
             H[3:, 3 + L.idx["u"][2 * c:2 * c + 2]] = Nperp @ Rbar @ cy.basis
             if not first:  # the prediction linear in the parameter error about theta_lin
                 h = h - H[:, iG] @ x[iG] + H[:, 3:] @ x[3:]
             z = np.concatenate([b.a_mean[j], Nperp @ cy.a_enu])
-            r_extra = (2 * b.wabs[j] * np.linalg.norm(s_c)) ** 2 * (sig_g**2).mean() / b.m
+            ss = float(s_c @ s_c)
+            r_extra = 4.0 * b.wabs[j] ** 2 * ss * sg2 / b.m
             if opt.tangential:
-                r_extra += (sig_g**2).mean() / 2 / T**2 * (s_c @ s_c)
+                r_extra += (sg2 / 2 / T**2 + b.dw_var[j]) * ss
             Rm = np.diag(np.concatenate([sig_a**2 / b.m + r_extra,
                                          np.full(2, opt.axis_sigma**2)]))
             if skip[j]:  # the table accelerates and the tangential term is off: axis only
@@ -617,20 +822,21 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             S = H @ PH + Rm
             Si = np.linalg.inv(S)
             Kg = PH @ Si
-            x = x + Kg @ v
-            P = P - Kg @ PH.T
-            P = 0.5 * (P + P.T)
+            x += Kg @ v
+            P -= Kg @ PH.T
+            if j % 16 == 0:  # rounding makes P drift from symmetric; cheap enough every 16
+                P = 0.5 * (P + P.T)
             if not skip[j] and j >= nb // 2:  # the second half of each cycle: converged state
-                innov.append(v[:3] * np.sqrt(b.m) / sig_a)
+                innov.append(v[:3] * innov_scale)
             nis.append(float(v @ Si @ v))
-            if b.wabs[j] < np.radians(0.5):
+            if b.wabs[j] < _LOW_RATE:
                 fcorr = np.linalg.solve(Kc, b.a_mean[j] - cur["ab"])
                 lowrate.append((np.linalg.norm(b.a_mean[j]), np.linalg.norm(fcorr)))
             if ec is not None and j >= 1 and ec.ok[j]:
                 # the table's encoder: its angle since the cycle start against the filter's
                 # (the attitude about the table axis since the start attitude), with the
                 # encoder's zero, once-per-revolution error and clock offset as states
-                psi_ref += float(cy.a_enu @ Rotation.from_matrix(Rh @ R_ref.T).as_rotvec())
+                psi_ref += float(cy.a_enu @ _rotvec(Rh @ R_ref.T))
                 R_ref = Rh
                 cur_e = theta_lin + x[3:]
                 omega = float(a_b @ b.w_start[j])
@@ -653,6 +859,33 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 P = 0.5 * (P + P.T)
                 if j >= nb // 2:
                     enc_innov.append(ve / np.sqrt(Se))
+            if rc is not None and j < len(rc.z):
+                # the table's rate channel (the rate at each stamp, about table_axis_enu)
+                # against the corrected gyros about the table axis, earth rate removed, with
+                # the channel's scale error and offset as states. Interval-mean gyro samples
+                # lag the stamp by half a sample: their block mean plus dw/dt dt/2
+                wp = b.wbar[j] + half_dt * b.dw_raw[j]
+                base = float(a_b @ wp) - we_axis
+                gs = a_b @ b.mbar[j]  # (21,)
+                kr = (theta_lin[irk - 3] + x[irk]) if first else theta_lin[irk - 3]
+                br = (theta_lin[irb - 3] + x[irb]) if first else theta_lin[irb - 3]
+                Hr = np.zeros(ns)
+                Hr[iG] = (1.0 + kr) * gs
+                Hr[irk] = base
+                Hr[irb] = 1.0
+                Hr[3 + L.idx["u"][2 * c:2 * c + 2]] = (1.0 + kr) * (cy.basis.T @ wp)
+                if first:
+                    hr = (1.0 + kr) * (base + gs @ x[iG]) + br
+                else:
+                    hr = (1.0 + kr) * base + br + Hr[3:] @ x[3:]
+                vr = rc.z[j] - hr
+                PHr = P @ Hr
+                Sr = Hr @ PHr + var_rate
+                Kr = PHr / Sr
+                x += Kr * vr
+                P -= np.outer(Kr, PHr)
+                if j >= nb // 2:
+                    rate_innov.append(vr / np.sqrt(Sr))
             # reset: absorb phi into the attitude
             Rh = _rot(x[:3]) @ Rh
             x[:3] = 0.0
@@ -663,7 +896,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             BP = B @ Pg  # (3, ns)
             P[:3, :] += BP
             P[:, :3] += BP.T
-            P[:3, :3] += BP[:, iG] @ B.T + np.eye(3) * q_phi
+            P[:3, :3] += BP[:, iG] @ B.T + Q_phi
             Rh = E @ Rh @ b.r_end[j]
             Rh = _rot(x[:3]) @ Rh
             x[:3] = 0.0
@@ -687,7 +920,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         x[3:] = np.linalg.solve(lam, rhs) * prior_sd
         P[3:, 3:] = _scaled_inv(lam) * np.outer(prior_sd, prior_sd)
     return _PassOut(theta_lin + x[3:], P[3:, 3:], innov, nis, hist_t, hist_s, lowrate,
-                    enc_innov)
+                    enc_innov, rate_innov)
 
 
 class _StartInfoError(Exception):
@@ -725,7 +958,16 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     fs = rec.sample_rate
     block_n = max(1, int(round(opt.block_s * fs)))
     enc, sig_enc, enc_notes = _encoder_setup(rec, cycles, block_n, opt)
-    L = _Layout(nc, opt.lever_arm == "estimate", est_p, n_axes, est_enc=enc is not None)
+    shortest = min(cy.sl.stop - cy.sl.start for cy in cycles)
+    coarse_n = block_n * max(1, int(opt.coarse_factor))
+    if shortest < 50 * coarse_n:
+        coarse_n = block_n
+    enc_coarse = _encoder_setup(rec, cycles, coarse_n, opt)[0] if coarse_n != block_n else enc
+    rate, sig_rate, rate_notes = _rate_setup(rec, cycles, block_n, opt)
+    rate_coarse = _rate_setup(rec, cycles, coarse_n, opt)[0] if coarse_n != block_n else rate
+    enc_notes += rate_notes
+    L = _Layout(nc, opt.lever_arm == "estimate", est_p, n_axes, est_enc=enc is not None,
+                est_rate=rate is not None)
     on = np.concatenate([np.arange(rec.segments[cy.seg_index].start,
                                    rec.segments[cy.seg_index].stop) for cy in cycles])
     if opt.noise is not None:
@@ -767,6 +1009,9 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
         sd[L.idx["eo"]] = opt.encoder_opr_sigma
         sd[L.idx["ec"]] = opt.encoder_clock_sigma
         sd[L.idx["es"]] = opt.encoder_scale_sigma
+    if L.est_rate:
+        sd[L.idx["rk"]] = opt.rate_scale_sigma
+        sd[L.idx["rb"]] = opt.rate_bias_sigma
     # a model that does not explain the data (e.g. lever arms ignored) leaves accelerometer
     # residuals far above the noise and can drag the attitude off; the fit then restarts with
     # the measurement noise widened to the residual level (stats.accel_noise_inflation), so
@@ -780,28 +1025,49 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
             s0 = _initial_lever_arm(rec, cy)
             if s0 is not None:
                 start[L.idx["s"][2 * c:2 * c + 2]] = cy.basis.T @ s0
+    # convergence is judged on the reported parameters: nuisance states such as the
+    # encoder's zero per cycle re-absorb the coarse start attitude at every pass
+    rep_idx = np.concatenate([L.idx[k] for k in ("ab", "K", "gb", "G", "D", "s", "p")
+                              if k in L.idx])
     inflation = 1.0
     enc_inflation = 1.0
     for _attempt in range(6):
         theta = start.copy()
         info_start = None
         hist = None
+        n_passes, moved = 0, np.inf
         for k in range(max(1, opt.passes)):
-            kw = dict(record_history=k == 0, enc=enc, sig_enc=sig_enc * enc_inflation)
+            coarse = k < min(2, opt.passes - 1)
+            bn = coarse_n if coarse else block_n
+            kw = dict(record_history=k == 0, enc=enc_coarse if coarse else enc,
+                      sig_enc=sig_enc * enc_inflation, rate=rate_coarse if coarse else rate,
+                      sig_rate=sig_rate)
             try:
                 out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation,
-                                   sig_g, block_n, s_known, first=k == 0,
+                                   sig_g, bn, s_known, first=k == 0,
                                    start_info=info_start, **kw)
             except _StartInfoError:  # fall back to a pass started from the prior alone
                 kw["record_history"] = False
                 out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation,
-                                   sig_g, block_n, s_known, first=False, **kw)
+                                   sig_g, bn, s_known, first=False, **kw)
             if not np.all(np.isfinite(out.theta)):
                 break
             if hist is None:  # the sigma history is the first pass's (it starts from the prior)
                 hist = (out.hist_t, out.hist_s)
             out.hist_t, out.hist_s = hist
+            # the largest move of any parameter since the pass before, in its sigma (the
+            # first pass, an extended filter from the neutral unit, is not compared)
+            prev_move = moved
+            moved = (float(np.max(np.abs(out.theta - theta)[rep_idx]
+                                  / np.sqrt(np.diag(out.P))[rep_idx])) if k >= 1 else np.inf)
+            n_passes = k + 1
             theta = out.theta
+            # converged: this pass moved less than the tolerance, or the next pass would,
+            # extrapolating the last two moves at a linear rate (Gauss-Newton with exact
+            # Jacobians converges faster: 35 -> 1.4 -> 0.004 sigma on a wide MEMS truth)
+            if k >= 2 and (moved < opt.converge_sigma
+                           or moved**2 / prev_move < opt.converge_sigma):
+                break
             # the next pass starts from the prior plus this pass's data information
             lam = _scaled_inv(out.P / np.outer(sd, sd))
             info_start = np.eye(L.size) + _START_DATA_FRACTION * (lam - np.eye(L.size))
@@ -813,7 +1079,14 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
             # the fit rerun from the IMU alone (it is never trusted blindly)
             enc_notes.append(f"encoder not used: normalized innovation RMS {r_enc:.1f} "
                              f"(encoder), {r:.2f} (accelerometers) with it")
-            enc = None
+            enc = enc_coarse = None
+            continue
+        r_rate = (float(np.sqrt(np.mean(np.square(out.rate_innov)))) if out.rate_innov
+                  else 1.0)
+        if rate is not None and not (r_rate < 1.5 and r < 1.3):
+            enc_notes.append(f"rate channel not used: normalized innovation RMS {r_rate:.1f} "
+                             f"(rate), {r:.2f} (accelerometers) with it")
+            rate = rate_coarse = None
             continue
         if np.all(np.isfinite(out.theta)) and r < 1.3:
             break
@@ -824,8 +1097,11 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     res = _result(rec, cycles, L, out, opt, s_known, sig_a * inflation, sig_g, block_n,
                   inflation, sd, width)
     res.stats["accel_clipped_samples"] = _clipped(rec, cycles)
+    # the Gauss-Newton passes: how many ran, and the last pass's largest move in sigma
+    res.stats["filter_passes"] = n_passes
+    res.stats["filter_last_move_sigma"] = float(moved) if np.isfinite(moved) else None
     res.stats["table_encoder"] = _encoder_stats(enc, L, out, sig_enc * enc_inflation,
-                                                enc_inflation, enc_notes)
+                                                enc_inflation, enc_notes, rate, sig_rate)
     return res
 
 
@@ -842,15 +1118,29 @@ def _clipped(rec: Recording, cycles) -> list[int]:
     return out
 
 
-def _encoder_stats(enc, L, out, sig_enc, inflation, notes) -> dict:
-    """What the encoder contributed (stats.table_encoder): mode, cycles used, the estimated
-    once-per-revolution amplitude and clock offset with sigma, the reading noise used."""
-    if enc is None:
-        return {"mode": "off", "notes": notes}
+def _encoder_stats(enc, L, out, sig_enc, inflation, notes, rate=None, sig_rate=0.0) -> dict:
+    """What the table's channels contributed (stats.table_encoder): mode, cycles used, the
+    estimated once-per-revolution amplitude and clock offset with sigma, the reading noise
+    used; for the rate channel its scale error and offset with sigma."""
     P = out.P
+    rate_part = {}
+    if rate is not None:
+        ik, ib = L.idx["rk"][0], L.idx["rb"][0]
+        rate_part = {
+            "rate_cycles_used": [r is not None for r in rate],
+            "rate_scale_error": float(out.theta[ik]),
+            "rate_scale_error_sigma": float(np.sqrt(P[ik, ik])),
+            "rate_offset_dps": float(np.degrees(out.theta[ib])),
+            "rate_offset_sigma_dps": float(np.degrees(np.sqrt(P[ib, ib]))),
+            "rate_reading_sigma_dps": float(np.degrees(sig_rate)),
+            "rate_normalized_innovation_rms": float(np.sqrt(np.mean(np.square(out.rate_innov))))
+            if out.rate_innov else None}
+    if enc is None:
+        return {"mode": "rate" if rate is not None else "off", **rate_part, "notes": notes}
     eo = out.theta[L.idx["eo"]]
     ec = float(out.theta[L.idx["ec"][0]])
-    return {"mode": "angle", "cycles_used": [e is not None for e in enc],
+    return {"mode": "both" if rate is not None else "angle", **rate_part,
+            "cycles_used": [e is not None for e in enc],
             "sign": [None if e is None else e.sign for e in enc],
             "once_per_rev_mrad": [float(v) * 1e3 for v in eo],
             "once_per_rev_sigma_mrad": [float(np.sqrt(P[i, i])) * 1e3 for i in L.idx["eo"]],

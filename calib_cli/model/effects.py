@@ -25,38 +25,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib_cli.geometry import Layout  # noqa: F401  (defined in the base layer; re-exported)
 from calib_cli.model.kinematics import Kinematics, force_at, rigid_body_accel
 
 SHIFT, INPUT, TRANSFER, CORRECTION, ADDITIVE, STOCHASTIC = range(6)
 
 TEMP_REF_C = 25.0  # degC: reference temperature of the temperature-drift terms
-
-
-@dataclass(frozen=True)
-class Layout:
-    """Channel geometry of a unit.
-
-    A triad has three orthogonal channels per sensor. A redundant unit (RIMU)
-    has n single-axis channels with nominal elevation/azimuth (rad).
-    ``n_cycles`` is the number of lever-arm rows (rotating segments).
-    """
-
-    n: int = 3
-    el0: np.ndarray | None = None
-    az0: np.ndarray | None = None
-    n_cycles: int = 0
-
-    @property
-    def redundant(self) -> bool:
-        return self.el0 is not None
-
-    def axes(self, del_=None, daz=None) -> np.ndarray:
-        """(n, 3) unit sensing directions; nominal, or with errors dEl, dAz (rad)."""
-        if not self.redundant:
-            return np.eye(3)
-        el = self.el0 + (0.0 if del_ is None else del_)
-        az = self.az0 - (0.0 if daz is None else daz)
-        return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
 
 
 @dataclass(frozen=True)
@@ -106,11 +80,55 @@ class _Ctx:
 
 @dataclass(frozen=True)
 class Effect:
-    """Base class. ``sensor`` is "accel" or "gyro"."""
+    """Base class. ``sensor`` is "accel" or "gyro".
+
+    Everything about an effect lives on its class (docs/architecture.md, "A new
+    effect"): the forward step (``apply``), the parameters (``specs``: keys, shapes,
+    SI units, typical sizes, display units), the noise realisation of a stochastic
+    effect (``realisation``), and these class attributes, read by the simulator, the
+    emulator, diagnose, export and the displays:
+
+    - ``description``: one line in a calibration engineer's words (diagnose, docs);
+    - ``sensorless``: one instance for the unit, made without a sensor argument;
+    - ``layouts``: the unit layouts it applies to ("triad", "redundant");
+    - ``export``: how ``calib export`` writes it: "linear" (part of the affine
+      correction), "thermal" (evaluated first), "input" (an input-side term, not part
+      of the correction), "noise" (a noise term, never in a calibration), "none"
+      (refused: the numerical inverse of ``calib apply`` only);
+    - ``diagnosable``: ``calib diagnose`` may try it where the data excite it;
+    - ``noise_table``: its parameters are a truth file's [noise] table, not [params].
+    """
 
     sensor: str
     name: str = field(default="", init=False)
     stage: int = field(default=ADDITIVE, init=False)
+
+    description = ""
+    sensorless = False
+    layouts = ("triad", "redundant")
+    export = "none"
+    diagnosable = True
+    noise_table = False
+
+    def describe(self, params: dict, sigma: dict) -> str:
+        """The fitted effect in words with its largest term, in display units."""
+        best = None
+        for sp in self.specs(_describe_layout(params, self.specs)):
+            if sp.key not in params:
+                continue
+            v = np.ravel(np.asarray(params[sp.key], dtype=float))
+            sg = np.ravel(np.asarray(sigma.get(sp.key, np.full(v.shape, np.nan)), dtype=float))
+            z = np.abs(v) / np.where(sg > 0, sg, np.inf)
+            i = int(np.nanargmax(z)) if np.any(np.isfinite(z)) else int(np.argmax(np.abs(v)))
+            if best is None or abs(v[i]) * sp.display[0] > best[0]:
+                best = (abs(v[i]) * sp.display[0], sp, i, v[i], sg[i])
+        text = self.description or self.label
+        if best is None:
+            return text
+        _, sp, i, v, sg = best
+        f, unit = sp.display if sp.display != (1.0, "") else (1.0, sp.unit)
+        return (f"{text} (largest term {sp.key}[{i}] = {v * f:.3g} +- {sg * f:.2g} "
+                f"{unit})").replace(" +- nan", "")
 
     def specs(self, layout: Layout) -> list[ParamSpec]:
         return []
@@ -118,9 +136,18 @@ class Effect:
     def apply(self, p: dict, ctx: _Ctx) -> None:
         """Add this effect's contribution to ctx (in place)."""
 
+    def realisation(self, p: dict, layout: Layout, fs: float, seed: int):
+        """The stateful noise realisation of a stochastic effect: ``r.next(kin)`` gives
+        the next len(kin) samples (N, n), drawn as a function of the sample index and
+        ``seed`` alone, so the simulator (one call) and the emulator (chunks) get the
+        same numbers. None for a deterministic effect."""
+        return None
+
     def realise(self, p: dict, kin: Kinematics, layout: Layout, rng) -> np.ndarray:
-        """A random realisation (N, n) of a stochastic effect (simulator only)."""
-        return 0.0
+        """A random realisation (N, n) over a whole record (seeded from ``rng``)."""
+        dt = float(np.median(np.diff(kin.t))) if len(kin) > 1 else 1.0
+        r = self.realisation(p, layout, 1.0 / dt, int(rng.integers(2**62)))
+        return 0.0 if r is None else r.next(kin)
 
     @property
     def label(self) -> str:
@@ -142,6 +169,9 @@ _GYR_DISPLAY = (180 / np.pi * 3600, "deg/h")
 class Bias(Effect):
     """Constant output offset b (m/s^2 or rad/s per channel)."""
 
+    description = "constant output offset"
+    export = "linear"
+
     name: str = field(default="bias", init=False)
     stage: int = field(default=ADDITIVE, init=False)
 
@@ -158,6 +188,10 @@ class Bias(Effect):
 @dataclass(frozen=True)
 class GSensitivity(Effect):
     """Gyro g-sensitivity: W += D f, f the specific force at the triad's reference point."""
+
+    description = "gyro g-sensitivity: the gyro bias moves with the specific force"
+    sensorless = True
+    export = "linear"
 
     sensor: str = "gyro"
     name: str = field(default="g_sensitivity", init=False)
@@ -193,6 +227,10 @@ class ScaleMisalignment(Effect):
     sensor triad itself: upper triangle 0), "diagonal" (scale factors only).
     """
 
+    description = "scale factor and misalignment (K)"
+    layouts = ("triad",)
+    export = "linear"
+
     structure: str = "full"
     name: str = field(default="scale_misalignment", init=False)
     stage: int = field(default=TRANSFER, init=False)
@@ -209,6 +247,10 @@ class ScaleMisalignment(Effect):
 @dataclass(frozen=True)
 class Installation(Effect):
     """RIMU channel i: y_i = (1 + ks_i) S_i . x, S_i from El0 + dEl, Az0 - dAz."""
+
+    description = "scale error and installation angles of each single-axis sensor"
+    layouts = ("redundant",)
+    export = "none"
 
     name: str = field(default="installation", init=False)
     stage: int = field(default=TRANSFER, init=False)
@@ -235,6 +277,9 @@ class Misalignment(Effect):
     y_i += sum_{j != i} M_ij F_ij. structure "full" (6 terms) or "lower" (3).
     """
 
+    description = "misalignment: the axes are not orthogonal (from a diagonal base)"
+    export = "linear"
+
     structure: str = "full"
     name: str = field(default="misalignment", init=False)
     stage: int = field(default=CORRECTION, init=False)
@@ -253,6 +298,9 @@ class Misalignment(Effect):
 class Nonlinearity(Effect):
     """Quadratic scale term per channel: y_i += k2_i u_i^2 (k2 in 1/(input unit))."""
 
+    description = "accelerometer nonlinearity: the output grows with the square of the input"
+    export = "none"
+
     name: str = field(default="accel_nonlinearity", init=False)
     stage: int = field(default=CORRECTION, init=False)
 
@@ -269,6 +317,9 @@ class Nonlinearity(Effect):
 @dataclass(frozen=True)
 class ScaleAsymmetry(Effect):
     """Different scale for positive and negative input: y_i += a_i |u_i|."""
+
+    description = "scale asymmetry: a different scale factor for positive and negative inputs"
+    export = "none"
 
     name: str = field(default="scale_asymmetry", init=False)
     stage: int = field(default=CORRECTION, init=False)
@@ -306,6 +357,9 @@ class TemperatureDrift(Effect):
     held a scale term on the nominal input u_i; ``scale_on = "input"``
     keeps reading them as they were fitted (docs/thermal.md).
     """
+
+    description = "temperature drift of bias and scale factor"
+    export = "thermal"
 
     order: int = 1
     temp_ref: float = TEMP_REF_C
@@ -360,6 +414,10 @@ class ThermalLag(Effect):
     first-order lag, time constant ``thermal_lag_tau`` (s): every
     temperature-dependent effect sees lag_temperature(t, temp, tau)."""
 
+    description = "thermal lag: the sensor follows the measured temperature with a delay"
+    sensorless = True
+    export = "thermal"
+
     sensor: str = ""
     name: str = field(default="thermal_lag", init=False)
     stage: int = field(default=SHIFT, init=False)
@@ -390,6 +448,10 @@ class LeverArm(Effect):
     tangential: include the dw x r term (needs angular acceleration).
     """
 
+    description = "lever arm: the accelerometers sit off the table axis"
+    sensorless = True
+    export = "input"
+
     sensor: str = "accel"
     tangential: bool = True
     name: str = field(default="lever_arm", init=False)
@@ -411,6 +473,10 @@ class LeverArm(Effect):
 class ProofMassOffsets(Effect):
     """Position p_i of accelerometer i's proof mass relative to the triad's
     reference point (row i, m; p_ii = 0 by convention: the size effect)."""
+
+    description = "size effect: the three proof masses sit apart"
+    sensorless = True
+    export = "input"
 
     sensor: str = "accel"
     tangential: bool = True
@@ -445,6 +511,10 @@ def shift_kinematics(kin: Kinematics, tau: float) -> Kinematics:
 class TimeOffset(Effect):
     """IMU timestamps lag the table (the truth) by ``time_offset`` seconds."""
 
+    description = "time offset between the IMU and the table"
+    sensorless = True
+    export = "none"
+
     sensor: str = ""
     name: str = field(default="time_offset", init=False)
     stage: int = field(default=SHIFT, init=False)
@@ -462,6 +532,9 @@ class BiasRandomWalk(Effect):
     """The bias integrates white noise of density q (unit/sqrt(s)); for gyros
     this is rate random walk K."""
 
+    description = "bias random walk: the bias wanders without bound"
+    export = "noise"
+
     name: str = field(default="bias_random_walk", init=False)
     stage: int = field(default=STOCHASTIC, init=False)
 
@@ -470,11 +543,9 @@ class BiasRandomWalk(Effect):
         return [ParamSpec(self._key("bias_rw"), (layout.n,),
                           "m/s^2/sqrt(s)" if acc else "rad/s/sqrt(s)", 1e-4 if acc else 1e-5)]
 
-    def realise(self, p, kin, layout, rng):
-        q = np.asarray(p[self._key("bias_rw")], dtype=float)
-        dt = np.diff(kin.t, prepend=kin.t[0])
-        steps = rng.standard_normal((len(kin), layout.n)) * np.sqrt(dt)[:, None] * q
-        return np.cumsum(steps, axis=0)
+    def realisation(self, p, layout, fs, seed):
+        return _RandomWalk(np.asarray(p[self._key("bias_rw")], dtype=float),
+                           NoiseStream(seed, _stream_id(self.label), layout.n))
 
 
 # Flicker (1/f) bias noise as a sum of first-order Gauss-Markov processes with
@@ -494,6 +565,9 @@ class BiasInstability(Effect):
     sensor), modelled as a sum of first-order Gauss-Markov processes whose
     time constants span FLICKER_TAUS."""
 
+    description = "bias instability (flicker): the bias wanders within a floor"
+    export = "noise"
+
     name: str = field(default="bias_instability", init=False)
     stage: int = field(default=STOCHASTIC, init=False)
 
@@ -502,20 +576,126 @@ class BiasInstability(Effect):
         return [ParamSpec(self._key("bias_instability"), (layout.n,),
                           "m/s^2" if acc else "rad/s", 5e-4 if acc else 1e-4)]
 
-    def realise(self, p, kin, layout, rng):
+    def realisation(self, p, layout, fs, seed):
         B = np.asarray(p[self._key("bias_instability")], dtype=float)
+        return _Flicker(B, 1.0 / fs, seed, _stream_id(self.label), layout.n)
+
+
+@dataclass(frozen=True)
+class WhiteNoise(Effect):
+    """White output noise: ``{sensor}_white`` per sample (1-sigma), or
+    ``{sensor}_white_density`` per sqrt(Hz) (times sqrt(fs) per sample; used where
+    given). A noise term: simulated and emulated, never a calibration parameter."""
+
+    description = "white output noise"
+    export = "noise"
+    diagnosable = False
+    noise_table = True
+
+    name: str = field(default="white_noise", init=False)
+    stage: int = field(default=STOCHASTIC, init=False)
+
+    def specs(self, layout):
+        acc = self.sensor == "accel"
+        u = "m/s^2" if acc else "rad/s"
+        return [ParamSpec(self._key("white"), (layout.n,), u, 3e-3 if acc else 1e-3),
+                ParamSpec(self._key("white_density"), (layout.n,), u + "/sqrt(Hz)",
+                          3e-4 if acc else 1e-4)]
+
+    def realisation(self, p, layout, fs, seed):
+        dens = np.asarray(p.get(self._key("white_density"), 0.0), dtype=float)
+        sigma = (dens * np.sqrt(fs) if np.any(dens != 0)
+                 else np.asarray(p.get(self._key("white"), 0.0), dtype=float))
+        return _White(np.broadcast_to(sigma, (layout.n,)).astype(float),
+                      NoiseStream(seed, _stream_id(self.label), layout.n))
+
+
+class NoiseStream:
+    """Standard normal numbers per sample index: blocks of BLOCK samples, each from
+    its own generator seeded by (seed, stream key, block), so any chunking of the
+    same index range gives the same numbers."""
+
+    BLOCK = 4096
+
+    def __init__(self, seed: int, key, dim: int):
+        self.seed = int(seed)
+        self.key = tuple(int(k) for k in np.atleast_1d(key))
+        self.dim = dim
+        self._block, self._data = None, None
+
+    def normal(self, k0: int, n: int) -> np.ndarray:
+        B, out, k = self.BLOCK, np.empty((n, self.dim)), k0
+        while k < k0 + n:
+            b = k // B
+            if self._block != b:
+                rng = np.random.default_rng([self.seed, *self.key, b])
+                self._block, self._data = b, rng.standard_normal((B, self.dim))
+            a = k - b * B
+            m = min(B - a, k0 + n - k)
+            out[k - k0:k - k0 + m] = self._data[a:a + m]
+            k += m
+        return out
+
+
+def _stream_id(label: str) -> int:
+    """A stable integer per effect (the random streams of different effects differ)."""
+    import zlib
+
+    return zlib.crc32(label.encode())
+
+
+class _White:
+    def __init__(self, sigma, stream):
+        self.sigma, self.stream, self.k = sigma, stream, 0
+
+    def next(self, kin):
         n = len(kin)
-        dt = np.median(np.diff(kin.t)) if n > 1 else 1.0
-        out = np.zeros((n, layout.n))
+        out = self.stream.normal(self.k, n) * self.sigma
+        self.k += n
+        return out
+
+
+class _RandomWalk:
+    """b_k = b_{k-1} + q sqrt(t_k - t_{k-1}) w_k, starting at 0 (first step dt = 0)."""
+
+    def __init__(self, q, stream):
+        self.q, self.stream, self.k = q, stream, 0
+        self.t_last, self.b_last = None, np.zeros(stream.dim)
+
+    def next(self, kin):
+        n = len(kin)
+        t = np.asarray(kin.t, dtype=float)
+        dt = np.diff(t, prepend=t[0] if self.t_last is None else self.t_last)
+        steps = self.stream.normal(self.k, n) * np.sqrt(dt)[:, None] * self.q
+        out = np.cumsum(np.concatenate([self.b_last[None, :], steps]), axis=0)[1:]
+        self.k += n
+        self.t_last, self.b_last = t[-1], out[-1].copy()
+        return out
+
+
+class _Flicker:
+    """The Gauss-Markov sum of BiasInstability, each process carried across chunks
+    (state x per time constant, started from its stationary distribution)."""
+
+    def __init__(self, B, dt, seed, sid, dim):
         from scipy.signal import lfilter
 
-        for tau in FLICKER_TAUS:
-            phi = np.exp(-dt / tau)
-            sig = FLICKER_SCALE * B
-            drive = rng.standard_normal((n, layout.n)) * sig * np.sqrt(1 - phi**2)
-            x0 = rng.standard_normal(layout.n) * sig
-            x = lfilter([1.0], [1.0, -phi], drive, axis=0)
-            out += x + np.outer(phi ** np.arange(1, n + 1), x0)
+        self._lfilter = lfilter
+        self.sig = FLICKER_SCALE * B
+        self.phi = np.exp(-dt / FLICKER_TAUS)
+        self.streams = [NoiseStream(seed, (sid, i + 1), dim) for i in range(len(FLICKER_TAUS))]
+        self.x = NoiseStream(seed, (sid, 0), dim).normal(0, len(FLICKER_TAUS)) * self.sig
+        self.k = 0
+
+    def next(self, kin):
+        n = len(kin)
+        out = np.zeros((n, self.streams[0].dim))
+        for i, (phi, st) in enumerate(zip(self.phi, self.streams)):
+            drive = st.normal(self.k, n) * self.sig * np.sqrt(1 - phi**2)
+            y, _ = self._lfilter([1.0], [1.0, -phi], drive, axis=0, zi=(phi * self.x[i])[None, :])
+            out += y
+            self.x[i] = y[-1]
+        self.k += n
         return out
 
 
@@ -537,7 +717,26 @@ CATALOGUE = {
     "thermal_lag": ThermalLag,
     "bias_random_walk": BiasRandomWalk,
     "bias_instability": BiasInstability,
+    "white_noise": WhiteNoise,
 }
+
+
+def _describe_layout(params: dict, specs) -> Layout:
+    """The layout whose channel count matches the fitted arrays (for describe)."""
+    for v in params.values():
+        a = np.asarray(v)
+        if a.ndim == 1 and a.shape[0] not in (0, 3):
+            n = a.shape[0]
+            return Layout(n=n, el0=np.zeros(n), az0=np.zeros(n))
+    return Layout()
+
+
+def register_effect(cls):
+    """Class decorator: put an effect class into the catalogue under its ``name``
+    (the built-in effects are listed in CATALOGUE above; a new one can use this)."""
+    name = cls.__dataclass_fields__["name"].default
+    CATALOGUE[name] = cls
+    return cls
 
 
 def make_effect(name: str, sensor: str = "accel", **options) -> Effect:
@@ -546,6 +745,6 @@ def make_effect(name: str, sensor: str = "accel", **options) -> Effect:
         cls = CATALOGUE[name]
     except KeyError:
         raise ValueError(f"unknown effect {name!r}; known: {', '.join(CATALOGUE)}") from None
-    if cls in (GSensitivity, LeverArm, ProofMassOffsets, TimeOffset, ThermalLag):
+    if cls.sensorless:
         return cls(**options)
     return cls(sensor=sensor, **options)

@@ -116,11 +116,47 @@ class ImuModel:
 
     def realise_noise(self, params: dict, kin: Kinematics, rng) -> dict[str, np.ndarray]:
         """Random realisations of the stochastic effects (bias random walk,
-        flicker), per sensor; zeros where the model has none."""
-        out = {s: np.zeros((len(kin), self.layout.n)) for s in SENSORS}
-        for e in self.effects:
-            if e.stage == STOCHASTIC:
-                out[e.sensor] = out[e.sensor] + e.realise(params, kin, self.layout, rng)
+        flicker, white noise) over a whole record, per sensor; zeros where the
+        model has none. Seeded from ``rng``; ``noise_realisation`` streams."""
+        dt = float(np.median(np.diff(kin.t))) if len(kin) > 1 else 1.0
+        return self.noise_realisation(params, 1.0 / dt, int(rng.integers(2**62))).next(kin)
+
+    def noise_realisation(self, params: dict, fs: float, seed: int) -> "NoiseRealisation":
+        """The stateful realisation of every stochastic effect at sample rate ``fs``:
+        ``next(kin)`` gives the next chunk {"accel": (N, n), "gyro": (N, n)}. The numbers
+        depend on ``seed`` and the sample index only, so the simulator (one call) and
+        the emulator (chunks) draw the same stream."""
+        return NoiseRealisation(self, params, fs, seed)
+
+    def random_params(self, rng, typical: dict | None = None, skip=()) -> dict[str, np.ndarray]:
+        """A random unit: each free entry neutral + N(0, typical^2), the catalogue's
+        typical size unless ``typical[key]`` is given; keys in ``skip`` are not drawn.
+        One draw of spec.shape per parameter, in spec order."""
+        params = {}
+        for spec in self.specs():
+            if spec.key in skip:
+                continue
+            size = spec.typical if typical is None or spec.key not in typical else typical[spec.key]
+            free = ~spec.fixed_mask()
+            params[spec.key] = spec.neutral() + rng.standard_normal(spec.shape) * size * free
+        return params
+
+
+class NoiseRealisation:
+    """The running noise of a model (ImuModel.noise_realisation)."""
+
+    def __init__(self, model: ImuModel, params: dict, fs: float, seed: int):
+        p = model.neutral_params()
+        p.update({k: np.asarray(v, dtype=float) for k, v in params.items()})
+        self.n = model.layout.n
+        self.parts = [(e.sensor, e.realisation(p, model.layout, fs, seed))
+                      for e in model.effects if e.stage == STOCHASTIC]
+
+    def next(self, kin: Kinematics) -> dict[str, np.ndarray]:
+        out = {s: np.zeros((len(kin), self.n)) for s in SENSORS}
+        for sensor, r in self.parts:
+            if r is not None:
+                out[sensor] = out[sensor] + r.next(kin)
         return out
 
 

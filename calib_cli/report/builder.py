@@ -125,7 +125,7 @@ def _fmt(x) -> str:
 
 
 def parameter_table(cal: CalibrationResult) -> Table:
-    from calib_cli.cli.render import display_of  # display units only
+    from calib_cli.model.display import display_of
     from calib_cli.report.format import ND
 
     rows = []

@@ -217,6 +217,100 @@ def _profile(duration: float, max_dps: float, ramp_s: float) -> list:
     return rate_profile(duration, max_dps, ramp_s=ramp_s, hold_s=hold)
 
 
+def thermal_plan(design: str = "soak", temps: int = 7, temp_range=(-40.0, 85.0),
+                 soak: float | None = None, duration: float | None = None,
+                 ramp_dpm: float | None = None, unit_tau: float | None = None,
+                 positions: int = 6, cycles: str = "heat-cool",
+                 rate: float = 10.0) -> tuple[dict, str | None]:
+    """Thermal calibration in a climatic chamber (docs/thermal.md):
+
+    - ``soak``: at ``temps`` (5..7) temperatures spread over ``temp_range``, a
+      soak segment (the first position held ``soak`` s while the unit settles,
+      default 1800) then the six positions (each axis up and down, ``duration``
+      s each, default 60); the chamber moves at ``ramp_dpm`` (default 3);
+    - ``ramp``: a soak at the low end, then the chamber ramps to the high end
+      at ``ramp_dpm`` (default 1 degC/min) and, with ``cycles = "heat-cool"``,
+      back (hysteresis, thermal lag) while the unit goes round ``positions``
+      (3..6) positions, ``duration`` s each (default 120). Its ramp segments
+      carry ``chamber_soak = false``: ``calib record`` sets the setpoint and
+      records without waiting.
+
+    ``unit_tau`` (s) is the unit's thermal time constant for ``simulate``
+    (default 300 soak, 120 ramp). Returns (plan, warning)."""
+    if design not in ("soak", "ramp"):
+        raise InputError(f"--design must be soak or ramp, got {design!r}")
+    lo, hi = (float(x) for x in temp_range)
+    if not hi - lo >= 10.0:
+        raise InputError("--temp-range must span at least 10 degC (LO,HI)")
+    if cycles not in ("heat", "heat-cool"):
+        raise InputError(f"--cycles must be heat or heat-cool, got {cycles!r}")
+    faces = FACES
+    warning = None
+    if design == "soak":
+        if not 5 <= temps <= 7:
+            raise InputError("--temps must be 5, 6 or 7 (soak steps)")
+        soak = 1800.0 if soak is None else float(soak)
+        duration = 60.0 if duration is None else float(duration)
+        ramp_dpm = 3.0 if ramp_dpm is None else float(ramp_dpm)
+        unit_tau = 300.0 if unit_tau is None else float(unit_tau)
+        if soak < 3 * unit_tau:
+            warning = (f"a soak of {soak:g} s is under 3 time constants of the unit "
+                       f"({unit_tau:g} s): the positions start before it has settled")
+    else:
+        if not 3 <= positions <= 6:
+            raise InputError("--positions must be 3..6 for a ramp design")
+        duration = 120.0 if duration is None else float(duration)
+        ramp_dpm = 1.0 if ramp_dpm is None else float(ramp_dpm)
+        unit_tau = 120.0 if unit_tau is None else float(unit_tau)
+        soak = 6 * unit_tau if soak is None else float(soak)
+        faces = FACES[:positions]
+        if positions < 6:
+            warning = (f"{positions} positions do not determine the full accel_K: fit with "
+                       "--base CAL.h5 (a room-temperature calibration)")
+    for name, v in (("--soak", soak), ("--duration", duration), ("--ramp-dpm", ramp_dpm),
+                    ("--unit-tau", unit_tau), ("--rate", rate)):
+        if not v > 0:
+            raise InputError(f"{name} must be positive")
+    gen = {"method": "thermal", "design": design, "temp_range_degC": [lo, hi],
+           "soak_s": soak, "duration_s": duration, "ramp_dpm": ramp_dpm, "unit_tau_s": unit_tau,
+           "sample_rate_hz": rate}
+    if design == "soak":
+        gen["temps"] = int(temps)
+    else:
+        gen.update(positions=int(positions), cycles=cycles)
+    d = _base(f"thermal-{design}", "static", rate, gen, f"thermal-{design}")
+    # the chamber keys (docs/plans.md): simulate's ramp and time constant, record's soak rule
+    d = {**{k: v for k, v in d.items() if k not in ("site", "generator", "segment")},
+         "chamber_ramp_dpm": ramp_dpm, "unit_tau_s": unit_tau,
+         "chamber_soak_tol_degC": 0.1, "chamber_soak_s": round(min(600.0, 2 * unit_tau), 3),
+         "chamber_soak_timeout_s": round(max(7200.0, 20 * unit_tau), 3),
+         "site": d["site"], "generator": gen, "segment": []}
+    seg = d["segment"]
+    if design == "soak":
+        for T in np.round(np.linspace(lo, hi, temps), 1):
+            T = float(T) + 0.0
+            tag = f"{T:+g}"
+            seg.append({"label": f"soak{tag}", "attitude_deg": faces[0][1], "duration_s": soak,
+                        "chamber_temp_degC": T})
+            for lab, att in faces:
+                seg.append({"label": f"{lab}@{tag}", "attitude_deg": att,
+                            "duration_s": duration})
+        return d, warning
+    seg.append({"label": "soak", "attitude_deg": faces[0][1], "duration_s": soak,
+                "chamber_temp_degC": lo})
+    leg = (hi - lo) / ramp_dpm * 60.0 + 4 * unit_tau  # the ramp and the unit catching up
+    n = int(np.ceil(leg / (duration + 4.0)))
+    for c in (("heat",) if cycles == "heat" else ("heat", "cool")):
+        target = hi if c == "heat" else lo
+        for k in range(n):
+            lab, att = faces[k % len(faces)]
+            s = {"label": f"{lab}-{c}{k}", "attitude_deg": att, "duration_s": duration}
+            if k == 0:
+                s.update(chamber_temp_degC=target, chamber_soak=False)
+            seg.append(s)
+    return d, warning
+
+
 def make(family: str, **kw) -> tuple[dict, str | None]:
     """Dispatch: (plan dict, warning or None)."""
     if family == "static":
@@ -229,6 +323,8 @@ def make(family: str, **kw) -> tuple[dict, str | None]:
         return rimu_plan(**kw), None
     if family == "turntable":
         return turntable_plan(**kw), None
+    if family == "thermal":
+        return thermal_plan(**kw)
     raise InputError(f"unknown plan family {family!r}")
 
 

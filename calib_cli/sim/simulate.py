@@ -36,31 +36,14 @@ from scipy.spatial.transform import Rotation
 
 from calib_cli.data import SAMPLE_KINDS, Recording, Segment
 from calib_cli.errors import InputError
-from calib_cli.io.plan import Plan, PlanSegment
 from calib_cli.model import kinematics as kn
-from calib_cli.model.effects import Layout
 from calib_cli.model.frames import attitude_to_rotation, axis_angle, rotation_to_attitude
+from calib_cli.model.truth import Truth, default_truth
+from calib_cli.plan import Plan, PlanSegment, plan_layout, same_layout  # noqa: F401  (re-exported)
 from calib_cli.sim import rate_profiles as rp
-from calib_cli.sim.truth import Truth, default_truth
 
 D2R = np.pi / 180.0
 DEFAULT_ROTATING_S = 120.0  # a rotating segment without duration_s or rate keys
-
-
-def plan_layout(plan: Plan) -> Layout:
-    n_cycles = sum(1 for s in plan.segments if s.kind == "rotating")
-    if plan.kind == "rimu":
-        return Layout(n=len(plan.rimu_el0), el0=plan.rimu_el0, az0=plan.rimu_az0,
-                      n_cycles=n_cycles)
-    return Layout(n_cycles=n_cycles)
-
-
-def same_layout(a: Layout, b: Layout) -> bool:
-    """Equal channel geometry and cycle count (Layout holds arrays, so == is ambiguous)."""
-    def eq(x, y):
-        return (x is None and y is None) or (x is not None and y is not None
-                                             and np.array_equal(x, y))
-    return a.n == b.n and a.n_cycles == b.n_cycles and eq(a.el0, b.el0) and eq(a.az0, b.az0)
 
 
 def _times(t0: float, duration: float, fs: float) -> np.ndarray:
@@ -193,7 +176,7 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
     layout = plan_layout(plan)
     nav = plan.kind == "align" and plan.extra.get("sim_grade", "navigation") != "mems"
     if truth is None and nav:
-        from calib_cli.sim.align_cases import nav_truth  # alignment needs a navigation-grade unit
+        from calib_cli.sim.grades import nav_truth  # alignment needs a navigation-grade unit
 
         truth = nav_truth(rng)
     if truth is None and plan.kind == "turntable":
@@ -227,13 +210,13 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
         segments = [replace(sg, start=-(-sg.start // n_sub) - 1, stop=-(-sg.stop // n_sub) - 1)
                     for sg in seg_hi]
         segments = [sg if sg.start >= 0 else replace(sg, start=0) for sg in segments]
-    stoch = truth.model.realise_noise(truth.params, kin, rng)
+    # every noise term (white, random walk, flicker) is an effect with a seeded stream:
+    # the emulator draws the same numbers for the same truth and seed (acquire/emulator.py)
+    noise_model, noise_params = truth.noise_model()
+    stoch = noise_model.noise_realisation(noise_params, fs, seed).next(kin)
     noisy = {}
     for s in ("accel", "gyro"):
-        white = np.asarray(truth.noise.get(f"{s}_white", 0.0), dtype=float)
-        if f"{s}_white_density" in truth.noise:
-            white = np.asarray(truth.noise[f"{s}_white_density"], float) * np.sqrt(fs)
-        y = out[s] + stoch[s] + rng.standard_normal(out[s].shape) * white
+        y = out[s] + stoch[s]
         if truth.quantize:
             y = np.round(y)
         noisy[s] = y

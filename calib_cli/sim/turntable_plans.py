@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 
 from calib_cli.model.frames import attitude_to_rotation, rotation_to_attitude
 from calib_cli.model.imu_model import ImuModel
-from calib_cli.sim.truth import Truth
+from calib_cli.model.truth import Truth
 
 TABLE_AXIS = np.array([1.0, 0.0, 0.0])
 STD_ATTITUDES_DEG = ([0.0, 0.0, 0.0], [0.0, 0.0, -90.0], [0.0, 90.0, 0.0])  # x, y, z along East
@@ -165,13 +165,7 @@ def turntable_truth(plan, rng, noise=None, proof_mass_sigma: float | None = None
     model = ImuModel(effects, layout)
     if proof_mass_sigma is None:
         proof_mass_sigma = float(plan.extra.get("sim_proof_mass_sigma_m", 5e-3))
-    params = {}
-    for spec in model.specs():
-        if spec.key == "lever_arm":
-            continue
-        free = ~spec.fixed_mask()
-        typical = proof_mass_sigma if spec.key == "proof_mass_offsets" else spec.typical
-        params[spec.key] = spec.neutral() + rng.standard_normal(spec.shape) * typical * free
+    params = model.random_params(rng, {"proof_mass_offsets": proof_mass_sigma}, skip=("lever_arm",))
     s = np.zeros((len(rotating), 3))
     for c, seg in enumerate(rotating):
         v = seg.extra.get("sim_lever_arm_m", seg.extra.get("lever_arm_m"))

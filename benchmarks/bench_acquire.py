@@ -1,7 +1,7 @@
 """Acquisition benchmark: the highest frame rate the recorder sustains from
 the emulator without loss, and the recorder's CPU use at 1 kHz.
 
-    python -m calib_cli.bench_acquire [--profile generic-bin6] [--seconds 4] [--json]
+    python -m benchmarks.bench_acquire [--profile generic-bin6] [--seconds 4] [--json]
 
 The emulator runs in its own process (``calib emulate``) on a pty; the
 recorder (the same Session as ``calib record``, free-running) runs here, so

@@ -1,8 +1,8 @@
 """Benchmark `calib batch`: files per minute with 1 and 2 local workers.
 
-    python -m calib_cli.bench_batch [--files 24] [--workers 1 2] [--json]
+    python -m benchmarks.bench_batch [--files 24] [--workers 1 2] [--json]
 
-Simulates an archive of good recordings (calib_cli.batch.archive: several
+Simulates an archive of good recordings (calib_cli.validation.archive: several
 units, six-position and hand-placed plans, CSV and raw.h5, 50 Hz, ~20-30 s
 each) and runs the archive pipeline (import, fit accel, apply, export) into a
 fresh output directory per worker count, timing the whole command (pool
@@ -53,7 +53,7 @@ def main(argv=None) -> None:
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
-    from calib_cli.batch.archive import make_archive
+    from calib_cli.validation.archive import make_archive
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="calib-bench-batch-") as tmp:

@@ -28,7 +28,7 @@ def bench_static():
     from calib_cli.methods.segstats import static_stats
     from calib_cli.model.frames import attitude_to_rotation
     from calib_cli.sim.simulate import simulate
-    from tests.conftest import static_plan_text
+    from calib_cli.validation.static_cases import static_plan_text
 
     plan = parse_plan(static_plan_text(duration=60.0, rate=200.0))
     t_sim = _best(lambda: simulate(plan, None, 0), 2)

@@ -1,0 +1,113 @@
+"""Apply a calibration file to a recording file, chunk by chunk (``calib apply``,
+the batch's apply step and ``calib_cli.api.apply_file``): memory stays flat for
+long recordings. The corrections themselves are ``methods/apply.py``."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+
+from calib_cli.errors import InputError
+from calib_cli.io.h5 import atomic_path, open_checked, read_calibration, write_provenance
+from calib_cli.methods.apply import (
+    apply_triad,
+    check_temperature,
+    check_units,
+    corrected_channels,
+    effective_temperature,
+    is_thermal,
+    proof_mass_offsets,
+)
+from calib_cli.methods.rimu import apply_rimu
+
+CHUNK = 262144  # samples per chunk: memory stays flat for long recordings
+
+
+def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = False):
+    """Correct RAW with CAL into OUT (written atomically); returns (samples, channels).
+    Bad input raises InputError naming the file (exit 3)."""
+    from calib_cli.io import validate
+
+    c = read_calibration(cal)
+    validate.check_calibration(c, cal)
+    rimu = c.layout.redundant
+    with open_checked(raw, ("raw",)) as src:
+        if "samples" not in src:
+            raise InputError("missing group /samples (a recording is expected here)", raw)
+        smp = src["samples"]
+        validate.check_segments_layout(src, raw, validate.check_samples_layout(smp, raw))
+        validate.check_time(validate.load(smp["time"], raw), raw)
+        units = {s: (smp.attrs.get(f"{s}_units", "") or "") for s in ("accel", "gyro")}
+        units = {k: v.decode() if isinstance(v, bytes) else str(v) for k, v in units.items()}
+        check_units(c, units, raw)
+        chans = corrected_channels(c)
+        n = smp["time"].shape[0]
+        temp_eff = None
+        if is_thermal(c):
+            if "temp" in smp:
+                temp_in = np.asarray(smp["temp"][...], dtype=float)
+            elif temp_c is not None:
+                temp_in = np.full(n, float(temp_c))
+            else:
+                raise InputError("the calibration has temperature terms but the recording has "
+                                 "no temperature column (give --temp DEGC)", raw)
+            check_temperature(c, temp_in, raw, extrapolate)
+            temp_eff = effective_temperature(c, smp["time"][...], temp_in)
+        with atomic_path(out) as tmp, h5py.File(tmp, "w") as dst:
+            write_provenance(dst, "corrected", [cal, raw], c.serial or (
+                src.attrs.get("unit_serial") or None),
+                {"plan_kind": src.attrs.get("plan_kind", "static"),
+                 "corrected_channels": ",".join(chans)})
+            for name in ("segments", "site", "layout", "plan"):
+                if name in src:
+                    src.copy(name, dst)
+            out_s = dst.create_group("samples")
+            for k in smp:
+                if k not in ("accel", "gyro"):
+                    smp.copy(k, out_s)
+            acc = out_s.create_dataset("accel", shape=smp["accel"].shape, dtype="f8", fletcher32=True,
+                                       chunks=True)
+            gyr = (out_s.create_dataset("gyro", shape=smp["gyro"].shape, dtype="f8", chunks=True,
+                                       fletcher32=True)
+                   if "gyro" in smp else None)
+            body = {}
+            if smp["accel"].shape[1] != c.layout.n:
+                raise InputError(f"the recording has {smp['accel'].shape[1]} channels per "
+                                 f"sensor, the calibration {c.layout.n}", raw)
+            if rimu:  # a redundant unit also gets the body-frame estimate (docs/rimu.md)
+                for s in chans:
+                    if s in smp:
+                        body[s] = out_s.create_dataset(f"{s}_body", shape=(n, 3), dtype="f8", fletcher32=True,
+                                                       chunks=True)
+            size = proof_mass_offsets(c) is not None and gyr is not None and not rimu
+            for a in range(0, n, CHUNK):
+                b = min(n, a + CHUNK)
+                try:
+                    a0, b0 = (max(0, a - 1), min(n, b + 1)) if size else (a, b)
+                    a_in = smp["accel"][a0:b0]
+                    g_in = smp["gyro"][a0:b0] if gyr is not None else None
+                except OSError:
+                    raise InputError("damaged data in /samples/accel or /samples/gyro (checksum) "
+                                     f"(samples {a}..{b})", raw) from None
+                validate.check_finite(a_in, raw, "/samples/accel", a0)
+                if g_in is not None:
+                    validate.check_finite(g_in, raw, "/samples/gyro", a0)
+                if size:  # one sample of context each side for the rate derivative
+                    f, w = apply_triad(c, a_in, g_in, accel_si=units["accel"] != "count",
+                                       temp=None if temp_eff is None else temp_eff[a0:b0],
+                                       time=smp["time"][a0:b0])
+                    f, w = f[a - a0:a - a0 + b - a], w[a - a0:a - a0 + b - a]
+                elif rimu:
+                    res = apply_rimu(c, a_in, g_in)
+                    f, w = res["accel"], res["gyro"]
+                    for s, ds in body.items():
+                        ds[a:b] = res[f"{s}_body"]
+                else:
+                    f, w = apply_triad(c, a_in, g_in, accel_si=units["accel"] != "count",
+                                       temp=None if temp_eff is None else temp_eff[a:b])
+                acc[a:b] = f
+                if gyr is not None:
+                    gyr[a:b] = w
+            out_s.attrs["accel_units"] = "m/s^2" if "accel" in chans else units["accel"]
+            out_s.attrs["gyro_units"] = "rad/s" if "gyro" in chans else units["gyro"]
+    return n, chans
