@@ -4,7 +4,7 @@ VENV    := .venv
 BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 
-.PHONY: install demo test validate lint bench clean screenshots
+.PHONY: install demo demo-all test validate lint bench clean screenshots
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -16,6 +16,11 @@ install: $(STAMP)
 
 demo: $(STAMP)
 	PATH=$(CURDIR)/$(BIN):$$PATH bash sample_data/demo.sh
+
+# every method (Ferraris, align, RIMU, turntable 3 and 9 cycles, static) on its
+# example plan in sample_data/plans/: simulate, fit, report (a few minutes)
+demo-all: $(STAMP)
+	PATH=$(CURDIR)/$(BIN):$$PATH bash sample_data/demo_all.sh
 
 test: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m pytest -q
@@ -35,7 +40,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check calib_cli tests
 
 # each benchmark prints its figures against a baseline measured in the same run
-BENCHES := benchmarks.bench benchmarks.bench_acquire benchmarks.bench_batch benchmarks.bench_turntable benchmarks.bench_import benchmarks.bench_plan
+BENCHES := benchmarks.bench benchmarks.bench_acquire benchmarks.bench_batch benchmarks.bench_turntable benchmarks.bench_import benchmarks.bench_plan benchmarks.bench_cli
 
 bench: $(STAMP)
 	for b in $(BENCHES); do echo "== $$b"; MPLBACKEND=Agg $(BIN)/python -m $$b || exit 1; done

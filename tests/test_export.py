@@ -66,11 +66,13 @@ def test_json_yaml_csv_agree(files):
     assert got[("gyro_bias", "0")] == c.params["gyro_bias"][0]
 
 
-def test_nonlinear_model_refused(tmp_path):
+def test_nonlinear_model_exported_with_its_formula_refused_with_thermal(tmp_path):
+    """Issue 18: a non-affine term is exported as coefficients with the formula (the
+    C program check is in tests/test_fit_with.py); with temperature drift too, refused."""
     from dataclasses import replace
 
     from calib_cli.cli.main import main
-    from calib_cli.model.effects import Nonlinearity
+    from calib_cli.model.effects import Nonlinearity, TemperatureDrift
 
     c = triad_calibration()
     c = replace(c, model=c.model + [describe_effect(Nonlinearity("accel"))],
@@ -79,8 +81,18 @@ def test_nonlinear_model_refused(tmp_path):
     with pytest.raises(SystemExit) as e:
         main(["export", str(tmp_path / "nl.h5"), "--format", "c-header", "--out",
               str(tmp_path / "x.h")])
+    assert e.value.code == 0
+    text = (tmp_path / "x.h").read_text()
+    assert "CALIB_ACCEL_K2" in text and "fabs" in text
+    c2 = replace(c, model=c.model + [describe_effect(TemperatureDrift("accel"))],
+                 params={**c.params, "accel_temp_bias": np.zeros(3),
+                         "accel_temp_scale": np.zeros(3)})
+    write_calibration(tmp_path / "nlt.h5", c2)
+    with pytest.raises(SystemExit) as e:
+        main(["export", str(tmp_path / "nlt.h5"), "--format", "c-header", "--out",
+              str(tmp_path / "y.h")])
     assert e.value.code == 3
-    assert not (tmp_path / "x.h").exists()
+    assert not (tmp_path / "y.h").exists()
 
 
 CPROG = r"""

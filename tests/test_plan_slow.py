@@ -31,14 +31,20 @@ def test_within_sigma_over_seeds(name):
         assert 0.8 <= rms <= 1.25 and q99 < 3.3, (name, key, rms, q99)
 
 
+# The heading is one number per seed: 20 values pool too few for the rule (its RMS then
+# has a standard error of 0.16, and [0.8, 1.25] fails a correct sigma one time in six).
+# Seeds 100-119 alone give RMS 1.64 (p = 7e-5 for a correct sigma): the white-noise draws
+# of those seeds have gyro x means of RMS 1.45 sigma (p = 6e-5; seeds 0-999: 1.04), not a
+# missing term of the fit (docs/plan.md). 100 seeds, those 20 included.
+HEADING_SEEDS = range(100, 200)
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(reason="the align fit's own heading sigma is optimistic on this plan "
-                          "(error / sigma RMS 1.6 over 20 seeds, prediction and fit alike; "
-                          "docs/plan.md)", strict=False)
 def test_align_heading_within_sigma():
     pred = pc.predicted("align")
-    z = np.array([pc.normalised_errors("align", s, pred)["attitude"][2] for s in SEEDS])
+    z = np.array([pc.normalised_errors("align", s, pred)["attitude"][2] for s in HEADING_SEEDS])
     rms, q99 = pooled_rule(z)
+    print(f"align heading over {len(z)} seeds: RMS z {rms:.3f}, 99th pct {q99:.2f}")
     assert 0.8 <= rms <= 1.25 and q99 < 3.3, (rms, q99)
 
 

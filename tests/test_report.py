@@ -26,7 +26,8 @@ try:  # tests/ as rootdir-inserted path (no __init__.py) or as a package
 except ImportError:  # pragma: no cover
     from tests.samples_9 import PLAN, triad_calibration
 
-EXPECTED_AXES = {"g-per-position": 2, "residuals": 1, "allan": 2}
+EXPECTED_AXES = {"g-per-position": 2, "residuals": 1, "allan": 2,
+                 "static-detection": 3}  # accelerometer, gyro, the detector's statistic
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +70,7 @@ def test_report_of_sample_calibration_with_allan(sample):
     _report(sample / "cal.h5", sample / "free.h5", "--out", out)
     manifest = json.loads((out / "figures.json").read_text())
     names = [re.sub(r"^fig-\d+-|\.png$", "", f["file"]) for f in manifest["figures"]]
-    assert names == ["g-per-position", "residuals", "allan"]
+    assert names == ["g-per-position", "residuals", "static-detection", "allan"]
     for f, name in zip(manifest["figures"], names, strict=True):
         assert f["axes"] == EXPECTED_AXES[name]
         img = mpimg.imread(out / f["file"])
@@ -79,7 +80,7 @@ def test_report_of_sample_calibration_with_allan(sample):
     for f in manifest["figures"]:
         assert f"({f['file']})" in md
     assert "| accel_bias[0] |" in md and "1 sigma" in md
-    assert _check_self_contained((out / "report.html").read_text()) == 3
+    assert _check_self_contained((out / "report.html").read_text()) == 4
 
 
 def test_report_static_raw_is_not_free_running(sample):
@@ -87,7 +88,7 @@ def test_report_static_raw_is_not_free_running(sample):
     _report(sample / "cal.h5", sample / "static.h5", "--out", out)
     md = (out / "report.md").read_text()
     assert "not a free-running record" in md
-    assert len(json.loads((out / "figures.json").read_text())["figures"]) == 2
+    assert len(json.loads((out / "figures.json").read_text())["figures"]) == 3  # + detection
 
 
 def test_unknown_method_gets_generic_report_and_registry_dispatch(sample, tmp_path):

@@ -162,3 +162,45 @@ def test_verdict_against_tolerances(reports, tmp_path):
     # main() maps InputError to exit 3 with one line; nothing is left behind
     assert isinstance(r.exception, InputError) and r.exception.exit_code == 3
     assert not (tmp_path / "x").exists()
+
+
+def test_pdf_is_the_same_report(reports, tmp_path):
+    cal = reports["turntable"].parent / "turntable.cal.h5"
+    raw = reports["turntable"].parent / "turntable.h5"
+    _run("report", cal, raw, "--out", tmp_path / "rep", "--pdf")
+    pdf = (tmp_path / "rep" / "report.pdf").read_bytes()
+    assert pdf.startswith(b"%PDF-") and pdf.rstrip().endswith(b"%%EOF")
+    n_fig = len(re.findall(r"^!\[", (tmp_path / "rep" / "report.md").read_text(), re.M))
+    pages = len(re.findall(rb"/Type /Page\b", pdf))
+    assert n_fig >= 3 and pages >= 1 + n_fig  # text, then one page per figure
+    assert (tmp_path / "rep" / "report.html").is_file()  # the HTML report as without --pdf
+
+
+def test_every_figure_uses_the_colour_blind_safe_palette():
+    """Each module that makes a matplotlib figure takes the Okabe-Ito cycle from
+    report/figures.py (use_palette), so no figure falls back to matplotlib's."""
+    root = Path(__file__).resolve().parents[1] / "calib_cli"
+    makers = [p for p in root.rglob("*.py")
+              if re.search(r"\bFigure\(|plt\.subplots\(|plt\.figure\(", p.read_text())]
+    assert makers
+    for p in makers:
+        if p.name in ("figures.py", "pdf.py"):  # pdf.py: pages of text and PNG images only
+            continue
+        text = p.read_text()  # report.builder imports report.figures (use_palette at import)
+        assert "use_palette" in text or "calib_cli.report.builder import" in text, p
+    import matplotlib
+
+    from calib_cli.report.figures import OKABE_ITO
+
+    assert matplotlib.rcParams["axes.prop_cycle"].by_key()["color"] == OKABE_ITO
+
+
+def test_static_report_has_the_detection_figure(reports, tmp_path):
+    d = reports["accel"].parent
+    _run("report", d / "accel.cal.h5", d / "static.h5", "--out", tmp_path / "rep")
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "![static-detection]" in md and not check_markdown(tmp_path / "rep" / "report.md")
+    from calib_cli.report.sections_static import _detection_options
+
+    assert _detection_options("calib import csv a.csv --window 2 --threshold=4 --out r.h5") == {
+        "window_s": 2.0, "multiplier": 4.0, "min_static_s": 1.0}

@@ -174,7 +174,8 @@ def test_cli_simulate_fit_show(tmp_path, run_cli):
     md = (tmp_path / "rep" / "report.md").read_text()
     assert "## Rotating-table calibration" in md and "Lever arm of each cycle" in md
     figs = json.loads((tmp_path / "rep" / "figures.json").read_text())["figures"]
-    assert [f["axes"] for f in figs] == [1]
+    # the sigma history, and the estimate history (lever arms and proof masses: two panels)
+    assert [f["axes"] for f in figs] == [1, 2]
 
 
 def test_cli_errors(tmp_path, run_cli):

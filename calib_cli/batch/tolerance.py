@@ -37,6 +37,14 @@ class ParamTolerance:
     lo: np.ndarray | None
     hi: np.ndarray | None
     max_change_sigma: float | None
+    # the units the limits were written in (suffix, factor to SI), for the failure lines
+    lo_unit: tuple[str, float] | None = None
+    hi_unit: tuple[str, float] | None = None
+
+
+UNIT_NAMES = {"_deg": "deg", "_dps": "deg/s", "_dph": "deg/h", "_dpsqrth": "deg/sqrt(h)",
+              "_mrad": "mrad", "_urad": "urad", "_mg": "mg", "_ug": "ug", "_ppm": "ppm",
+              "_mm": "mm", "_cm": "cm", "_ms": "ms"}
 
 
 def load_tolerances(path) -> dict[str, ParamTolerance]:
@@ -66,8 +74,10 @@ def load_tolerances(path) -> dict[str, ParamTolerance]:
         if not isinstance(spec, dict):
             raise InputError(f"param.{key} must be a table", p)
         lo = hi = change = None
+        units = {}
         for k, v in spec.items():
             base, factor = split_suffix(k)
+            units[base] = (UNIT_NAMES.get(k[len(base):], ""), factor)
             where = f"param.{key}.{k}"
             if base in ("min", "max"):
                 try:
@@ -97,7 +107,7 @@ def load_tolerances(path) -> dict[str, ParamTolerance]:
                 raise InputError(f"param.{key}: min and max have different shapes", p) from None
             if inverted:
                 raise InputError(f"param.{key}: min is above max", p)
-        out[key] = ParamTolerance(key, lo, hi, change)
+        out[key] = ParamTolerance(key, lo, hi, change, units.get("min"), units.get("max"))
     return out
 
 
@@ -119,15 +129,17 @@ def check(entry: CalEntry, entries: list[CalEntry], tols: dict) -> dict:
         s = np.asarray(entry.sigma.get(key, np.full(v.shape, np.nan)), dtype=float)
         names = element_names(key, v.shape)
         unit = entry.units.get(key, "")
-        for bound, op, word in ((tol.lo, np.less, "below min"), (tol.hi, np.greater,
-                                                                   "above max")):
+        for bound, op, word, bunit in ((tol.lo, np.less, "below min", tol.lo_unit),
+                                       (tol.hi, np.greater, "above max", tol.hi_unit)):
             if bound is None:
                 continue
             b = _bound(bound, v.shape, f"param.{key}")
             bad = op(v, b) & np.isfinite(b)
+            # in the unit the limit was written in (min_mg: mg), else the parameter's
+            shown, f = (bunit if bunit and bunit[0] else (unit, 1.0))
             for i in np.flatnonzero(bad.ravel()):
-                fails.append(f"{names[i]} = {v.ravel()[i]:.6g} {unit} {word} "
-                             f"{b.ravel()[i]:.6g}".replace("  ", " "))
+                fails.append(f"{names[i]} = {v.ravel()[i] / f:.6g} {shown} {word} "
+                             f"{b.ravel()[i] / f:.6g} {shown}".replace("  ", " ").strip())
         if tol.max_change_sigma is not None and entry.serial:
             p = previous(entries, entry, key)
             if p is None:

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import click
 
-from calib_cli.cli.cmd_fit import fit_group, json_option, save
+from calib_cli.cli.cmd_fit import fit_group, json_option, need_raw_out, run_with, save, with_options
 from calib_cli.cli.common import info
 from calib_cli.io.h5 import read_raw
 
 
 @fit_group.command("align")
-@click.argument("raw", type=click.Path(dir_okay=False))
-@click.option("--out", required=True, type=click.Path(dir_okay=False))
+@click.argument("raw", required=False, type=click.Path(dir_okay=False))
+@click.option("--out", type=click.Path(dir_okay=False))
 @click.option("--method", type=click.Choice(["two-position", "classic", "static"]),
               default="two-position", show_default=True,
               help="two-position: any rotation between the positions; classic: the 2- or "
@@ -32,17 +32,24 @@ from calib_cli.io.h5 import read_raw
                    "that bend the integrated turn [default: 30, or 3000 without earth rate].")
 @click.option("--turn-sigma-deg", type=float, default=0.0, show_default=True,
               help="1-sigma error per axis of a plan-stated turn (with --rotation plan).")
+@with_options
 @json_option
 def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_deg,
-                  as_json):
+                  with_text, list_effects, with_base, with_noise, as_json):
     """Accelerometer and gyro biases and the attitude of the first position from
     two (or more) static positions related by a known rotation."""
+    if run_with("align", raw, out, with_text, list_effects, with_base, with_noise, as_json):
+        return
+    need_raw_out(raw, out)
     from calib_cli.methods import registry
 
     opts = registry.options_from("align", method=method, rotation=rotation, gyro=gyro_mode,
                                  gyro_k_ppm=gyro_k_ppm, turn_sigma_deg=turn_sigma_deg)
     rec = read_raw(raw)
-    res = registry.run("align", rec, opts, raw)
+    from calib_cli.cli.progress import bar
+
+    with bar("fit align"):
+        res = registry.run("align", rec, opts, raw)
     if method == "static" and res.stats.get("degeneracy"):
         info(f"[yellow]degenerate positions:[/] {res.stats['degeneracy']}; not observable: "
              + ", ".join(res.stats["unobservable"]))
@@ -52,3 +59,4 @@ def fit_align_cmd(raw, out, method, rotation, gyro_mode, gyro_k_ppm, turn_sigma_
     if res.stats.get("observability"):
         info(res.stats["observability"])
     save(res, raw, out, rec=rec, as_json=as_json)
+

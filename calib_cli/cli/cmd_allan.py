@@ -10,7 +10,7 @@ import click
 import numpy as np
 from rich.table import Table
 
-from calib_cli.cli.common import Ctx, err_console, info, interactive, out_console, print_json
+from calib_cli.cli.common import Ctx, info, out_console, print_json
 from calib_cli.cli.main import cli
 from calib_cli.errors import EstimationError, InputError
 from calib_cli.io.h5 import _attr_str, atomic_path, open_checked, read_segments
@@ -124,12 +124,9 @@ def compute_allan(raw, segment=None, targets=(), stride_div=A.STRIDE_DIV,
                 validate.check_finite(block, raw, "/samples/" + "+".join(sensors), a)
                 yield block
 
-        feed = chunks()
-        if interactive() and n > 8 * CHUNK:  # long records: a progress bar on a terminal
-            from rich.progress import track
+        from calib_cli.cli.progress import track
 
-            feed = track(feed, total=-(-n // CHUNK), description="Allan deviation",
-                         console=err_console)
+        feed = track(chunks(), "Allan deviation", -(-n // CHUNK))  # a bar on a terminal
         return A.allan_of_chunks(feed, n, tau0, channels, chan_units, chan_tgt, stride_div,
                                  meta={"source_kind": _attr_str(h5, "kind"), "segment": label,
                                        "start": int(start), "stop": int(stop),

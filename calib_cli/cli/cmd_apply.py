@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 import numpy as np
 
-from calib_cli.cli.common import info
+from calib_cli.cli.common import info, json_output_option, output_json
 from calib_cli.cli.main import cli
 from calib_cli.io.apply_file import CHUNK, apply_file  # noqa: F401  (CHUNK re-exported)
 
@@ -19,7 +19,8 @@ from calib_cli.io.apply_file import CHUNK, apply_file  # noqa: F401  (CHUNK re-e
                    "has no temperature column.")
 @click.option("--extrapolate", is_flag=True,
               help="Correct data outside the calibrated temperature range (docs/thermal.md).")
-def apply_cmd(cal, raw, out, temp_c=None, extrapolate=False):
+@json_output_option
+def apply_cmd(cal, raw, out, temp_c=None, extrapolate=False, as_json=False):
     """Correct a recording with a calibration: f = K^-1 (A - b), w = G^-1 (W - d - D f).
 
     A redundant-unit (RIMU) calibration gives the corrected single-axis outputs
@@ -27,8 +28,13 @@ def apply_cmd(cal, raw, out, temp_c=None, extrapolate=False):
     samples/gyro_body, x = (H^T H)^-1 H^T c (docs/rimu.md). A thermal calibration
     uses the temperature column (or --temp) and refuses data outside its
     range by more than 5 degC unless --extrapolate (docs/thermal.md)."""
-    n, chans = apply_file(cal, raw, out, temp_c, extrapolate)
+    from calib_cli.cli.progress import bar
+
+    with bar("apply") as cb:
+        n, chans = apply_file(cal, raw, out, temp_c, extrapolate, progress=cb)
     info(f"corrected {n} samples ({', '.join(chans)}) -> {out}")
+    if as_json:
+        output_json(out, "corrected")
     return 0
 
 

@@ -163,25 +163,14 @@ def batch_cmd(pipeline, inputs, out, workers, force, as_json, log_path, tol_path
                   "force": force} for b in found]
         results = []
         tty = interactive() and not as_json
-        progress = None
-        if tty:
-            from rich.progress import Progress
+        from calib_cli.cli.progress import track
 
-            progress = Progress(console=err_console, transient=True)
-            progress.start()
-            bar = progress.add_task("calib batch", total=len(tasks))
-        try:
-            for r in run_tasks(tasks, workers, scheduler):
-                results.append(r)
-                if r["status"] == "failed":
-                    log.error("%s: failed: %s", r["input"], r["error"])
-                else:
-                    log.info("%s: %s (%s)", r["input"], r["status"], _steps_text(r))
-                if progress is not None:
-                    progress.advance(bar)
-        finally:
-            if progress is not None:
-                progress.stop()
+        for r in track(run_tasks(tasks, workers, scheduler), "calib batch", len(tasks)):
+            results.append(r)
+            if r["status"] == "failed":
+                log.error("%s: failed: %s", r["input"], r["error"])
+            else:
+                log.info("%s: %s (%s)", r["input"], r["status"], _steps_text(r))
         order = {t["key"]: i for i, t in enumerate(tasks)}
         results.sort(key=lambda r: order[r["key"]])
         units = _check_tolerances(out, results, tols) if tols else None

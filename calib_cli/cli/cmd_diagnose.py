@@ -1,4 +1,4 @@
-"""calib diagnose RAW --method accel|align|turntable|rimu --out DIAG.h5 [--json] [--report DIR]
+"""calib diagnose RAW --method accel|gyro|align|turntable|rimu --out DIAG.h5 [--json] [--report DIR]
 
 Find the effect the model lacks, name it, add it and show the gap shrink
 (docs/diagnose.md)."""
@@ -6,6 +6,7 @@ Find the effect the model lacks, name it, add it and show the gap shrink
 from __future__ import annotations
 
 import click
+import numpy as np
 from rich.table import Table
 
 from calib_cli.cli.common import Ctx, info, out_console, print_json, to_jsonable
@@ -19,7 +20,8 @@ def _render(j: dict) -> None:
         t.add_column(c)
     t.add_row("0", "(base model)", "", "", "", f"{j['residual_rms_initial']:.3f}")
     for i, s in enumerate(j["steps"]):
-        t.add_row(str(i + 1), f"{s['sensor']} {s['effect']}".strip(), f"{s['score']:.1f}",
+        t.add_row(str(i + 1), s.get("with") or f"{s['sensor']} {s['effect']}".strip(),
+                  f"{s['score']:.1f}",
                   f"{s['threshold']:.1f}", f"{s['residual_rms_before']:.3f}",
                   f"{s['residual_rms_after']:.3f}")
     out_console.print(t)
@@ -34,12 +36,14 @@ def _render(j: dict) -> None:
         out_console.print(f"not tested: {k}: {v}")
     for n in j["notes"]:
         out_console.print(f"note: {n}")
+    if j.get("fit_command"):
+        out_console.print(f"the calibration with these effects: {j['fit_command']}")
 
 
 @cli.command("diagnose")
 @click.argument("raw", type=click.Path(dir_okay=False))
 @click.option("--method", required=True,
-              type=click.Choice(["accel", "align", "turntable", "rimu"]))
+              type=click.Choice(["accel", "gyro", "align", "turntable", "rimu"]))
 @click.option("--out", required=True, type=click.Path(dir_okay=False))
 @click.option("--base", type=click.Choice(["full", "diagonal"]), default="full",
               show_default=True, help="diagonal: start from diagonal scale factors "
@@ -53,28 +57,62 @@ def _render(j: dict) -> None:
 @click.option("--json", "as_json", is_flag=True, help="One JSON object (docs/contract.md section 5).")
 @click.option("--report", "report_dir", type=click.Path(file_okay=False),
               help="Write PNG plots and summary.md to this directory.")
-def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir):
+@click.option("--calibration", "cal_out", type=click.Path(dir_okay=False),
+              help="Also write the final model as an ordinary calibration file (DIAG.h5 "
+                   "holds the same calibration).")
+def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir, cal_out):
     """Find the missing effect, name it, add it and show the gap shrink."""
     from calib_cli.io.diag_h5 import write_diagnosis
     from calib_cli.methods.diagnose import diagnose
 
     if not 0 < alpha < 1:
         raise click.BadParameter("--alpha must be in (0, 1)")
+    if cal_out:
+        import os
+
+        if os.path.abspath(cal_out) == os.path.abspath(out):
+            raise click.UsageError("--calibration and --out name the same file (DIAG.h5 holds "
+                                   "the calibration already)")
     rec = read_raw(raw)
-    d = diagnose(rec, method, base=base, alpha=alpha, noise=noise)
+    from calib_cli.cli.progress import bar
+
+    with bar("diagnose"):
+        if method == "gyro":
+            from calib_cli.methods.diagnose_gyro import diagnose_gyro
+
+            d = diagnose_gyro(rec, base=base, alpha=alpha)
+            if noise != "auto":
+                info("--noise does not apply to --method gyro (the gyro fit's own noise "
+                     "estimate)")
+        else:
+            d = diagnose(rec, method, base=base, alpha=alpha, noise=noise)
     j = to_jsonable(d.to_json())
-    pb = d.problem
-    residuals = {"initial": d.fits[0].residual_blocks(pb)}
-    for i, f in enumerate(d.fits[1:]):
-        residuals[f"step{i + 1}"] = f.residual_blocks(pb)
-    write_diagnosis(out, j, {"time": pb.bin_t, "segment": pb.bin_seg, "count": pb.counts},
-                    residuals, d.noise_sigma, [raw], rec.serial)
+    j["fit_command"] = d.fit_command(str(raw), str(cal_out or "CAL.h5"))
+    cal = d.calibration(rec)
+    if method == "gyro":
+        residuals = {("initial" if i == 0 else f"step{i}"):
+                     {k: np.asarray(v, float).reshape(-1, 1) for k, v in r.residuals.items()}
+                     for i, r in enumerate(d.results)}
+        bins = {"time": np.zeros(0), "segment": np.zeros(0, int), "count": np.zeros(0)}
+        noise_sigma = {"gyro": np.asarray(cal.stats.get("gyro_noise_sigma", []), float)}
+    else:
+        pb = d.problem
+        residuals = {"initial": d.fits[0].residual_blocks(pb)}
+        for i, f in enumerate(d.fits[1:]):
+            residuals[f"step{i + 1}"] = f.residual_blocks(pb)
+        bins = {"time": pb.bin_t, "segment": pb.bin_seg, "count": pb.counts}
+        noise_sigma = d.noise_sigma
+    write_diagnosis(out, j, bins, residuals, noise_sigma, [raw], rec.serial, calibration=cal)
+    if cal_out:
+        from calib_cli.io.h5 import write_calibration
+
+        write_calibration(cal_out, cal, [raw])
     if report_dir:
         from calib_cli.io.outpath import atomic_dir
-        from calib_cli.report.diagnose_report import write_report
+        from calib_cli.report.diagnose_report import write_gyro_report, write_report
 
         with atomic_dir(report_dir) as tmp:
-            write_report(d, tmp, source=str(raw))
+            (write_gyro_report if method == "gyro" else write_report)(d, tmp, source=str(raw))
         info(f"report -> {report_dir}")
     if as_json:
         print_json(j)
@@ -85,11 +123,20 @@ def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir):
 
 
 def show_diagnosis(files, as_json, covariance):
+    """The calibration of the final model, with the diagnosis's keys added."""
     from calib_cli.io.diag_h5 import read_diagnosis
 
     j = read_diagnosis(files[0])
     if as_json:
-        print_json(j)
+        from calib_cli.cli.cmd_show import calibration_json
+        from calib_cli.errors import InputError
+
+        try:
+            obj = calibration_json(files[0], covariance)
+        except InputError:  # an older diagnosis file: no calibration in it
+            obj = {}
+        obj.update(j)
+        print_json(obj)
     else:
         _render(j)
     return 0

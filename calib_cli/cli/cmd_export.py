@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from calib_cli.cli.common import info
+from calib_cli.cli.common import info, json_output_option, output_json
 from calib_cli.cli.main import cli
 from calib_cli.io import escape
 from calib_cli.io.export import ALL_FORMATS, export_object, to_c_header, to_csv, to_json, to_yaml
@@ -39,8 +39,14 @@ class PrefixError(click.ClickException):
 @click.option("--rostopic", default="/imu0", show_default=True, help="kalibr: the IMU topic.")
 @click.option("--instance", default=0, show_default=True, type=int,
               help="px4/ardupilot: IMU instance the parameters are for.")
-def export_cmd(cal, fmt, out, single, prefix, allan_path, raw_path, rostopic, instance):
-    """Export the correction (K^-1, biases, D) for firmware and other tools."""
+@json_output_option
+def export_cmd(cal, fmt, out, single, prefix, allan_path, raw_path, rostopic, instance,
+               as_json=False):
+    """Export the correction (K^-1, biases, D) for firmware and other tools.
+
+    With --json (needs --out), the output object is printed instead of the export."""
+    if as_json and not out:
+        raise click.UsageError("--json needs --out (without it the export itself goes to stdout)")
     try:
         escape.c_identifier(prefix, "--prefix")
     except ValueError as exc:
@@ -65,17 +71,22 @@ def export_cmd(cal, fmt, out, single, prefix, allan_path, raw_path, rostopic, in
 
             raw = read_raw(raw_path)
         text, warnings = export_for_tool(c, fmt, source, cal, allan, raw, rostopic, instance)
+        warnings = list(warnings)
         for w in warnings:
             info(f"warning: {w}")
-    elif fmt == "c-header":
-        text = to_c_header(c, prov, source, single=single, prefix=prefix)
     else:
+        warnings = []
+    if fmt == "c-header":
+        text = to_c_header(c, prov, source, single=single, prefix=prefix)
+    elif fmt not in ("kalibr", "px4", "ardupilot"):
         obj = export_object(c, prov, source)
         text = {"json": to_json, "yaml": to_yaml}[fmt](obj) if fmt != "csv" else to_csv(c, obj)
     if out:
         with atomic_path(out) as tmp, open(tmp, "w", encoding="utf-8") as fh:
             fh.write(text)
         info(f"-> {out}")
+        if as_json:
+            output_json(out, fmt, warnings)
     else:
         sys.stdout.write(text)
     return 0

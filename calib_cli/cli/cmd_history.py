@@ -20,6 +20,15 @@ def _keys(entries) -> list[str]:
     return keys
 
 
+def _when(e) -> str:
+    """'2026-05-01 14:03' from the ISO time stamps of an entry (recorded, else created);
+    the file's name when it has neither."""
+    for stamp in (e.recorded_utc, e.created_utc):
+        if stamp and len(stamp) >= 16 and stamp[4] == "-":
+            return f"{stamp[:10]} {stamp[11:16]}"
+    return e.rel
+
+
 def _plot(entries, keys, path) -> None:
     import matplotlib
 
@@ -28,6 +37,9 @@ def _plot(entries, keys, path) -> None:
 
     from calib_cli.batch.history import element_names
     from calib_cli.io.h5 import atomic_path
+    from calib_cli.report.figures import use_palette
+
+    use_palette()  # the Okabe-Ito colour-blind-safe cycle of every calib figure
 
     fig, axes = plt.subplots(len(keys), 1, figsize=(8, 2.6 * len(keys)), squeeze=False,
                              sharex=True)
@@ -51,9 +63,11 @@ def _plot(entries, keys, path) -> None:
         ax.set_ylabel(mpl_text(f"{key}") + f"\nchange [{mpl_text(unit)}]")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=6, ncol=3, loc="best")
-    # file names and the serial come from the archive: shown through the escapers
-    axes[-1, 0].set_xticks(x, [mpl_text(e.rel) for e in entries], rotation=60, ha="right",
+    # the date of each calibration (its record's, else the fit's; UTC); the serial comes
+    # from the archive: shown through the escaper
+    axes[-1, 0].set_xticks(x, [mpl_text(_when(e)) for e in entries], rotation=60, ha="right",
                            fontsize=6)
+    axes[-1, 0].set_xlabel("calibration, date recorded (UTC), oldest first")
     fig.suptitle(f"unit {mpl_text(entries[0].serial)}: change since its first calibration "
                  "(1 sigma bars)")
     fig.tight_layout()

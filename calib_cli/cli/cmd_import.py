@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import click
 
-from calib_cli.cli.common import info
+from calib_cli.cli.common import info, json_output_option, output_json
 from calib_cli.cli.main import cli
+from calib_cli.cli.progress import bar, track
 from calib_cli.io.plan import load_plan
 
 COMPLETE_COMMAND = True  # every `calib import` subcommand lives here (cli/main.py)
@@ -35,8 +36,9 @@ def import_group():
               show_default=True,
               help="instant: each sample is the value at its time stamp; interval-mean: the mean "
                    "over the sample period ending at the stamp (filtered MEMS output).")
+@json_output_option
 def import_csv_cmd(log, plan_path, out, window_s, multiplier, min_static_s, accel_units,
-                   gyro_units, sample_kind):
+                   gyro_units, sample_kind, as_json=False):
     """Import a CSV log (contract columns) with its plan.
 
     Without a `segment` column, static intervals are detected and matched to
@@ -45,10 +47,14 @@ def import_csv_cmd(log, plan_path, out, window_s, multiplier, min_static_s, acce
     from calib_cli.io.csvlog import import_csv_stream
 
     plan = load_plan(plan_path)
-    res = import_csv_stream(log, plan, out, [log, plan_path], window_s, multiplier, min_static_s,
-                            accel_units, gyro_units, sample_kind=sample_kind)
+    with bar("import csv") as cb:
+        res = import_csv_stream(log, plan, out, [log, plan_path], window_s, multiplier,
+                                min_static_s, accel_units, gyro_units, sample_kind=sample_kind,
+                                progress=cb)
     n_static = sum(1 for s in res.segments if s.kind == "static")
     info(f"imported {res.n} samples, {len(res.segments)} segments ({n_static} static) -> {out}")
+    if as_json:
+        output_json(out, "raw")
 
 
 @import_group.command("text")
@@ -84,9 +90,10 @@ def import_csv_cmd(log, plan_path, out, window_s, multiplier, min_static_s, acce
               show_default=True,
               help="instant: each sample is the value at its time stamp; interval-mean: the mean "
                    "over the sample period ending at the stamp (filtered MEMS output).")
+@json_output_option
 def import_text_cmd(acc, gyro, plan_path, out, columns, gyro_columns, accel_units, gyro_units,
                     rate, time_unit, delimiter, header, sort, segments_json, window_s,
-                    multiplier, min_static_s, sample_kind):
+                    multiplier, min_static_s, sample_kind, as_json=False):
     """Import a text log in another layout: whitespace or CSV, with or without a
     header, raw counts or other units, accelerometer and gyro in one file or in
     two files sharing timestamps (docs/import.md)."""
@@ -96,13 +103,16 @@ def import_text_cmd(acc, gyro, plan_path, out, columns, gyro_columns, accel_unit
     inputs = [acc] + ([gyro] if gyro else []) + [plan_path] + ([segments_json] if segments_json
                                                              else [])
     # streamed when the layout allows it, else in memory (the same data and errors)
-    n, units, segments = import_text_to_raw(
-        out, acc, plan, gyro, columns, gyro_columns, accel_units, gyro_units, rate, time_unit,
-        delimiter, header, sort, segments_json, window_s, multiplier, min_static_s, inputs,
-        sample_kind)
+    with bar("import text"):
+        n, units, segments = import_text_to_raw(
+            out, acc, plan, gyro, columns, gyro_columns, accel_units, gyro_units, rate, time_unit,
+            delimiter, header, sort, segments_json, window_s, multiplier, min_static_s, inputs,
+            sample_kind)
     n_static = sum(1 for s in segments if s.kind == "static")
     info(f"imported {n} samples ({units['accel']}, {units['gyro']}), "
          f"{len(segments)} segments ({n_static} static) -> {out}")
+    if as_json:
+        output_json(out, "raw")
 
 
 def _detection_options(f):
@@ -116,7 +126,9 @@ def _detection_options(f):
                      help="Static detection: multiple of the noise floor."),
         click.option("--min-static", "min_static_s", default=1.0, show_default=True, type=float,
                      help="Static detection: shortest static interval, s."),
-        click.option("--json", "as_json", is_flag=True, help="Listing as JSON."),
+        click.option("--json", "as_json", is_flag=True,
+                     help='The listing as JSON; when importing, {"output", "kind", "sha256", '
+                          '"warnings"} of the written file on stdout and nothing else there.'),
     ]):
         f = opt(f)
     return f
@@ -136,7 +148,8 @@ def _list_streams(rows, as_json, what):
         click.echo(f"{r['topic']:{width}s}  {r['count']:9d} messages  {r['rate_hz']:9.2f} Hz")
 
 
-def _import_stream(path, stream, plan_path, out, window_s, multiplier, min_static_s, inputs):
+def _import_stream(path, stream, plan_path, out, window_s, multiplier, min_static_s, inputs,
+                   as_json=False):
     from pathlib import Path
 
     from calib_cli.io.imu_logs import gap_check, stream_chunks
@@ -147,7 +160,8 @@ def _import_stream(path, stream, plan_path, out, window_s, multiplier, min_stati
         inputs = sorted(str(p) for p in Path(path).rglob("*") if p.is_file())
     counters = {"source_stream": stream.name}
     counters.update({k: v for k, v in stream.info.items() if isinstance(v, (str, int, float))})
-    res = import_to_raw(out, stream_chunks(path, stream), plan, path, inputs + [plan_path],
+    res = import_to_raw(out, track(stream_chunks(path, stream), f"import {stream.name}"), plan,
+                        path, inputs + [plan_path],
                         window_s, multiplier, min_static_s, counters=counters,
                         check=gap_check(path, stream.name))
     n_static = sum(1 for s in res.segments if s.kind == "static")
@@ -158,6 +172,8 @@ def _import_stream(path, stream, plan_path, out, window_s, multiplier, min_stati
 
     info(f"imported {res.n} samples of {term_text(stream.name)}, {len(res.segments)} segments "
          f"({n_static} static){gap_txt} -> {out}")
+    if as_json:
+        output_json(out, "raw", [gap_txt[2:]] if gaps else [])
 
 
 def _need_plan(plan_path, out, what):
@@ -184,7 +200,7 @@ def import_bag_cmd(path, topic, stamp, plan_path, out, window_s, multiplier, min
         return
     _need_plan(plan_path, out, "a topic")
     _import_stream(path, bag_stream(path, topic, stamp), plan_path, out, window_s, multiplier,
-                   min_static_s, [path])
+                   min_static_s, [path], as_json)
 
 
 @import_group.command("ulog")
@@ -207,7 +223,7 @@ def import_ulog_cmd(path, source, instance, plan_path, out, window_s, multiplier
         return
     _need_plan(plan_path, out, "a ULog file")
     _import_stream(path, ulog_stream(path, source, instance), plan_path, out, window_s,
-                   multiplier, min_static_s, [path])
+                   multiplier, min_static_s, [path], as_json)
 
 
 @import_group.command("dataflash")
@@ -228,4 +244,4 @@ def import_dataflash_cmd(path, message, instance, plan_path, out, window_s, mult
         return
     _need_plan(plan_path, out, "a DataFlash log")
     _import_stream(path, dataflash_stream(path, message, instance), plan_path, out, window_s,
-                   multiplier, min_static_s, [path])
+                   multiplier, min_static_s, [path], as_json)

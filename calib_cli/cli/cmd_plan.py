@@ -135,8 +135,11 @@ def plan_check_cmd(plan, like, accel_noise, gyro_noise, rate, truth_path, method
     p = load_plan(plan)
     truth = load_truth(truth_path, plan_layout(p)) if truth_path else None
     nz = _noise(p, like, accel_noise, gyro_noise, rate, truth)
-    pr = check(p, method, nz, truth, {"g_sensitivity": g_sensitivity},
-               suggestions=not no_suggest)
+    from calib_cli.cli.progress import bar
+
+    with bar("plan check"):
+        pr = check(p, method, nz, truth, {"g_sensitivity": g_sensitivity},
+                   suggestions=not no_suggest)
     if as_json:
         print_json(check_json(pr))
     else:
@@ -298,7 +301,10 @@ def plan_optimize_cmd(plan, targets, max_duration, out, like, accel_noise, gyro_
     p = load_plan(plan)
     truth = load_truth(truth_path, plan_layout(p)) if truth_path else None
     nz = _noise(p, like, accel_noise, gyro_noise, rate, truth)
-    opt = design.optimize(p, tomllib.loads(p.text), tg, method, nz, truth, max_duration)
+    from calib_cli.cli.progress import bar
+
+    with bar("plan optimize"):
+        opt = design.optimize(p, tomllib.loads(p.text), tg, method, nz, truth, max_duration)
     sheet = design.operator_sheet(opt.plan)
     res = opt.prediction.result
     achieved = {t.text: design.target_sigmas(res, t).max() for t in tg}

@@ -43,7 +43,9 @@ def _allan_for(raw: str, kind: str):
 @click.option("--tolerances", "tol_path", type=click.Path(dir_okay=False),
               help="Tolerance file (as for `calib batch`): the verdict checks the parameters "
                    "against it instead of against the noise floor.")
-def report_cmd(cal, raw, out_dir, tol_path):
+@click.option("--pdf", "pdf", is_flag=True,
+              help="Also write the same report as report.pdf (A4, matplotlib).")
+def report_cmd(cal, raw, out_dir, tol_path, pdf=False):
     """Markdown and self-contained HTML report of a calibration, with plots.
 
     RAW (optional): a free-running raw record (or an 'allan' file) adds the
@@ -73,5 +75,11 @@ def report_cmd(cal, raw, out_dir, tol_path):
 
     with atomic_dir(out) as tmp:
         manifest = write_report(sections, title, Path(tmp))
+        if pdf:
+            from calib_cli.report.pdf import write_pdf
+
+            pages = write_pdf(sections, title, Path(tmp) / "report.pdf")
     info(f"report with {len(manifest['figures'])} figures -> {out / 'report.html'}")
+    if pdf:
+        info(f"{pages} pages -> {out / 'report.pdf'}")
     return 0

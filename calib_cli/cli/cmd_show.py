@@ -12,6 +12,7 @@ from calib_cli.cli.render import params_table
 from calib_cli.io.contract_json import calibration_json  # noqa: F401  (re-exported)
 from calib_cli.io.escape import term_text
 from calib_cli.io.h5 import file_kind, provenance, read_calibration, read_raw
+from calib_cli.report.format import CHECK_POSITION_HEADER, check_position_rows
 from calib_cli.units import g_figures_line
 
 
@@ -43,6 +44,10 @@ def _render_calibration(path, covariance):
     out_console.print(params_table(c.params, c.sigma, c.units, title=f"calibration ({c.method})"))
     st = Table(title="stats", show_header=False)
     for k, v in c.stats.items():
+        if k == "check_positions" and isinstance(v, dict):  # a table of its own, below
+            v = (f"{v.get('verdict')}: {v.get('n', 0)} static positions, max |z| "
+                 f"{v['max_abs_z']:.2f}" if "max_abs_z" in v
+                 else f"{v.get('verdict')}: {v.get('note', '')}")
         if isinstance(v, float):
             v = f"{v:.6g}"
         st.add_row(term_text(k), term_text(v))
@@ -59,13 +64,22 @@ def _render_calibration(path, covariance):
         line = g_figures_line(c.stats)
         if line:
             out_console.print(line)
+    cp_rows = check_position_rows(c.stats.get("check_positions"))
+    if cp_rows:
+        ct = Table(title="check positions (static segments the fit did not use)")
+        for col in CHECK_POSITION_HEADER:
+            ct.add_column(col)
+        for row in cp_rows:
+            ct.add_row(*(term_text(x) for x in row))
+        out_console.print(ct)
     if covariance:
         out_console.print(f"covariance: {c.covariance.shape[0]} free entries (use --json)")
 
 
 def _render_raw(path):
     r = read_raw(path)
-    t = Table(title=term_text(f"{len(r)} samples at {r.sample_rate:.4g} Hz, units {r.units}"))
+    units = ", ".join(f"{k} {v}" for k, v in r.units.items() if v)
+    t = Table(title=term_text(f"{len(r)} samples at {r.sample_rate:.4g} Hz, units: {units}"))
     for col in ("segment", "kind", "samples", "duration s", "attitude deg"):
         t.add_column(col)
     for s in r.segments:
@@ -89,7 +103,8 @@ def show_cmd(files, as_json, covariance):
     of their combined sigma (e.g. one unit calibrated on two dates)."""
     path = files[0]
     kind = file_kind(path)
-    if len(files) == 2 and kind == "calibration" and file_kind(files[1]) == "calibration":
+    cal_kinds = ("calibration", "diagnosis")  # a diagnosis file holds a calibration too
+    if len(files) == 2 and kind in cal_kinds and file_kind(files[1]) in cal_kinds:
         from calib_cli.cli.compare import show_compare  # A.h5 B.h5: differences in sigma
 
         return show_compare(files, as_json)

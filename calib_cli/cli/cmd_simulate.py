@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from calib_cli.cli.common import info
+from calib_cli.cli.common import info, json_output_option, output_json
 from calib_cli.cli.main import cli
 from calib_cli.errors import InputError
 from calib_cli.io.csvlog import write_csv
@@ -22,12 +22,16 @@ from calib_cli.sim.simulate import simulate
 @click.option("--seed", default=0, show_default=True, type=int, help="Random seed.")
 @click.option("--truth", "truth_path", type=click.Path(dir_okay=False),
               help="Truth model TOML (docs/simulate.md); default: a random MEMS unit.")
-def simulate_cmd(plan, out, seed, truth_path):
+@json_output_option
+def simulate_cmd(plan, out, seed, truth_path, as_json=False):
     """Simulate the experiment of PLAN from a truth model, with noise."""
     p = load_plan(plan)
     truth = load_truth(truth_path, plan_layout(p)) if truth_path else None
+    from calib_cli.cli.progress import bar
+
     try:
-        rec = simulate(p, truth, seed)
+        with bar("simulate") as cb:
+            rec = simulate(p, truth, seed, progress=cb)
     except InputError as exc:  # a bad simulation key: the line names the plan
         exc.path = exc.path or plan
         raise
@@ -36,9 +40,12 @@ def simulate_cmd(plan, out, seed, truth_path):
         write_csv(out, rec)
     else:
         write_raw(out, rec, inputs)
-    for line in range_warnings(p, rec):
+    warnings = range_warnings(p, rec)
+    for line in warnings:
         info(f"[yellow]warning:[/] {line}")
     info(f"simulated {len(rec)} samples, {len(rec.segments)} segments -> {out}")
+    if as_json:
+        output_json(out, "csv" if out.lower().endswith(".csv") else "raw", warnings)
 
 
 def range_warnings(plan, rec) -> list[str]:

@@ -45,8 +45,11 @@ def fit_thermal_cmd(raw, out, order, temp_ref, sensor, base_path, with_, as_json
     if base is not None and "accel_K" not in base.params and "gyro_K" not in base.params:
         raise InputError("the base calibration holds no accel_K or gyro_K", base_path)
     sensors = ("accel", "gyro") if sensor == "both" else (sensor,)
-    res = fit_thermal(rec, order=order, temp_ref=temp_ref, sensors=sensors, base=base,
-                      lag="thermal_lag" in effects)
+    from calib_cli.cli.progress import bar
+
+    with bar("fit thermal"):
+        res = fit_thermal(rec, order=order, temp_ref=temp_ref, sensors=sensors, base=base,
+                          lag="thermal_lag" in effects)
     save(res, raw, out, [base_path] if base_path else [], as_json=as_json)
     st = res.stats
     info(f"order {st['temp_order']} (T_ref {st['temp_ref_degC']:g} degC, range "

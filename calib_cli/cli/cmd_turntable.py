@@ -5,14 +5,14 @@ from __future__ import annotations
 import click
 from click import UsageError
 
-from calib_cli.cli.cmd_fit import fit_group, save
+from calib_cli.cli.cmd_fit import fit_group, need_raw_out, run_with, save, with_options
 from calib_cli.cli.common import info
 from calib_cli.io.h5 import read_raw
 
 
 @fit_group.command("turntable")
-@click.argument("raw", type=click.Path(dir_okay=False))
-@click.option("--out", required=True, type=click.Path(dir_okay=False))
+@click.argument("raw", required=False, type=click.Path(dir_okay=False))
+@click.option("--out", type=click.Path(dir_okay=False))
 @click.option("--lever-arm", "lever_arm", type=click.Choice(["off", "known", "estimate"]),
               default="estimate", show_default=True,
               help="off: no centripetal terms; known: each cycle's lever_arm_m from the plan; "
@@ -51,11 +51,17 @@ from calib_cli.io.h5 import read_raw
               help="Print the result as JSON (docs/contract.md section 5) on stdout.")
 @click.option("--plot", type=click.Path(dir_okay=False),
               help="Write the sigma history of the lever arms and proof-mass offsets (PNG).")
+@with_options
 def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis_sigma_mrad,
-                      table_tilt_deg, grade, priors, noise_spec, table_encoder, as_json, plot):
+                      table_tilt_deg, grade, priors, noise_spec, table_encoder, as_json, plot,
+                      with_text, list_effects, with_base, with_noise):
     """Accelerometer b, K (lower triangular), gyro d, G, D, lever arms and proof-mass
     offsets from rotation cycles on a single-axis table of imprecise angle and rate."""
     from calib_cli.methods import registry
+
+    if run_with("turntable", raw, out, with_text, list_effects, with_base, with_noise, as_json):
+        return
+    need_raw_out(raw, out)
     from calib_cli.methods.turntable import PRIOR_KEYS
 
     prior = _key_values(priors, "--prior")
@@ -75,7 +81,10 @@ def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis
                                 grade=grade, prior=prior or None, noise=noise,
                                 table_encoder=table_encoder)
     rec = read_raw(raw)
-    res = registry.run("turntable", rec, opt, raw)
+    from calib_cli.cli.progress import bar
+
+    with bar("fit turntable") as cb:
+        res = registry.run("turntable", rec, opt, raw, progress=cb)
     clipped = res.stats.get("accel_clipped_samples") or []
     if any(clipped):
         info(f"[yellow]warning:[/] {sum(clipped)} accelerometer samples sit at full scale "

@@ -17,7 +17,7 @@ import click
 # parameter names (click's python names) that name something a command writes
 OUTPUT_PARAMS = {"out", "out_dir", "plot", "plot_path", "truth_out", "log_path", "report_dir"}
 # per command: further outputs (record's journal is written, recover's is read)
-COMMAND_OUTPUTS = {"record": {"journal_path"}}
+COMMAND_OUTPUTS = {"record": {"journal_path"}, "diagnose": {"cal_out"}}
 
 
 def _flat(v):

@@ -23,14 +23,23 @@ from calib_cli.methods.rimu import apply_rimu
 CHUNK = 262144  # samples per chunk: memory stays flat for long recordings
 
 
-def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = False):
+def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = False,
+               progress=None):
     """Correct RAW with CAL into OUT (written atomically); returns (samples, channels).
-    Bad input raises InputError naming the file (exit 3)."""
+    Bad input raises InputError naming the file (exit 3). ``progress(done, total)``:
+    optional, called after each chunk."""
     from calib_cli.io import validate
 
     c = read_calibration(cal)
     validate.check_calibration(c, cal)
     rimu = c.layout.redundant
+    if rimu:
+        extra = sorted({d.get("name") for d in c.model} - {"bias", "installation", "lever_arm"})
+        if extra:  # the redundant-unit correction (docs/rimu.md) has no inverse for them
+            raise InputError(f"this redundant-unit calibration's model also has "
+                             f"{', '.join(extra)}, which the RIMU correction (bias, scale "
+                             "error, installation angles) does not invert yet; nothing "
+                             "was written", cal)
     with open_checked(raw, ("raw",)) as src:
         if "samples" not in src:
             raise InputError("missing group /samples (a recording is expected here)", raw)
@@ -81,6 +90,8 @@ def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = F
                                                        chunks=True)
             size = proof_mass_offsets(c) is not None and gyr is not None and not rimu
             for a in range(0, n, CHUNK):
+                if progress is not None:
+                    progress(a // CHUNK, -(-n // CHUNK))
                 b = min(n, a + CHUNK)
                 try:
                     a0, b0 = (max(0, a - 1), min(n, b + 1)) if size else (a, b)

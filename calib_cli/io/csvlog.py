@@ -650,10 +650,11 @@ def have_pyarrow() -> bool:
 def import_csv_stream(path, plan: Plan, out, inputs=(), window_s: float = 1.0,
                       multiplier: float = 3.0, min_static_s: float = 1.0,
                       accel_units: str = "m/s^2", gyro_units: str = "rad/s",
-                      fast: bool | None = None, sample_kind: str = "instant"):
+                      fast: bool | None = None, sample_kind: str = "instant", progress=None):
     """A contract CSV and its plan -> raw file ``out``, streamed (pyarrow's
     reader when installed, ``calib-cli[fast]``, else the pure-Python one; the
-    same data and the same error messages either way). Returns ImportSummary."""
+    same data and the same error messages either way). Returns ImportSummary.
+    progress: optional callback ``progress(chunks_read)`` after each chunk."""
     import hashlib
 
     from calib_cli.io.stream_import import import_to_raw, plan_layout, prefetch
@@ -681,10 +682,21 @@ def import_csv_stream(path, plan: Plan, out, inputs=(), window_s: float = 1.0,
             pass
         hasher = hashlib.sha256()
         try:
-            return import_to_raw(out, prefetch(_arrow_chunks(path, header, offset, head, cols,
-                                                             hasher)),
+            return import_to_raw(out, _counted(prefetch(_arrow_chunks(path, header, offset, head, cols,
+                                                             hasher)), progress),
                                  plan, path, inputs,
                                  hashes=lambda: {path: hasher.hexdigest()}, **kw)
         except _Fallback:
             pass
-    return import_to_raw(out, _text_chunks(path, header, cols), plan, path, inputs, **kw)
+    return import_to_raw(out, _counted(_text_chunks(path, header, cols), progress), plan, path,
+                         inputs, **kw)
+
+
+def _counted(chunks, progress):
+    """The chunks, calling progress(number read so far) after each."""
+    if progress is None:
+        yield from chunks
+        return
+    for i, c in enumerate(chunks, 1):
+        yield c
+        progress(i)

@@ -8,6 +8,11 @@
     /residuals/<stage>/<sensor>   (M, n) bin residual, data - model, in noise
                            units; stage "initial" (base model), "step1", ...
     /noise_sigma/<sensor>  (n,) per-sample white-noise sigma (data units)
+    /params, /sigma, /units, /covariance, /stats, /model, ...
+                           the final model as a calibration, in the layout of a
+                           calibration file (io.h5.write_calibration_groups):
+                           every command that reads a calibration reads it
+                           (its /residuals are the stages above)
 """
 
 from __future__ import annotations
@@ -18,17 +23,23 @@ import h5py
 import numpy as np
 
 from calib_cli.errors import InputError
-from calib_cli.io.h5 import atomic_path, open_checked, write_provenance
+from calib_cli.io.h5 import atomic_path, open_checked, write_calibration_groups, write_provenance
 
 _STR = h5py.string_dtype()
 
 
 def write_diagnosis(path, summary: dict, bins: dict, residuals: dict, noise_sigma: dict,
-                    inputs=(), serial=None) -> None:
+                    inputs=(), serial=None, calibration=None) -> None:
     """summary: the JSON-able dict; bins: time/segment/count arrays;
-    residuals: {stage: {sensor: (M, n)}}."""
+    residuals: {stage: {sensor: (M, n)}}; calibration: the final model's
+    CalibrationResult (written in the calibration layout)."""
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
-        write_provenance(h5, "diagnosis", inputs, serial, {"method": summary["method"]})
+        extra = {"method": summary["method"]}
+        if calibration is not None:
+            extra["raw_units"] = json.dumps(calibration.raw_units)
+        write_provenance(h5, "diagnosis", inputs, serial, extra)
+        if calibration is not None:
+            write_calibration_groups(h5, calibration, residuals=False)
         h5.create_dataset("summary", data=json.dumps(summary), dtype=_STR)
         b = h5.create_group("bins")
         for k, v in bins.items():

@@ -9,11 +9,20 @@ b, K, d, G, D are not copied blindly from the parameters: they are read off
 the calibration's own forward model (``ImuModel.predict``) by probing it with
 zero and unit inputs, so whatever effects the fit used (full or triangular
 K, a separate misalignment, g-sensitivity) end up in the one affine map that
-``calib apply`` inverts. A model that is not affine in its inputs
-(nonlinearity, scale asymmetry, temperature drift, time offset) cannot be
-written as K^-1 and b: the export refuses it rather than drop terms silently.
-Lever arms and proof-mass offsets are not part of the correction (apply does
-not invert them either) and are listed but not applied.
+``calib apply`` inverts. Terms that are not affine in the input are
+exported as what they are: nonlinearity and scale asymmetry as their
+per-axis coefficients with the formula (A_i = b_i + (K f)_i + k2_i f_i^2 +
+a_i |f_i|, inverted by the fixed-point iteration written in the header and
+the JSON), temperature drift as its polynomial coefficients with T_ref
+(docs/thermal.md). A time offset is no correction of the outputs (listed as
+not applied, with the shift to give the timestamps); the noise-model terms of
+``stats.noise_model`` are never exported. Anything else the affine map cannot
+express is refused rather than dropped silently.
+Proof-mass offsets are exported as the size-effect compensation that `calib
+apply` makes (accelerometer i brought to the triad's reference point, from the
+corrected rates w and their derivative dw/dt: f_i -= (w x (w x p_i) + dw/dt x
+p_i)_i); the header gets a function taking w and dw/dt. Lever arms belong to
+the table, not to the unit: listed but not applied.
 
 Formats: json, yaml (written here, no dependency), csv (long format, one row
 per entry), c-header (K^-1, b, G^-1, d, D as literals with full precision,
@@ -50,6 +59,26 @@ LINEAR_EFFECTS = _effects("linear")  # bias, scale_misalignment, misalignment, g
 THERMAL_EFFECTS = _effects("thermal")  # evaluated first (docs/thermal.md)
 NOT_APPLIED = _effects("input")  # input-side terms (lever arm, proof masses), not in the correction
 FORMULA = {"accel": "f = K^-1 (A - b)", "gyro": "w = G^-1 (W - d - D f)"}
+SIZE_EFFECT_FORMULA = ("f_i -= (w x (w x p_i) + dw/dt x p_i)_i with w = G^-1 (W - d - D f) and "
+                       "dw/dt its time derivative, p_i row i of proof_mass_offsets; then "
+                       "w = G^-1 (W - d - D f) again with the new f (as calib apply)")
+# terms on each channel's own input, exported as coefficients: model name -> key suffix
+NONAFFINE = {"accel_nonlinearity": "nonlinearity", "scale_asymmetry": "scale_asymmetry"}
+NONAFFINE_ITER = 3  # fixed-point iterations of the inverse (converged for |k2 f| << 1)
+NONAFFINE_FORMULA = {
+    "accel": ("A_i = b_i + (K f)_i + k2_i f_i^2 + a_i |f_i|; correction: f = K^-1 (A - b), "
+              f"then {NONAFFINE_ITER} times f = K^-1 (A - b - k2 f^2 - a |f|) (per axis i)"),
+    "gyro": ("W_i = d_i + (G w)_i + (D f)_i + a_i |w_i|; correction: w = G^-1 (W - d - D f), "
+             f"then {NONAFFINE_ITER} times w = G^-1 (W - d - D f - a |w|) (per axis i)"),
+}
+NOT_APPLIED_WHY = {
+    "lever_arm": "the table's geometry during calibration, not a property of the unit",
+    "proof_mass_offsets": "input-side size effect: needs the rates and their derivative "
+                          "(calib apply corrects it; exported as the size-effect function "
+                          "where the offsets were determined)",
+    "time_offset": "not a correction of the outputs: shift the IMU timestamps by "
+                   "-time_offset s (params.time_offset)",
+}
 
 
 def _predict(model, params, sensor, f, w):
@@ -65,7 +94,10 @@ def affine_correction(cal: CalibrationResult, path: str = "<calibration>") -> di
         raise InputError("a redundant-unit (RIMU) calibration has no triad K^-1; export it "
                          "as json, yaml or csv", path)
     names = {d.get("name") for d in cal.model}
-    bad = sorted(names - _effects("linear") - _effects("input") - _effects("thermal"))
+    bad = sorted(names - _effects("linear") - _effects("input") - _effects("thermal")
+                 - set(NONAFFINE) - {"time_offset"})
+    if names & set(NONAFFINE) and names & _effects("thermal"):
+        bad.append("nonlinearity or scale asymmetry with temperature_drift")
     if "temperature_drift" in names and "misalignment" in names:
         bad.append("misalignment with temperature_drift")
     if any(d.get("name") == "temperature_drift" and d.get("order") is None for d in cal.model):
@@ -75,6 +107,14 @@ def affine_correction(cal: CalibrationResult, path: str = "<calibration>") -> di
                          "correction f = K^-1 (A - b) cannot express; use `calib apply`", path)
     model = model_of(cal)
     params = {k: np.asarray(v, dtype=float) for k, v in cal.params.items()}
+    nonaffine = {}  # sensor -> {"k2": ..., "a": ...}: read off, then zeroed for the probes
+    for s in ("accel", "gyro"):
+        for key, short in ((f"{s}_nonlinearity", "k2"), (f"{s}_scale_asymmetry", "a")):
+            if key in params:
+                nonaffine.setdefault(s, {})[short] = params[key].copy()
+                params[key] = np.zeros_like(params[key])
+    if "time_offset" in params:
+        params["time_offset"] = np.zeros_like(params["time_offset"])
     I3, Z = np.eye(3), np.zeros((4, 3))
     probe = np.vstack([np.zeros(3), I3])
     out = {}
@@ -110,6 +150,10 @@ def affine_correction(cal: CalibrationResult, path: str = "<calibration>") -> di
         td = _thermal_of(cal, sensor)
         if td is not None:
             out[sensor].update(td)
+        if sensor in nonaffine:
+            na = nonaffine[sensor]
+            out[sensor]["k2"] = na.get("k2", np.zeros(3))
+            out[sensor]["a"] = na.get("a", np.zeros(3))
     if not out:
         raise InputError("the calibration holds no accelerometer or gyroscope correction", path)
     return out
@@ -128,6 +172,16 @@ def _thermal_of(cal: CalibrationResult, sensor: str) -> dict | None:
         out[name] = v[:, None] if v.ndim == 1 else v
     out["temp_ref"] = float(d.get("temp_ref", 25.0))
     return out
+
+
+def size_effect_offsets(cal: CalibrationResult) -> np.ndarray | None:
+    """The proof-mass offsets p (3, 3), m, that `calib apply` compensates (entries not
+    determined taken as 0), when the calibration corrects both sensors; else None."""
+    from calib_cli.methods.apply import corrected_channels, proof_mass_offsets
+
+    if cal.layout.redundant or corrected_channels(cal) != ["accel", "gyro"]:
+        return None
+    return proof_mass_offsets(cal)
 
 
 def thermal_info(cal: CalibrationResult) -> dict | None:
@@ -195,15 +249,26 @@ def export_object(cal: CalibrationResult, prov: dict, source: str) -> dict:
     if not cal.layout.redundant:
         corr = affine_correction(cal, source)
         th = thermal_info(cal)
-        obj["formula"] = {s: (THERMAL_FORMULA[s] if th else FORMULA[s]) for s in corr}
+        obj["formula"] = {s: (THERMAL_FORMULA[s] if th else
+                              NONAFFINE_FORMULA[s] if "k2" in corr[s] else FORMULA[s])
+                          for s in corr}
         if th and th["thermal_lag_tau_s"] is not None:
             obj["formula"]["lag"] = THERMAL_FORMULA["lag"]
         obj["correction"] = {s: {k: _lists(v) for k, v in d.items()} for s, d in corr.items()}
         if th:
             obj["thermal"] = th
-        not_applied = sorted({d.get("name") for d in cal.model} & _effects("input"))
+        p = size_effect_offsets(cal)
+        if p is not None:
+            obj["formula"]["size_effect"] = SIZE_EFFECT_FORMULA
+            obj["correction"]["size_effect"] = {"proof_mass_offsets": _lists(p)}
+        not_applied = sorted(({d.get("name") for d in cal.model} & (NOT_APPLIED | {"time_offset"}))
+                             - ({"proof_mass_offsets"} if p is not None else set()))
         if not_applied:
             obj["not_applied"] = not_applied
+            obj["not_applied_why"] = {k: NOT_APPLIED_WHY[k] for k in not_applied}
+    if (cal.stats or {}).get("noise_model"):
+        obj["not_exported"] = {"noise_model": sorted(cal.stats["noise_model"]),
+                               "why": "noise-model terms widen sigma; no correction applies them"}
     obj["params"] = {k: _lists(v) for k, v in cal.params.items()}
     obj["sigma"] = {k: _lists(v) for k, v in cal.sigma.items()}
     obj["units"] = {str(k): _text(v) for k, v in cal.units.items()}
@@ -303,7 +368,7 @@ C_STRINGS = ("SOURCE_FILE", "SOURCE_SHA256", "SOURCE_CREATED_UTC", "SOURCE_COMMA
 
 
 def c_header_symbols(prefix: str = "calib", accel: bool = True, gyro: bool = True,
-                     thermal: bool = False, lag: bool = False) -> dict:
+                     thermal: bool = False, lag: bool = False, size_effect: bool = False) -> dict:
     """The names a c-header export defines (docs/export.md): {"macros",
     "types", "objects", "functions"}; the header defines nothing else."""
     P, p = prefix.upper(), prefix.lower()
@@ -327,6 +392,10 @@ def c_header_symbols(prefix: str = "calib", accel: bool = True, gyro: bool = Tru
         macros.append(f"{P}_HAS_GYRO")
         objects += [f"{P}_GYRO_UNITS", f"{P}_GYRO_BIAS", f"{P}_GYRO_GINV", f"{P}_GYRO_D"]
         functions.append(f"{p}_correct_gyro")
+    if size_effect:
+        macros.append(f"{P}_HAS_SIZE_EFFECT")
+        objects.append(f"{P}_PROOF_MASS")
+        functions.append(f"{p}_size_effect")
     return {"macros": macros, "types": [f"{p}_real_t"], "objects": objects,
             "functions": functions}
 
@@ -386,11 +455,67 @@ def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = 
         "",
     ]
     th = thermal_info(cal)
+    size = _c_size_effect(size_effect_offsets(cal), single, P, p, T)
     body = [] if th is None else _c_thermal_common(corr, th, single, P, p, T)
     for sensor in ("accel", "gyro"):
         if sensor in corr:
             body += _c_sensor(sensor, corr[sensor], th is not None, single, P, p, T, units)
-    return "\n".join(head + body + [f"#endif /* {P}_CORRECTION_H */", ""])
+    if any("k2" in d for d in corr.values()):  # fabs, and the terms' arrays before use
+        head = head + ["#include <math.h>", ""] + [
+            line for s_, name in (("accel", "ACCEL"), ("gyro", "GYRO")) if "k2" in corr.get(s_, {})
+            for line in _c_nonaffine_arrays(corr[s_], name, single, P, T)]
+    return "\n".join(head + body + size + [f"#endif /* {P}_CORRECTION_H */", ""])
+
+
+def _c_size_effect(pm, single, P, p, T) -> list[str]:
+    """The size-effect compensation (docs/export.md): the proof-mass offsets and a
+    function taking the corrected rate w and its derivative dw/dt, as `calib apply`."""
+    if pm is None:
+        return []
+    return [f"#define {P}_HAS_SIZE_EFFECT 1",
+            "/* proof-mass offsets, m: row i is accelerometer i's proof mass relative to the",
+            " * triad's reference point (entries the calibration did not determine are 0) */",
+            _c_mat(f"{P}_PROOF_MASS", pm, single, T), "",
+            "/* Size effect: accelerometer i to the triad's reference point,",
+            " *   f_i -= (w x (w x p_i) + dw x p_i)_i",
+            " * w: corrected angular rate (rad/s), dw: its time derivative (rad/s^2), f: the",
+            f" * corrected specific force, changed in place. Then call {p}_correct_gyro again",
+            " * with the new f (its D term sees the force at the reference point). */",
+            f"static inline void {p}_size_effect(const {T} w[3], const {T} dw[3], {T} f[3])",
+            "{",
+            f"    {T} ww = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];",
+            "    for (int i = 0; i < 3; ++i) {",
+            f"        const {T} *r = {P}_PROOF_MASS[i];",
+            "        int j = (i + 1) % 3, k = (i + 2) % 3;",
+            f"        {T} wr = w[0] * r[0] + w[1] * r[1] + w[2] * r[2];",
+            "        f[i] -= (w[i] * wr - r[i] * ww) + (dw[j] * r[k] - dw[k] * r[j]);",
+            "    }",
+            "}", ""]
+
+
+def _c_nonaffine_arrays(d, NAME, single, P, T) -> list[str]:
+    return [f"#define {P}_{NAME}_HAS_NONLINEAR 1",
+            "/* per-axis terms on the axis's own input x (not affine):",
+            f" * output_i = affine_i + {NAME}_K2[i] x_i^2 + {NAME}_ASYM[i] |x_i|;",
+            f" * inverted by {NONAFFINE_ITER} fixed-point iterations in the correction below */",
+            _c_vec(f"{P}_{NAME}_K2", d["k2"], single, T),
+            _c_vec(f"{P}_{NAME}_ASYM", d["a"], single, T), ""]
+
+
+def _c_nonaffine(d, NAME, INV, x, single, P, T) -> list[str]:
+    """The fixed-point iterations of the non-affine terms inside a correction function
+    (u: the output minus the affine offsets; x: the input being solved for)."""
+    if "k2" not in d:
+        return []
+    return [f"    for (int it = 0; it < {NONAFFINE_ITER}; ++it) {{",
+            f"        {T} v[3];",
+            "        for (int i = 0; i < 3; ++i)",
+            f"            v[i] = u[i] - {P}_{NAME}_K2[i] * {x}[i] * {x}[i]"
+            f" - {P}_{NAME}_ASYM[i] * fabs({x}[i]);",
+            "        for (int i = 0; i < 3; ++i)",
+            f"            {x}[i] = {P}_{NAME}_{INV}[i][0] * v[0] + {P}_{NAME}_{INV}[i][1] * v[1]"
+            f" + {P}_{NAME}_{INV}[i][2] * v[2];",
+            "    }"]
 
 
 def _c_rows(name, m, single, T):
@@ -507,6 +632,7 @@ def _c_sensor(sensor, c, thermal, single, P, p, T, units) -> list[str]:
     lines += ["    for (int i = 0; i < 3; ++i)",
               f"        {out}[i] = {P}_{S}_{MINV}[i][0] * u[0] + {P}_{S}_{MINV}[i][1] * u[1]"
               f" + {P}_{S}_{MINV}[i][2] * u[2];",
+              *_c_nonaffine(c, S, MINV, out, single, P, T),
               "}", ""]
     return lines
 

@@ -422,34 +422,48 @@ def write_calibration(path, res: CalibrationResult, inputs=()) -> None:
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
         write_provenance(h5, "calibration", inputs, res.serial,
                          {"method": res.method, "raw_units": json.dumps(res.raw_units)})
-        _write_params_group(h5, "params", res.params)
-        _write_params_group(h5, "sigma", res.sigma)
-        u = h5.create_group("units")
-        for k, v in res.units.items():
-            u.attrs[k] = v
-        c = h5.create_group("covariance")
-        c["matrix"] = np.asarray(res.covariance, dtype=float)
-        c.create_dataset("order_key", data=[k for k, _ in res.cov_order], dtype=_STR)
-        c["order_index"] = np.array([i for _, i in res.cov_order], dtype=np.int64)
-        h5.create_group("stats").attrs["json"] = json.dumps(res.stats)
+        write_calibration_groups(h5, res)
+
+
+def write_calibration_groups(h5, res: CalibrationResult, residuals: bool = True) -> None:
+    """The groups of a calibration (params, sigma, units, covariance, stats, residuals,
+    tables, model, site/layout) into an open file: a calibration file, or a
+    diagnosis file (its final model, docs/diagnose.md)."""
+    _write_params_group(h5, "params", res.params)
+    _write_params_group(h5, "sigma", res.sigma)
+    u = h5.create_group("units")
+    for k, v in res.units.items():
+        u.attrs[k] = v
+    c = h5.create_group("covariance")
+    c["matrix"] = np.asarray(res.covariance, dtype=float)
+    c.create_dataset("order_key", data=[k for k, _ in res.cov_order], dtype=_STR)
+    c["order_index"] = np.array([i for _, i in res.cov_order], dtype=np.int64)
+    h5.create_group("stats").attrs["json"] = json.dumps(res.stats)
+    if residuals:  # (a diagnosis file's /residuals are its stages)
         _write_params_group(h5, "residuals", res.residuals)
-        tables = h5.create_group("tables")
-        for k, v in res.tables.items():
-            if isinstance(v, (list, tuple)) and v and isinstance(v[0], str):
-                tables.create_dataset(k, data=list(v), dtype=_STR)
-            else:
-                tables[k] = np.asarray(v)
-        h5.create_group("model").attrs["effects"] = json.dumps(res.model)
-        write_site_layout(h5, _site_placeholder(), res.layout)
+    tables = h5.create_group("tables")
+    for k, v in res.tables.items():
+        if isinstance(v, (list, tuple)) and v and isinstance(v[0], str):
+            tables.create_dataset(k, data=list(v), dtype=_STR)
+        else:
+            tables[k] = np.asarray(v)
+    h5.create_group("model").attrs["effects"] = json.dumps(res.model)
+    write_site_layout(h5, _site_placeholder(), res.layout)
 
 
 def _site_placeholder():
     return Site()
 
 
+CAL_KINDS = ("calibration", "diagnosis")  # a diagnosis file holds its final model's calibration
+
+
 def read_calibration(path) -> CalibrationResult:
     p = str(path)
-    with open_checked(p, "calibration") as h5:
+    with open_checked(p, CAL_KINDS) as h5:
+        if _attr_str(h5, "kind") == "diagnosis" and "params" not in h5:
+            raise InputError("a diagnosis file without a calibration of its final model (written "
+                             "by an older calib): run calib diagnose again", p)
         try:
             params = _read_params_group(_need(h5, "params", p))
             sigma = _read_params_group(_need(h5, "sigma", p))
@@ -459,7 +473,8 @@ def read_calibration(path) -> CalibrationResult:
             order = [(k.decode() if isinstance(k, bytes) else k, int(i))
                      for k, i in zip(c["order_key"][()], c["order_index"][()])]
             stats = json.loads(_attr_str(_need(h5, "stats", p), "json", "{}"))
-            residuals = _read_params_group(h5["residuals"]) if "residuals" in h5 else {}
+            residuals = (_read_params_group(h5["residuals"]) if "residuals" in h5
+                         and _attr_str(h5, "kind") == "calibration" else {})
             tables = {}
             if "tables" in h5:
                 for k, d in h5["tables"].items():

@@ -232,7 +232,8 @@ def check_calibration(c, path: str) -> None:
         v = np.asarray(v, dtype=float)
         if not np.all(np.isfinite(v)):
             raise InputError(f"parameter {k} holds a NaN or infinite value", path)
-        want = ({specs[k]} if k in specs and k not in ("lever_arm",) else
+        want = (None if k == "lever_arm" else  # one row per rotating cycle of the fit
+                {specs[k]} if k in specs else
                 _expected_shapes(k, n, redundant and not k.endswith("_K")))
         if want is not None and v.shape not in want:
             raise InputError(f"parameter {k} has shape {v.shape}, expected "

@@ -84,6 +84,13 @@ def size_effect(p: np.ndarray, w: np.ndarray, dw: np.ndarray) -> np.ndarray:
     return np.column_stack([rigid_body_accel(w, dw, p[i])[:, i] for i in range(3)])
 
 
+def rate_derivative(w: np.ndarray, time: np.ndarray) -> np.ndarray:
+    """dw/dt (N, 3), rad/s^2, of the corrected rates: central differences (one-sided at
+    the ends), what the size-effect compensation uses (and a firmware port must feed
+    the exported ``*_size_effect`` function, docs/export.md)."""
+    return np.gradient(w, time, axis=0)
+
+
 def apply_triad(cal: CalibrationResult, accel: np.ndarray, gyro: np.ndarray | None,
                 accel_si: bool = True, temp: np.ndarray | None = None,
                 time: np.ndarray | None = None):
@@ -108,6 +115,6 @@ def apply_triad(cal: CalibrationResult, accel: np.ndarray, gyro: np.ndarray | No
         if p is not None and time is not None and len(time) > 2:
             # the size effect: each accelerometer to the triad's reference point, with the
             # corrected rates and their derivative; the gyros' D then sees that point's force
-            f = f - size_effect(p, w, np.gradient(w, time, axis=0))
+            f = f - size_effect(p, w, rate_derivative(w, time))
             w = correct(model, params, "gyro", gyro, other=f, temp=temp)
     return f, w

@@ -53,8 +53,16 @@ class Step:
     evidence: str
     runner_up: str | None = None
 
+    @property
+    def with_arg(self) -> str:
+        """The step's effect as ``calib fit --with`` spells it."""
+        from calib_cli.methods.fit_with import with_arg
+
+        return with_arg(self.effect, self.sensor)
+
     def to_json(self) -> dict:
-        return {"effect": self.effect, "sensor": self.sensor, "params": self.params,
+        return {"effect": self.effect, "sensor": self.sensor, "with": self.with_arg,
+                "params": self.params,
                 "sigma": self.sigma, "score": self.score, "threshold": self.threshold,
                 "dof": self.k, "p_value": self.p_value,
                 "signature_correlation": self.correlation,
@@ -78,6 +86,27 @@ class Diagnosis:
     notes: list = field(default_factory=list)
     noise_sigma: dict = field(default_factory=dict)
     final_p_value: float = float("nan")  # chi^2 test of the final model against white noise
+    base: str = "full"
+
+    @property
+    def with_list(self) -> list:
+        return [s.with_arg for s in self.steps]
+
+    def fit_command(self, raw: str = "RAW.h5", out: str = "CAL.h5") -> str | None:
+        """The command that writes the final model's calibration (None: no step)."""
+        from calib_cli.methods.fit_with import fit_command
+
+        return fit_command(self.method, self.with_list, self.base, self.problem.noise_mode,
+                           raw, out)
+
+    def calibration(self, rec=None):
+        """The final model as an ordinary calibration (``methods.fit_with``)."""
+        from calib_cli.methods.fit_with import WANDERS, calibration_of
+
+        wander = {dc.effect_key(s.effect, s.sensor): (s.params, s.sigma) for s in self.steps
+                  if s.effect in WANDERS}
+        return calibration_of(self.problem, self.fits[-1], self.method, rec, self.base_model,
+                              wander, self.with_list, self.base, initial=self.fits[0])
 
     def by_segment(self) -> list:
         """Residual RMS (noise units) per segment, base model and final model."""
@@ -111,6 +140,7 @@ class Diagnosis:
             "bin_scatter_ratio": self.problem.scatter_ratio,
             "residual_by_segment": self.by_segment(),
             "notes": self.notes,
+            "fit_command": self.fit_command(),
         }
 
 
@@ -146,6 +176,16 @@ def base_spec(pb: Problem, base: str = "full") -> tuple[ModelSpec, list]:
                  "mount angles (nuisance)"]
         mount = True
     return ModelSpec(ImuModel(tuple(effects), pb.layout), mount), names
+
+
+def start_params(pb: Problem, base: str = "full") -> dict | None:
+    """Starting values of the base fit (the scalar case's ellipsoid fit, the alignment)."""
+    if not pb.start:
+        return None
+    start = dict(pb.start)
+    if base == "diagonal" and "accel_K" in start:
+        start["accel_K"] = np.diag(np.diag(start["accel_K"]))
+    return start
 
 
 def _zscore(d: float, k: int) -> float:
@@ -259,12 +299,7 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
               noise: str) -> Diagnosis:
     pb = build_problem(rec, method, noise=noise)
     spec, names = base_spec(pb, base)
-    start = None
-    if pb.start:
-        start = dict(pb.start)
-        if base == "diagonal" and "accel_K" in start:
-            start["accel_K"] = np.diag(np.diag(start["accel_K"]))
-    cur = fit_model(pb, spec, start=start, refresh=True)
+    cur = fit_model(pb, spec, start=start_params(pb, base), refresh=True)
     fits = [cur]
     r0 = rms(cur)
     steps, rounds = [], []
@@ -362,6 +397,14 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
         added.add(c.key)
         cur = f
         fits.append(cur)
+    pair = [st for st in steps if st.effect in ("accel_nonlinearity", "scale_asymmetry")
+            and st.sensor == "accel"]
+    if pair and "accel scale_asymmetry" in untested_all \
+            and dc.excitation(pb, base).accel_levels == 3:
+        notes.append("accelerometer nonlinearity and scale asymmetry are not separable on this "
+                     "plan (each axis sees only 0 and +-g, where k2 u^2 and a |u| are the same "
+                     "signature): the step named nonlinearity stands for either; to tell them "
+                     "apart record positions with the axes at 35-55 deg inclination")
     n_after = rms(cur)
     floor = white_rms(cur)
     dof = len(cur.r) - cur.n_free
@@ -392,6 +435,7 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
     out = Diagnosis(method, out_base, steps, r0, n_after, floor, untested_all, rounds, pb,
                     fits, notes, {s: pb.sigma[s] for s in pb.sensors})
     out.final_p_value = p_fit
+    out.base = base
     return out
 
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib_cli.methods.diagnose_problem import Problem
-from calib_cli.model.effects import Effect, make_effect
+from calib_cli.model.effects import Effect, Excitation, make_effect
 
 G0 = 9.80665
 LEVEL_G = 0.05  # input levels closer than this (in g) count as one
@@ -44,108 +44,97 @@ def _levels(u: np.ndarray, g: float) -> int:
     return len(q)
 
 
-def candidates(pb: Problem, model, base_structure: str, tried_names: set
-               ) -> tuple[list[Candidate], dict]:
-    """(candidates to try, {effect key: why it cannot be tested})."""
-    out: list[Candidate] = []
-    why: dict[str, str] = {}
-    rotating = pb.layout.n_cycles > 0
+def excitation(pb: Problem, base_structure: str = "full") -> Excitation:
+    """What the problem's record excites (the effects' ``not_excited`` rules read it)."""
+    axes = pb.layout.axes()
+    fb = pb.bin_mean(pb.kin.f) @ axes.T  # input along each channel
+    levels = max(_levels(fb[:, i], pb.g) for i in range(fb.shape[1]))
+    both = False
+    if "gyro" in pb.sensors:
+        wb = pb.bin_mean(pb.kin.w) @ axes.T
+        both = any(np.any(wb[:, i] > 0.05) and np.any(wb[:, i] < -0.05)
+                   for i in range(wb.shape[1]))
+    span = None
+    if pb.kin.temp is not None and np.all(np.isfinite(pb.kin.temp)):
+        span = float(np.ptp(pb.kin.temp))
+    return Excitation(pb.method, tuple(pb.sensors), base_structure, int(levels), bool(both),
+                      span, pb.n_bins, pb.layout.n_cycles > 0, pb.layout.redundant)
+
+
+def catalogue_order(pb: Problem, base_structure: str = "full") -> list[Candidate]:
+    """Every optional catalogue effect the method could take, in the order the rounds
+    try them (whether this record excites it or not)."""
+    out = []
     has_gyro = "gyro" in pb.sensors
 
     def add(name, sensor, **opts):
-        if effect_key(name, sensor) in tried_names:
-            return
-        e = make_effect(name, sensor or "accel", **opts)
-        out.append(Candidate(name, sensor, e))
+        out.append(Candidate(name, sensor, make_effect(name, sensor or "accel", **opts)))
 
-    redundant = pb.layout.redundant
-    # misalignment: only from a diagonal base
-    if pb.method == "align":
-        why["misalignment"] = ("the alignment takes K as the identity (a navigation-grade "
-                               "unit): scale and misalignment are not estimated from two "
-                               "positions")
-    elif redundant:
-        why["misalignment"] = ("a redundant unit's base model has each sensor's direction "
-                               "(dEl, dAz): there is no triad misalignment")
-    elif base_structure == "diagonal":
-        add("misalignment", "accel",
-            structure="lower" if (pb.method == "turntable" or pb.scalar) else "full")
-        if has_gyro:
-            add("misalignment", "gyro", structure="full")
-    else:
-        why["misalignment"] = ("the base model already has full scale/misalignment "
-                               "(use --base diagonal to test it)")
-
-    # accelerometer input levels per axis
-    axes = pb.layout.axes()
-    fb = pb.bin_mean(pb.kin.f) @ axes.T  # input along each channel
-    lv = [_levels(fb[:, i], pb.g) for i in range(fb.shape[1])]
-    if max(lv) >= 3:
-        add("accel_nonlinearity", "accel")
-    else:
-        why["accel_nonlinearity"] = ("every axis sees only +-g: the quadratic term "
-                                           "needs inputs other than +-g on the axis (0 g counts)")
-    if max(lv) >= 4:
-        add("scale_asymmetry", "accel")
-    elif max(lv) == 3:
-        why["accel scale_asymmetry"] = ("the axes see only 0 and +-g, where a|u| and k2 u^2 "
-                                        "are the same signature: telling scale asymmetry from "
-                                        "nonlinearity needs intermediate tilts")
-    else:
-        why["accel scale_asymmetry"] = "every axis sees only +-g: needs inputs of other sizes"
+    add("misalignment", "accel",
+        structure="lower" if (pb.method == "turntable" or pb.scalar) else "full")
     if has_gyro:
-        wb = pb.bin_mean(pb.kin.w) @ axes.T
-        both = [np.any(wb[:, i] > 0.05) and np.any(wb[:, i] < -0.05) for i in range(wb.shape[1])]
-        if any(both):
-            add("scale_asymmetry", "gyro")
-        else:
-            why["gyro scale_asymmetry"] = "no axis is turned both ways at more than 3 deg/s"
+        add("misalignment", "gyro", structure="full")
+    add("accel_nonlinearity", "accel")
+    add("scale_asymmetry", "accel")
+    if has_gyro:
+        add("scale_asymmetry", "gyro")
         add("g_sensitivity", "gyro")
-    # temperature
     for s in pb.sensors:
-        if pb.kin.temp is None or not np.all(np.isfinite(pb.kin.temp)):
-            why[f"{s} temperature_drift"] = "no temperature recorded"
-        elif np.ptp(pb.kin.temp) < 1.0:
-            why[f"{s} temperature_drift"] = (f"the temperature spans only "
-                                             f"{np.ptp(pb.kin.temp):.2f} degC (needs >= 1 degC)")
-        else:
-            add("temperature_drift", s)
-    # a wandering bias: the residuals' time structure (Kalman likelihood, diagnose_stoch)
+        add("temperature_drift", s)
     for s in pb.sensors:
-        if pb.n_bins < 20:
-            for w in ("bias_random_walk", "bias_instability"):
-                why[f"{s} {w}"] = "fewer than 20 bins (10 s): too short to see a wander"
+        add("bias_random_walk", s)
+        add("bias_instability", s)
+    add("lever_arm", "")
+    add("proof_mass_offsets", "")
+    add("time_offset", "")
+    return out
+
+
+def why_key(c: Candidate) -> str:
+    """The key of the "untested" entry of a candidate (misalignment: one for both)."""
+    return "misalignment" if c.name == "misalignment" else c.key
+
+
+def candidates(pb: Problem, model, base_structure: str, tried_names: set
+               ) -> tuple[list[Candidate], dict]:
+    """(candidates to try, {effect key: why it cannot be tested}): each catalogue
+    effect's own excitation rule (``Effect.not_excited``) on this record."""
+    ex = excitation(pb, base_structure)
+    out: list[Candidate] = []
+    why: dict[str, str] = {}
+    for c in catalogue_order(pb, base_structure):
+        if c.key in tried_names:
+            continue
+        reason = c.effect.not_excited(ex)
+        if reason:
+            why.setdefault(why_key(c), reason)
         else:
-            add("bias_random_walk", s)
-            add("bias_instability", s)
-    # rotation
-    if rotating:
-        add("lever_arm", "")
-        if redundant:
-            why["proof_mass_offsets"] = ("the redundant-unit model puts all sensors at one "
-                                         "point (CONTRACT section 2)")
-        else:
-            add("proof_mass_offsets", "")
-        add("time_offset", "")
-    else:
-        for name in ("lever_arm", "proof_mass_offsets", "time_offset"):
-            why[name] = "needs rotation (a turntable): the experiment has only static positions"
+            out.append(c)
     # any other catalogue effect (a new class in model/effects.py): tried on every
-    # sensor where it is diagnosable and applies to this layout (Effect attributes)
+    # sensor where it is diagnosable and applies to this layout (Effect attributes),
+    # with its own excitation rule
     from calib_cli.model.effects import CATALOGUE
 
+    redundant = pb.layout.redundant
     for name, cls in CATALOGUE.items():
         if name in RULED or not cls.diagnosable:
             continue
         if ("redundant" if redundant else "triad") not in cls.layouts:
             why[name] = f"not defined for a {'redundant' if redundant else 'triad'} unit"
             continue
-        for s in ([""] if cls.sensorless else pb.sensors):
-            add(name, s)
+        for s_ in ([""] if cls.sensorless else pb.sensors):
+            c = Candidate(name, s_, make_effect(name, s_ or "accel"))
+            if c.key in tried_names:
+                continue
+            reason = c.effect.not_excited(ex)
+            if reason:
+                why.setdefault(why_key(c), reason)
+            else:
+                out.append(c)
     return out, why
 
 
-# effects whose candidacy the rules above decide (the others: their class attributes)
+# effects in catalogue_order's list (the others: their class attributes)
 RULED = {"bias", "scale_misalignment", "installation", "misalignment", "accel_nonlinearity",
          "scale_asymmetry", "g_sensitivity", "temperature_drift", "thermal_lag",
          "bias_random_walk", "bias_instability", "lever_arm", "proof_mass_offsets",

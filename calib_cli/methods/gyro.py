@@ -50,9 +50,10 @@ from calib_cli.model.truth import effect_from_description
 GAP_FACTOR = 1.5  # a sample interval > 1.5 x the median is a gap: no integration across it
 
 
-def gyro_model(g_sensitivity: bool) -> ImuModel:
-    eff = (Bias("gyro"), ScaleMisalignment("gyro", "full"))
-    return ImuModel(eff + ((GSensitivity(),) if g_sensitivity else ()), Layout())
+def gyro_model(g_sensitivity: bool, extra=(), structure: str = "full") -> ImuModel:
+    """bias + G (+ D) and any further catalogue effects (``fit gyro --with``)."""
+    eff = (Bias("gyro"), ScaleMisalignment("gyro", structure))
+    return ImuModel(eff + ((GSensitivity(),) if g_sensitivity else ()) + tuple(extra), Layout())
 
 
 def increments(w, dt):
@@ -191,6 +192,22 @@ class _Problem:
               [np.arange(s.start, s.stop) for s in self.turns]
         self.idx = np.concatenate(idx) if idx else np.zeros(0, int)
         self.bounds = np.cumsum([0] + [len(i) for i in idx])
+        # temperature (for a model with temperature_drift): per corrected sample, and the
+        # mean of each static position
+        self.temp_idx = self.temp_static = None
+        if rec.temp is not None and np.all(np.isfinite(rec.temp)):
+            self.temp_idx = np.asarray(rec.temp, float)[self.idx]
+            self.temp_static = np.array([np.mean(rec.temp[s.slice]) for s in statics])
+
+    def _temp(self, model, which):
+        if not model.has("temperature_drift"):
+            return None
+        return self.temp_idx if which == "idx" else self.temp_static
+
+    def static_kin(self, model) -> Kinematics:
+        n = len(self.statics)
+        return Kinematics(np.zeros(n), self.f_static, self.we_static, np.zeros((n, 3)),
+                          temp=self._temp(model, "static"))
 
     @property
     def n_rot(self) -> int:
@@ -201,7 +218,8 @@ class _Problem:
         """Corrected rates (rad/s) over the transition and turn samples, per piece."""
         if not len(self.idx):
             return []
-        w = correct(model, p, "gyro", self.rec.gyro[self.idx], other=self.f_all[self.idx])
+        w = correct(model, p, "gyro", self.rec.gyro[self.idx], other=self.f_all[self.idx],
+                    temp=self._temp(model, "idx"))
         return [w[self.bounds[i]:self.bounds[i + 1]] for i in range(len(self.bounds) - 1)]
 
     def transition_pred(self, pieces):
@@ -257,8 +275,7 @@ class _Problem:
     def residuals(self, model, p, sig):
         """Whitened residuals [static (3 each), transitions (2 each), turns (3 each)]."""
         sig_s, sig_tr, sig_turn = sig
-        n = len(self.statics)
-        kin = Kinematics(np.zeros(n), self.f_static, self.we_static, np.zeros((n, 3)))
+        kin = self.static_kin(model)
         r_s = (self.W_static - model.predict(p, kin, sensors=("gyro",))["gyro"]) / sig_s
         pieces = self.rates(model, p)
         ntr = len(self.transitions)
@@ -324,9 +341,31 @@ def _observable_D(prob: _Problem) -> bool:
     return bool(s[-1] > 0.05 * s[0])
 
 
+def excitation(rec: Recording, accel: CalibrationResult, base: str = "full"):
+    """What this record excites for the gyro method's optional effects
+    (``Effect.not_excited``): turns both ways, temperature, gravity in 3-D."""
+    from calib_cli.model.effects import Excitation
+
+    prob = _Problem(rec, accel)
+    both = False
+    if len(prob.idx):
+        d0 = np.median(prob.W_static, axis=0) if len(prob.statics) else 0.0
+        model = gyro_model(False)
+        unit = abs(float(np.mean(np.diag(_start(prob, model, model.neutral_params(),
+                                                  rec.in_counts("gyro"))["gyro_K"]))))
+        w = (rec.gyro[prob.idx] - d0) / max(unit, 1e-300)
+        both = bool(np.any((w > 0.05).any(axis=0) & (w < -0.05).any(axis=0)))
+    span = None
+    if rec.temp is not None and np.all(np.isfinite(rec.temp)):
+        span = float(np.ptp(rec.temp))
+    return Excitation("gyro", ("gyro",), base, 0, both, span, 0, False, False,
+                      _observable_D(prob))
+
+
 def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
              g_sensitivity: str = "auto", accel_independent: bool = False, *,
-             noise: dict | None = None, strict: bool = True) -> CalibrationResult:
+             noise: dict | None = None, strict: bool = True, extra=(),
+             structure: str = "full") -> CalibrationResult:
     """The contract's ``fit gyro``. accel: the accelerometer calibration (fitted
     here from the same recording when None). g_sensitivity: auto (fit gyro_D
     when the static positions make it observable), on, off. accel_independent:
@@ -334,7 +373,13 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
     this recording's noise and are propagated (``_independent_accel``).
     noise: {"accel": sigma, "gyro": sigma} per sample, to weight with instead of
     the measured noise; strict=False reports unobservable entries instead of
-    failing (both for experiment design, design.py)."""
+    failing (both for experiment design, design.py). extra: further
+    catalogue effects (``fit gyro --with``: gyro scale asymmetry, temperature drift,
+    misalignment from a diagonal base, ``structure="diagonal"``)."""
+    extra = tuple(extra)
+    if any(e.name == "g_sensitivity" for e in extra):
+        extra = tuple(e for e in extra if e.name != "g_sensitivity")
+        g_sensitivity = "on"
     if rec.gyro is None:
         raise EstimationError("the recording has no gyro data")
     if rec.layout.redundant:
@@ -366,7 +411,7 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
     use_D = {"on": True, "off": False}.get(g_sensitivity, None)
     if use_D is None:
         use_D = _observable_D(prob)
-    model = gyro_model(use_D)
+    model = gyro_model(use_D, extra, structure)
     packing = Packing.for_model(model)
     base = model.neutral_params()
     p0 = _start(prob, model, base, counts)
@@ -387,14 +432,15 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
                       theta, scales, what="gyro fit")
         theta = fit.theta
     unobs_G = [lab for lab, u in zip(packing.labels(), fit.unobservable, strict=False)
-               if u and lab[0] != "gyro_D"]
+               if u and lab[0] in ("gyro_bias", "gyro_K")]
     if unobs_G and strict:
         raise EstimationError(
             f"the rotations do not determine {', '.join(f'{k}[{i}]' for k, i in unobs_G[:4])}: "
             f"the experiment needs rotations about all three axes ({len(prob.transitions)} "
             f"transitions, {len(prob.turns)} turns used)")
     if use_D and g_sensitivity == "auto" and fit.unobservable.any():
-        return fit_gyro(rec, accel, "off", accel_independent, noise=noise, strict=strict)
+        return fit_gyro(rec, accel, "off", accel_independent, noise=noise, strict=strict,
+                        extra=extra, structure=structure)
     cross = None
     if accel_independent:
         fit, cross = _independent_accel(prob, model, packing, fit, base, sig, scales, accel)
@@ -471,7 +517,7 @@ def _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D, cr
     turn_angles = [float(a @ s.rotation_axis_body) * 180 / np.pi
                    for a, s in zip(ints, prob.turns, strict=True)]
     n = len(prob.statics)
-    kin = Kinematics(np.zeros(n), prob.f_static, prob.we_static, np.zeros((n, 3)))
+    kin = prob.static_kin(model)
     r_static = prob.W_static - model.predict(p, kin, sensors=("gyro",))["gyro"]
     allr = np.concatenate([tr_err, turn_err])
     stats = {
@@ -492,6 +538,7 @@ def _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D, cr
         "accel_uncertainty": "propagated (independent calibration)" if cross is not None
         else "not added (the position noise is in the weights)",
         "chi2_dof": fit.chi2_dof, "sigma_inflation": inflation,
+        "chi2": fit.chi2, "dof": fit.dof, "n_equations": int(len(fit.residuals)),
         "warnings": _warnings(p, prob),
     }
     res = build_result("gyro", model, packing, fit, base, rec.units, stats, serial=rec.serial,

@@ -141,7 +141,7 @@ class TurntableFitOptions:
         _choice("proof_mass", self.proof_mass, ("auto", "off", "estimate"))
         _choice("tangential", self.tangential, ("on", "off"))
         _choice("grade", self.grade, ("mems", "tactical", "navigation"))
-        _choice("table_encoder", self.table_encoder, ("auto", "off", "angle"))
+        _choice("table_encoder", self.table_encoder, ("auto", "off", "angle", "rate", "both"))
         if not (isinstance(self.block_s, (int, float)) and math.isfinite(self.block_s)
                 and 0 < self.block_s <= 5):
             raise InputError(f"--block must be in (0, 5] s, got {self.block_s}")
@@ -216,10 +216,10 @@ def _fit_rimu(rec, o: RimuOptions):
     return fit_rimu(rec)
 
 
-def _fit_turntable(rec, o: TurntableFitOptions):
+def _fit_turntable(rec, o: TurntableFitOptions, progress=None):
     from calib_cli.methods.turntable import fit_turntable
 
-    return fit_turntable(rec, o.to_method())
+    return fit_turntable(rec, o.to_method(), progress=progress)
 
 
 @dataclass(frozen=True)
@@ -322,10 +322,12 @@ def check_recording(method: str, rec: Recording, path: str | None = None) -> Non
                               f"the recording has {n_rot}", path)
 
 
-def run(method: str, rec: Recording, options=None, path: str | None = None) -> CalibrationResult:
+def run(method: str, rec: Recording, options=None, path: str | None = None,
+        progress=None) -> CalibrationResult:
     """Check the recording, fit, screen for gross errors, refuse an impossible
     result (exit 4). ``options``: the method's options dataclass, a mapping of
-    its names, or None for the defaults. ``path`` names the recording in errors."""
+    its names, or None for the defaults. ``path`` names the recording in errors.
+    ``progress(done, total)``: optional, passed to fits that report progress."""
     m = get(method)
     if options is None or isinstance(options, dict):
         options = options_from(method, options)
@@ -335,7 +337,11 @@ def run(method: str, rec: Recording, options=None, path: str | None = None) -> C
         options.check()
     check_recording(method, rec, path)
     try:
-        res = m.function(rec, options)
+        import inspect
+
+        kw = ({"progress": progress} if progress is not None
+              and "progress" in inspect.signature(m.function).parameters else {})
+        res = m.function(rec, options, **kw)
         from calib_cli.methods.gross import check_result, screen_fit
 
         if m.screened:

@@ -656,13 +656,16 @@ class _PassOut:
     lowrate: list
     enc_innov: list = field(default_factory=list)  # normalized encoder innovations
     rate_innov: list = field(default_factory=list)  # normalized rate-channel innovations
+    # the running estimate of the sigma-history entries at the same times (issue 22: the
+    # paper's fig. 4); recorded alongside hist_s, no part of the estimator
+    hist_x: list = field(default_factory=list)
 
 
 def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: TurntableOptions,
                  sig_a, sig_g, block_n, s_known, record_history: bool, first: bool,
                  enc: list | None = None, sig_enc: float = 0.0,
                  rate: list | None = None, sig_rate: float = 0.0,
-                 start_info: np.ndarray | None = None) -> _PassOut:
+                 start_info: np.ndarray | None = None, tick=None) -> _PassOut:
     par = _unpack(theta_lin, L, cycles)
     par_lin = _unpack(theta_lin, L, cycles)
     if s_known is not None:
@@ -691,7 +694,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
     innov, nis, hist_t, hist_s, lowrate, enc_innov = [], [], [], [], [], []
     rate_innov = []
     interval = rec.sample_kind == "interval-mean"
-    hist_idx = []
+    hist_idx, hist_x = [], []
     if record_history:
         if L.est_s:
             hist_idx += list(3 + L.idx["s"])
@@ -699,6 +702,8 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             hist_idx += list(3 + L.idx["p"])
     next_hist = -np.inf
     for c, cy in enumerate(cycles):
+        if tick is not None:
+            tick()
         b = _blocks(rec, cy, par, block_n, opt.tangential, s_known)
         nb = len(b.t)
         T = b.m / rec.sample_rate
@@ -903,6 +908,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             if record_history and b.t[j] >= next_hist:
                 hist_t.append(b.t[j])
                 hist_s.append(np.sqrt(np.diag(P)[hist_idx]))
+                hist_x.append(theta_lin[np.asarray(hist_idx, int) - 3] + x[hist_idx])
                 next_hist = b.t[j] + opt.history_every
     if start_info is None:
         x[3:] += P[3:, 3:] @ ((prior_mean - theta_lin) / prior_sd**2)
@@ -920,7 +926,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         x[3:] = np.linalg.solve(lam, rhs) * prior_sd
         P[3:, 3:] = _scaled_inv(lam) * np.outer(prior_sd, prior_sd)
     return _PassOut(theta_lin + x[3:], P[3:, 3:], innov, nis, hist_t, hist_s, lowrate,
-                    enc_innov, rate_innov)
+                    enc_innov, rate_innov, hist_x)
 
 
 class _StartInfoError(Exception):
@@ -933,8 +939,12 @@ def _scaled_inv(A: np.ndarray) -> np.ndarray:
     return 0.5 * (Ai + Ai.T)
 
 
-def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()) -> CalibrationResult:
-    """Fit the turntable model to a raw recording with rotating segments."""
+def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions(),
+                  progress=None) -> CalibrationResult:
+    """Fit the turntable model to a raw recording with rotating segments.
+
+    progress: optional callback ``progress(done, total)``, called once per cycle
+    and filter pass (a retry with widened noise extends the total)."""
     opt = options
     if opt.lever_arm not in ("off", "known", "estimate"):
         raise InputError(f"lever_arm must be off, known or estimate, got {opt.lever_arm!r}")
@@ -1031,6 +1041,16 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
                               if k in L.idx])
     inflation = 1.0
     enc_inflation = 1.0
+    tick = None
+    if progress is not None:
+        steps = [0, min(3, max(1, opt.passes)) * nc]  # three passes are typical
+
+        def tick():
+            steps[0] += 1
+            if steps[0] > steps[1]:  # one more pass, or a retry
+                steps[1] += nc
+            progress(steps[0], steps[1])
+
     for _attempt in range(6):
         theta = start.copy()
         info_start = None
@@ -1041,7 +1061,7 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
             bn = coarse_n if coarse else block_n
             kw = dict(record_history=k == 0, enc=enc_coarse if coarse else enc,
                       sig_enc=sig_enc * enc_inflation, rate=rate_coarse if coarse else rate,
-                      sig_rate=sig_rate)
+                      sig_rate=sig_rate, tick=tick)
             try:
                 out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation,
                                    sig_g, bn, s_known, first=k == 0,
@@ -1053,8 +1073,8 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
             if not np.all(np.isfinite(out.theta)):
                 break
             if hist is None:  # the sigma history is the first pass's (it starts from the prior)
-                hist = (out.hist_t, out.hist_s)
-            out.hist_t, out.hist_s = hist
+                hist = (out.hist_t, out.hist_s, out.hist_x)
+            out.hist_t, out.hist_s, out.hist_x = hist
             # the largest move of any parameter since the pass before, in its sigma (the
             # first pass, an extended filter from the neutral unit, is not compared)
             prev_move = moved
@@ -1102,6 +1122,10 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     res.stats["filter_last_move_sigma"] = float(moved) if np.isfinite(moved) else None
     res.stats["table_encoder"] = _encoder_stats(enc, L, out, sig_enc * enc_inflation,
                                                 enc_inflation, enc_notes, rate, sig_rate)
+    # issue 22: the paper's check positions (static segments the fit did not use)
+    from calib_cli.methods.check_positions import check_positions
+
+    res.stats["check_positions"] = check_positions(rec, res)
     return res
 
 
@@ -1269,6 +1293,8 @@ def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, 
         tables["sigma_history_time"] = np.array(out.hist_t)
         tables["sigma_history"] = np.array(out.hist_s)
         tables["sigma_history_labels"] = labels
+        if out.hist_x:  # the running estimate alongside (same entries, same units)
+            tables["estimate_history"] = np.array(out.hist_x)
     layout = Layout(n_cycles=len(cycles))
     model = [{"name": "bias", "sensor": "accel"},
              {"name": "scale_misalignment", "sensor": "accel", "structure": "lower"},

@@ -34,6 +34,31 @@ TEMP_REF_C = 25.0  # degC: reference temperature of the temperature-drift terms
 
 
 @dataclass(frozen=True)
+class Excitation:
+    """What a record excites, as the effects' ``not_excited`` rules read it
+    (computed from a recording by ``methods.diagnose_candidates.excitation``).
+
+    accel_levels: the most distinct specific-force levels (0.05 g apart) on one
+    accelerometer axis; gyro_both_signs: some gyro axis turned both ways;
+    temp_span: degC spanned by the recorded temperature (None: none recorded);
+    n_bins: 0.5 s bins; base: "full" or "diagonal" (the base model's K)."""
+
+    method: str = "accel"
+    sensors: tuple = ("accel",)
+    base: str = "full"
+    accel_levels: int = 0
+    gyro_both_signs: bool = False
+    temp_span: float | None = None
+    n_bins: int = 0
+    rotating: bool = False
+    redundant: bool = False
+    gravity_3d: bool = True  # static positions with gravity directions spanning 3-D
+
+
+_NEEDS_ROTATION = "needs rotation (a turntable): the experiment has only static positions"
+
+
+@dataclass(frozen=True)
 class ParamSpec:
     """One parameter array of an effect.
 
@@ -149,6 +174,16 @@ class Effect:
         r = self.realisation(p, layout, 1.0 / dt, int(rng.integers(2**62)))
         return 0.0 if r is None else r.next(kin)
 
+    # what experiment excites the effect, and what to record when a record does not
+    # (``calib fit --with``, ``calib diagnose``; docs/diagnose.md)
+    excites = ""
+    record = ""
+    noise_term = False  # a noise-model term: widens sigma, never applied or exported
+
+    def not_excited(self, ex: "Excitation") -> str | None:
+        """Why a record with this excitation cannot determine the effect (None: it can)."""
+        return None
+
     @property
     def label(self) -> str:
         return f"{self.sensor} {self.name}" if self.sensor else self.name
@@ -196,6 +231,16 @@ class GSensitivity(Effect):
     sensor: str = "gyro"
     name: str = field(default="g_sensitivity", init=False)
     stage: int = field(default=ADDITIVE, init=False)
+
+    excites = "static positions with gravity along each body axis (both signs), gyros recorded"
+    record = "static positions with each axis up and down, gyros recorded"
+
+    def not_excited(self, ex):
+        if "gyro" not in ex.sensors:
+            return "no gyro data in this method's record"
+        if not ex.gravity_3d:
+            return "the static positions' gravity directions do not span all three axes"
+        return None
 
     def specs(self, layout):
         return [ParamSpec("gyro_D", (layout.n, 3), "(rad/s)/(m/s^2)", 1e-4,
@@ -284,6 +329,22 @@ class Misalignment(Effect):
     name: str = field(default="misalignment", init=False)
     stage: int = field(default=CORRECTION, init=False)
 
+    excites = ("a base model with diagonal scale factors (--base diagonal) and inputs along "
+               "several axes")
+    record = "inputs along every axis, and fit with --base diagonal"
+
+    def not_excited(self, ex):
+        if ex.method == "align":
+            return ("the alignment takes K as the identity (a navigation-grade unit): scale "
+                    "and misalignment are not estimated from two positions")
+        if ex.redundant:
+            return ("a redundant unit's base model has each sensor's direction (dEl, dAz): "
+                    "there is no triad misalignment")
+        if ex.base != "diagonal":
+            return ("the base model already has full scale/misalignment (use --base diagonal "
+                    "to test it)")
+        return None
+
     def specs(self, layout):
         fixed = np.eye(3, dtype=bool)
         if self.structure == "lower":
@@ -304,6 +365,16 @@ class Nonlinearity(Effect):
     name: str = field(default="accel_nonlinearity", init=False)
     stage: int = field(default=CORRECTION, init=False)
 
+    excites = ("inputs of at least three sizes on an axis (0 g counts); told apart from scale "
+               "asymmetry only with positions at 35-55 deg inclination")
+    record = "positions with an axis at 0 g besides +-g, better tilted 35-55 deg"
+
+    def not_excited(self, ex):
+        if ex.accel_levels < 3:
+            return ("every axis sees only +-g: the quadratic term needs inputs other than +-g "
+                    "on the axis (0 g counts)")
+        return None
+
     def specs(self, layout):
         acc = self.sensor == "accel"
         return [ParamSpec(self._key("nonlinearity"), (layout.n,),
@@ -323,6 +394,31 @@ class ScaleAsymmetry(Effect):
 
     name: str = field(default="scale_asymmetry", init=False)
     stage: int = field(default=CORRECTION, init=False)
+
+    @property
+    def excites(self):
+        if self.sensor == "gyro":
+            return "rotations both ways about an axis (faster than 3 deg/s)"
+        return ("inputs of both signs at four or more sizes (tilts between 0 and +-g; at 0 "
+                "and +-g only it looks like nonlinearity)")
+
+    @property
+    def record(self):
+        if self.sensor == "gyro":
+            return "rotations both ways about each axis"
+        return "positions with the axes tilted 35-55 deg"
+
+    def not_excited(self, ex):
+        if self.sensor == "gyro":
+            return None if ex.gyro_both_signs else ("no axis is turned both ways at more than "
+                                                    "3 deg/s")
+        if ex.accel_levels >= 4:
+            return None
+        if ex.accel_levels == 3:
+            return ("the axes see only 0 and +-g, where a|u| and k2 u^2 are the same "
+                    "signature: telling scale asymmetry from nonlinearity needs intermediate "
+                    "tilts (add positions with the axis tilted 45 deg)")
+        return "every axis sees only +-g: needs inputs of other sizes"
 
     def specs(self, layout):
         return [ParamSpec(self._key("scale_asymmetry"), (layout.n,), "-", 5e-4,
@@ -366,6 +462,17 @@ class TemperatureDrift(Effect):
     scale_on: str = "transfer"
     name: str = field(default="temperature_drift", init=False)
     stage: int = field(default=CORRECTION, init=False)
+
+    excites = ("a recorded temperature spanning >= 1 degC, best going up and down (monotonic, "
+               "it looks like a bias random walk)")
+    record = "the temperature column, spanning several degC up and down (a chamber or warm-up)"
+
+    def not_excited(self, ex):
+        if ex.temp_span is None:
+            return "no temperature recorded"
+        if ex.temp_span < 1.0:
+            return f"the temperature spans only {ex.temp_span:.2f} degC (needs >= 1 degC)"
+        return None
 
     def specs(self, layout):
         acc = self.sensor == "accel"
@@ -457,6 +564,12 @@ class LeverArm(Effect):
     name: str = field(default="lever_arm", init=False)
     stage: int = field(default=INPUT, init=False)
 
+    excites = "rotating segments (a turntable) at several rates"
+    record = "rotating cycles on a turntable at two or more rates"
+
+    def not_excited(self, ex):
+        return None if ex.rotating else _NEEDS_ROTATION
+
     def specs(self, layout):
         return [ParamSpec("lever_arm", (layout.n_cycles, 3), "m", 0.1,
                           display=(1e3, "mm"))]
@@ -482,6 +595,16 @@ class ProofMassOffsets(Effect):
     tangential: bool = True
     name: str = field(default="proof_mass_offsets", init=False)
     stage: int = field(default=INPUT + 0, init=False)
+
+    excites = "rotating segments with the table axis along different body axes"
+    record = "rotating cycles on a turntable with each body axis along the table axis"
+
+    def not_excited(self, ex):
+        if not ex.rotating:
+            return _NEEDS_ROTATION
+        if ex.redundant:
+            return "the redundant-unit model puts all sensors at one point (CONTRACT section 2)"
+        return None
 
     def specs(self, layout):
         return [ParamSpec("proof_mass_offsets", (3, 3), "m", 5e-3,
@@ -519,6 +642,12 @@ class TimeOffset(Effect):
     name: str = field(default="time_offset", init=False)
     stage: int = field(default=SHIFT, init=False)
 
+    excites = "rotating segments with rate changes"
+    record = "rotating cycles with rate steps or ramps"
+
+    def not_excited(self, ex):
+        return None if ex.rotating else _NEEDS_ROTATION
+
     def specs(self, layout):
         return [ParamSpec("time_offset", (), "s", 2e-3, display=(1e3, "ms"))]
 
@@ -537,6 +666,15 @@ class BiasRandomWalk(Effect):
 
     name: str = field(default="bias_random_walk", init=False)
     stage: int = field(default=STOCHASTIC, init=False)
+
+    excites = "at least 20 bins (10 s), with static stretches long enough to show the wander"
+    record = "longer static positions (minutes), or a static record for calib allan"
+    noise_term = True
+
+    def not_excited(self, ex):
+        if ex.n_bins < 20:
+            return "fewer than 20 bins (10 s): too short to see a wander"
+        return None
 
     def specs(self, layout):
         acc = self.sensor == "accel"
@@ -570,6 +708,15 @@ class BiasInstability(Effect):
 
     name: str = field(default="bias_instability", init=False)
     stage: int = field(default=STOCHASTIC, init=False)
+
+    excites = "at least 20 bins (10 s), with static stretches long enough to show the wander"
+    record = "longer static positions (minutes), or a static record for calib allan"
+    noise_term = True
+
+    def not_excited(self, ex):
+        if ex.n_bins < 20:
+            return "fewer than 20 bins (10 s): too short to see a wander"
+        return None
 
     def specs(self, layout):
         acc = self.sensor == "accel"

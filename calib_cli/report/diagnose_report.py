@@ -82,6 +82,9 @@ def physical_signature(d: Diagnosis, k: int, sensor: str, ch: int):
 def _disagreement(d: Diagnosis, path: Path):
     import matplotlib.pyplot as plt
 
+    from calib_cli.report.figures import use_palette
+
+    use_palette()  # the Okabe-Ito colour-blind-safe cycle of every calib figure
     pb = d.problem
     stages = [("base model", d.fits[0])] + ([("final model", d.fits[-1])] if d.steps else [])
     rate = np.degrees(np.sqrt(pb.bin_mean((pb.kin.w ** 2).sum(axis=1))))
@@ -118,6 +121,9 @@ def _disagreement(d: Diagnosis, path: Path):
 def _step_plot(d: Diagnosis, k: int, path: Path):
     import matplotlib.pyplot as plt
 
+    from calib_cli.report.figures import use_palette
+
+    use_palette()
     pb = d.problem
     contrib = effect_contribution(d, k)
     res0, res1 = d.fits[k].residual_blocks(pb), d.fits[k + 1].residual_blocks(pb)
@@ -205,5 +211,89 @@ def write_report(d: Diagnosis, out_dir, source: str = "") -> list[str]:
                                           for k, v in d.untested.items()] + [""]
     if d.notes:
         lines += ["## Notes", ""] + [f"- {md_text(n)}" for n in d.notes] + [""]
+    lines += calibration_section(d, source)
     (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
     return files + ["summary.md"]
+
+
+def calibration_section(d: Diagnosis, source: str = "") -> list[str]:
+    """The report's last section: the command that writes the final model's calibration
+    and the before/after of the quantity the user cares about (|g| error per static
+    position for accelerometer triads, the residual per segment (rotating cycles) in
+    noise units for every method)."""
+    from calib_cli.methods.fit_with import g_error_per_position
+
+    lines = ["## The calibration", ""]
+    cmd = d.fit_command(source or "RAW.h5", "CAL.h5")
+    if cmd:
+        lines += ["The calibration of the final model (DIAG.h5 holds it too; `calib diagnose "
+                  "--calibration CAL.h5` writes it as well):", "", f"    {md_text(cmd)}", ""]
+    else:
+        lines += ["No effect was added: the base model is the calibration (`calib fit "
+                  f"{md_text(d.method)}`).", ""]
+    pb = d.problem
+    base, final = d.fits[0], d.fits[-1]
+    g0 = g_error_per_position(pb, base.spec.model, base.params)
+    g1 = g_error_per_position(pb, final.spec.model, final.params)
+    counts = pb.units.get("accel") == "count"
+    if g0 and not counts:
+        mg = 1e3 / 9.80665
+        lines += ["|g| error per static position (mg), base model -> final model:", "",
+                  "| position | base | final |", "|---|---|---|"]
+        lines += [f"| {md_text(a[0])} | {a[2] * mg:.4f} | {b[2] * mg:.4f} |"
+                  for a, b in zip(g0, g1)]
+        r0 = float(np.sqrt(np.mean([a[2] ** 2 for a in g0])))
+        r1 = float(np.sqrt(np.mean([b[2] ** 2 for b in g1])))
+        lines += ["", f"RMS {r0 * mg:.4f} mg -> {r1 * mg:.4f} mg.", ""]
+    rows = d.by_segment()
+    lines += ["Residual RMS per segment (noise units; rotating segments are the cycles), base "
+              "model -> final model:", "", "| segment | kind | base | final |",
+              "|---|---|---|---|"]
+    lines += [f"| {md_text(r['segment'])} | {md_text(r['kind'])} | {r['rms_initial']:.2f} | "
+              f"{r['rms_final']:.2f} |" for r in rows]
+    return lines + [""]
+
+
+def write_gyro_report(d, out_dir, source: str = "") -> list[str]:
+    """summary.md of a gyro diagnosis (methods/diagnose_gyro.py): the steps, the
+    candidates per round, and the calibration with the turn-angle errors before
+    and after."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    j = d.to_json()
+    lines = [f"# calib diagnose: {md_text(source or 'recording')} (gyro)", "",
+             f"Base model: {', '.join(md_text(x) for x in d.base_model)}.", "",
+             f"Residual RMS (noise units): {d.residual_rms_initial:.3f} with the base model, "
+             f"{d.residual_rms_final:.3f} at the end, noise floor {d.noise_rms:.3f} "
+             f"({j['gap_left']:.2f}x).", ""]
+    if not d.steps:
+        lines += ["No candidate effect passed its threshold.", ""]
+    for k, st in enumerate(d.steps):
+        lines += [f"## Step {k + 1}: {md_text(st.with_arg)}", "", md_text(st.evidence) + ".", ""]
+    lines += ["## Candidates per round", ""]
+    for i, rnd in enumerate(d.rounds):
+        lines += [f"Round {i + 1}:", "", "| candidate | score | threshold | dof | p |",
+                  "|---|---|---|---|---|"]
+        lines += [f"| {md_text(r['candidate'])} | {r['score']:.1f} | {r['threshold']:.1f} | "
+                  f"{r['dof']} | {r['p_value']:.2g} |" for r in rnd]
+        lines.append("")
+    if d.untested:
+        lines += ["## Not tested", ""] + [f"- {md_text(k)}: {md_text(v)}"
+                                          for k, v in d.untested.items()] + [""]
+    if d.notes:
+        lines += ["## Notes", ""] + [f"- {md_text(n)}" for n in d.notes] + [""]
+    lines += ["## The calibration", ""]
+    cmd = d.fit_command(source or "RAW.h5", "CAL.h5")
+    lines += ([f"    {md_text(cmd)}", ""] if cmd else
+              ["No effect was added: `calib fit gyro` is the calibration.", ""])
+    te = j["turn_angle_error_deg"]
+    if te:
+        lines += ["Turn-angle error (integrated angle minus the plan's, deg), base model -> "
+                  "final model:", "", "| turn | base | final |", "|---|---|---|"]
+        lines += [f"| {md_text(r['turn'])} | {r['error_initial_deg']:.4f} | "
+                  f"{r['error_final_deg']:.4f} |" for r in te] + [""]
+    tr = j["transition_residual_rms_deg"]
+    if tr[0] is not None:
+        lines += [f"Transition residual RMS: {tr[0]:.4f} deg -> {tr[1]:.4f} deg.", ""]
+    (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
+    return ["summary.md"]

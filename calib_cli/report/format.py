@@ -146,3 +146,24 @@ def allan_display(unit: str) -> tuple[float, str, dict]:
                           "rate_random_walk": (UG, "ug/sqrt(s)")}
     tu = term_units(unit)
     return 1.0, unit, {k: (1.0, u) for k, u in tu.items()}
+
+
+CHECK_POSITION_HEADER = ["position", "axis up (tilt)", "|f| - g (ug)", "z",
+                         "w_up - W sin(lat) (deg/h)", "z"]
+
+
+def check_position_rows(cp: dict | None) -> list[list[str]]:
+    """Rows of stats.check_positions (the turntable fit's check positions) for a table:
+    CHECK_POSITION_HEADER's columns, text."""
+    def z(v):
+        return "-" if v is None else f"{v:+.2f}"
+
+    rows = []
+    for p in (cp or {}).get("positions", []):
+        rows.append([str(p["label"]), f"{p['vertical_axis']} ({p['axis_tilt_deg']:.1f} deg)",
+                     f"{p['g_error'] * UG:+.1f} +- {p['g_error_sigma'] * UG:.1f}",
+                     z(p["g_error_z"]),
+                     f"{p['earth_rate_up_error'] * DPH:+.3f} +- "
+                     f"{p['earth_rate_up_error_sigma'] * DPH:.3f}",
+                     z(p["earth_rate_up_error_z"])])
+    return rows

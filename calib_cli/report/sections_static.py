@@ -105,6 +105,9 @@ def static_sections(ctx: ReportContext):
             "for the vector fit, of |f| for the scalar fit. What to look for: scatter like "
             "the noise and no pattern; a residual that repeats with the sign of one axis "
             "suggests nonlinearity or scale asymmetry (try `calib diagnose`)."))
+    det = _detection_item(ctx)
+    if det is not None:
+        figs.append(det)
     rows = [[lab, f"{int(c)}", "-" if before is None or not np.isfinite(b) else f"{b:.6f}",
              f"{a:.6f}", f"{e * MG:+.4f}", f"{s * MG:.4f}"]
             for lab, c, b, a, e, s in zip(labels, col["samples"],
@@ -118,3 +121,60 @@ def static_sections(ctx: ReportContext):
     text = [f"{len(labels)} static positions, reference g = {g_ref:.6f} m/s^2."]
     return Section(f"Static accelerometer fit ({cal.method})", text=text, tables=[table],
                    figures=figs)
+
+
+DETECT_OPTIONS = {"--window": "window_s", "--threshold": "multiplier",
+                  "--min-static": "min_static_s"}
+
+
+def _detection_options(command: str) -> dict:
+    """The import's static-detection options, read back from the raw file's command line
+    (`calib import csv ... --window 2`); the defaults where it gave none."""
+    import shlex
+
+    opts = {"window_s": 1.0, "multiplier": 3.0, "min_static_s": 1.0}
+    try:
+        words = shlex.split(command or "")
+    except ValueError:
+        return opts
+    for i, w in enumerate(words[:-1]):
+        key, _, val = w.partition("=")
+        if key in DETECT_OPTIONS:
+            try:
+                v = float(val if val else words[i + 1])
+            except ValueError:
+                continue
+            if np.isfinite(v) and v > 0:
+                opts[DETECT_OPTIONS[key]] = v
+    return opts
+
+
+def _detection_item(ctx: ReportContext):
+    """The static-detection figure of `calib detect --plot` for the RAW record of the
+    report (as the import ran it), or None without RAW."""
+    rec = ctx.recording()
+    if rec is None or len(rec.time) < 10:
+        return None
+    from calib_cli.io.h5 import provenance
+    from calib_cli.methods.static_detect import detect_static
+    from calib_cli.report.figures import detection_figure
+
+    o = _detection_options(str(provenance(ctx.raw_path).get("command", "")))
+    try:
+        rep = detect_static(rec.time, rec.accel, rec.gyro, o["window_s"], o["multiplier"],
+                            o["min_static_s"])
+    except Exception:  # noqa: BLE001 - a record detection cannot read: no figure, a note
+        ctx.notes.append("No static-detection figure: the detector could not run on the "
+                         "record.")
+        return None
+    n_static = sum(1 for sg in rec.segments if sg.kind == "static")
+    return FigureItem(
+        "static-detection",
+        detection_figure(rec.time, rec.accel, rec.gyro, rep, "Static detection of the record"),
+        f"The record's signals with the static intervals the detector finds (green, numbered: "
+        f"{len(rep.intervals)}; the record has {n_static} static segments) at window "
+        f"{o['window_s']:g} s, threshold {o['multiplier']:g}x the noise floor, minimum "
+        f"{o['min_static_s']:g} s (the import's options), and the detector's statistic "
+        "against the threshold, as `calib detect --plot` draws it. What to look for: one "
+        "interval per plan position; a dip that stays above the threshold line, or is "
+        "shorter than the minimum, is a position detection missed.")

@@ -10,7 +10,7 @@ from matplotlib.figure import Figure
 from calib_cli.io.escape import mpl_text
 from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
 from calib_cli.report.figures import line_style
-from calib_cli.report.format import DPH, MG, value_text
+from calib_cli.report.format import CHECK_POSITION_HEADER, DPH, MG, check_position_rows, value_text
 
 BLOCK_S = 0.5  # residuals are shown as means over blocks of this length
 
@@ -26,14 +26,93 @@ def sigma_history_figure(res, title: str | None = None) -> Figure:
     for k, lab in enumerate(labels):
         ax.semilogy(t - (t[0] if len(t) else 0.0), sig[:, k] * 1e3, lw=1.0,
                     label=mpl_text(lab), **line_style(k))
-    ax.set_xlabel("time from the first cycle's start (s)")
+    # cycle boundaries: the history is sampled within the cycles only, so the transitions
+    # between them are the gaps of its time axis; each cycle named at the top
+    t0 = t[0] if len(t) else 0.0
+    names = list(res.stats.get("cycles") or [])
+    if len(t) > 2:
+        dt = np.diff(t)
+        cut = np.flatnonzero(dt > 2.2 * max(float(np.median(dt)), 1e-9)) + 1
+        starts = np.concatenate([[0], cut])
+        for k, i in enumerate(starts):
+            if k:
+                ax.axvline(t[i] - t0, color="0.55", lw=0.7, ls="-", zorder=0)
+            if len(starts) == len(names):
+                ax.annotate(mpl_text(names[k]), (t[i] - t0, 1.0),
+                            xycoords=("data", "axes fraction"), xytext=(2, 2),
+                            textcoords="offset points", fontsize=6, rotation=30,
+                            ha="left", va="bottom")
+    ax.set_xlabel("time from the first cycle's start (s); grey lines: cycle boundaries")
     ax.set_ylabel("1-sigma (mm)")
-    ax.set_title(title or "turntable fit: sigma history of lever arms and proof-mass offsets")
+    ax.set_title(title or "turntable fit: sigma history of lever arms and proof-mass offsets",
+                 pad=30 if names else 6)
     ax.grid(True, which="both", alpha=0.3)
     if labels:  # beside the axes, never over the data
         ax.legend(fontsize=6, ncol=1 + len(labels) // 16, loc="upper left",
                   bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     return fig
+
+
+def estimate_history_figure(res) -> Figure:
+    """The forward filter's running estimate of each lever-arm component and proof-mass
+    offset over time with its +-1-sigma band (the rough-stand paper's fig. 4), mm; the
+    final value (after all passes) as a short bar at the right. Lever arms and
+    proof-mass offsets in two panels."""
+    t = np.asarray(res.tables.get("sigma_history_time", []), float)
+    sig = np.asarray(res.tables.get("sigma_history", np.zeros((0, 0))), float)
+    est = np.asarray(res.tables.get("estimate_history", np.zeros((0, 0))), float)
+    labels = list(res.tables.get("sigma_history_labels", []))
+    t = t - (t[0] if len(t) else 0.0)
+    groups = [("lever arms", [k for k, lab in enumerate(labels) if lab.startswith("lever")]),
+              ("proof-mass offsets", [k for k, lab in enumerate(labels) if lab.startswith("p_")])]
+    groups = [g for g in groups if g[1]]
+    fig = Figure(figsize=(9, 2.6 + 2.4 * len(groups)), layout="constrained")
+    axs = np.atleast_1d(fig.subplots(max(len(groups), 1), 1, sharex=True))
+    final = {}
+    pm = res.params.get("proof_mass_offsets")
+    if pm is not None:  # p_ij, the labels' entries
+        pm = np.asarray(pm, float)
+        for lab in labels:
+            if lab.startswith("p_"):
+                final[lab] = pm["xyz".index(lab[2]), "xyz".index(lab[3])]
+    dx = 0.03 * (float(t[-1]) + 1.0) if len(t) else 1.0
+    for ax, (name, idx) in zip(axs, groups):
+        for n, k in enumerate(idx):
+            sty = line_style(n)
+            y, e = est[:, k] * 1e3, sig[:, k] * 1e3
+            # drawn from where the entry is determined (sigma below half its prior)
+            on = e < 0.5 * e[0] if len(e) else e > 0
+            y, e = np.where(on, y, np.nan), np.where(on, e, np.nan)
+            ax.plot(t, y, lw=1.0, label=mpl_text(labels[k]), **sty)
+            ax.fill_between(t, y - e, y + e, color=sty["color"], alpha=0.12, lw=0)
+            v = final.get(labels[k])
+            if v is not None and np.isfinite(v) and len(t):
+                ax.plot([t[-1], t[-1] + dx], [v * 1e3] * 2, lw=2.0, color=sty["color"])
+        # the bands start at the prior (tens of cm): scale to where the estimates settle
+        y_end = np.abs(est[-1, idx]) * 1e3 if len(est) else np.ones(1)
+        e_mid = float(np.nanmedian(sig[-1, idx])) * 1e3 if len(sig) else 0.0
+        span = max(float(np.nanmax(y_end)), 1.0) * 1.3 + 3 * e_mid
+        ax.set_ylim(-span, span)
+        ax.set_ylabel(f"{name} (mm)")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=6, ncol=1 + len(idx) // 16, loc="upper left",
+                  bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+    axs[0].set_title("turntable fit: running estimates with +-1-sigma bands (first filter "
+                     "pass); bars at the right: final values", fontsize=9)
+    axs[-1].set_xlabel("time from the first cycle's start (s)")
+    return fig
+
+
+def check_positions_table(st: dict) -> Table | None:
+    """stats.check_positions as a table (None without a check position)."""
+    cp = st.get("check_positions") or {}
+    rows = check_position_rows(cp)
+    if not rows:
+        return None
+    return Table("Check positions (static segments the fit did not use): |f| - g, and the "
+                 "corrected rate along the vertical minus the earth rate's vertical component, "
+                 "with 1-sigma (noise of the mean and the calibration's covariance); verdict "
+                 f"{cp.get('verdict')} (pass: every |z| < 3.3).", CHECK_POSITION_HEADER, rows)
 
 
 def sigma_history_plot(res, path, title: str | None = None) -> None:
@@ -182,6 +261,11 @@ def turntable_sections(ctx: ReportContext):
                             "table axis is fixed at 0).", ["cycle", "x", "y", "z"],
                             [[lab] + [f"{v * 1e3:+.2f} +- {e * 1e3:.2f}" for v, e in zip(r, q)]
                              for lab, r, q in zip(labels, s, sd)]))
+    cpt = check_positions_table(st)
+    if cpt is not None:
+        tables.append(cpt)
+    elif (st.get("check_positions") or {}).get("note"):
+        text.append("Check positions: " + st["check_positions"]["note"] + ".")
     figs = []
     if cal.tables.get("sigma_history_labels") is not None and len(cal.tables["sigma_history_labels"]):
         figs.append(FigureItem(
@@ -191,6 +275,18 @@ def turntable_sections(ctx: ReportContext):
             "What to look for: each curve drops when its cycle "
             "excites it (rotation about the orthogonal axis); a curve that stays high was not "
             "excited by the experiment."))
+        if cal.tables.get("estimate_history") is not None:
+            figs.append(FigureItem(
+                "estimate-history", estimate_history_figure(cal),
+                "Running estimate of each lever-arm component and proof-mass offset over the "
+                "record (the filter's first pass, mm) with its +-1-sigma band, as in the "
+                "rough-stand paper's fig. 4; a short bar at the right marks the final value. "
+                "Each curve starts where its entry is determined (sigma below half its prior). What "
+                "to look for: each estimate settles when its cycle excites it and stays inside "
+                "its band afterwards; a later jump beyond the band points to a model error in "
+                "that cycle. The final values come from the later passes, linearised about "
+                "the first pass's result, and may differ from the first pass's end by more "
+                "than its band on a MEMS unit."))
     res = cycle_residuals(ctx) if ctx.raw_kind in ("raw", "corrected") else []
     if res:
         figs.append(FigureItem(

@@ -170,8 +170,12 @@ def _random_rotation(rng) -> Rotation:
     return Rotation.from_quat(rng.standard_normal(4))
 
 
-def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording:
-    """Raw samples of the plan's experiment from a truth model. Pure: no I/O."""
+def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0,
+             progress=None) -> Recording:
+    """Raw samples of the plan's experiment from a truth model. Pure: no I/O.
+
+    progress: optional callback ``progress(done, total)``: once per plan segment
+    of the timeline, then after the forward model and after the noise."""
     rng = np.random.default_rng(seed)
     layout = plan_layout(plan)
     nav = plan.kind == "align" and plan.extra.get("sim_grade", "navigation") != "mems"
@@ -193,13 +197,13 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
                          plan.path)
     fs = plan.sample_rate
     if kind == "instant":
-        kin, segments, true_att, angle, rate = _timeline(plan, fs, rng)
+        kin, segments, true_att, angle, rate = _timeline(plan, fs, rng, progress)
         out = truth.model.predict(truth.params, kin)
     else:
         # interval-mean: each sample is the mean over [t_k - 1/fs, t_k], from the forward
         # model evaluated at n_sub points per period (trapezoid rule), stamped at t_k
         n_sub = int(_num_key(plan.extra, "sim_oversample", 16, "plan", positive=True))
-        kin_hi, seg_hi, true_att, angle_hi, rate_hi = _timeline(plan, fs * n_sub, rng)
+        kin_hi, seg_hi, true_att, angle_hi, rate_hi = _timeline(plan, fs * n_sub, rng, progress)
         out_hi = truth.model.predict(truth.params, kin_hi)
         stamps = np.arange(n_sub, len(kin_hi), n_sub)
         out = {k: _interval_means(v, n_sub, len(stamps)) for k, v in out_hi.items()
@@ -210,6 +214,9 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
         segments = [replace(sg, start=-(-sg.start // n_sub) - 1, stop=-(-sg.stop // n_sub) - 1)
                     for sg in seg_hi]
         segments = [sg if sg.start >= 0 else replace(sg, start=0) for sg in segments]
+    n_steps = len(plan.segments) + 2
+    if progress is not None:
+        progress(n_steps - 1, n_steps)
     # every noise term (white, random walk, flicker) is an effect with a seeded stream:
     # the emulator draws the same numbers for the same truth and seed (acquire/emulator.py)
     noise_model, noise_params = truth.noise_model()
@@ -220,6 +227,8 @@ def simulate(plan: Plan, truth: Truth | None = None, seed: int = 0) -> Recording
         if truth.quantize:
             y = np.round(y)
         noisy[s] = y
+    if progress is not None:
+        progress(n_steps, n_steps)
     units = {"accel": "count", "gyro": "count"} if truth.counts else {"accel": "m/s^2",
                                                                        "gyro": "rad/s"}
     return Recording(
@@ -240,7 +249,7 @@ def _interval_means(y: np.ndarray, n_sub: int, n_out: int) -> np.ndarray:
     return (c[ends] - c[ends - n_sub]) / n_sub
 
 
-def _timeline(plan: Plan, fs: float, rng):
+def _timeline(plan: Plan, fs: float, rng, progress=None):
     """The plan's motion sampled at fs: (Kinematics, segments, true start attitudes,
     table angle, table rate) -- the last two None without rotating segments."""
     site = plan.site
@@ -275,6 +284,8 @@ def _timeline(plan: Plan, fs: float, rng):
             expanded.append((i, seg, plan.visit_labels[i]))
 
     for plan_index, seg, label in expanded:
+        if progress is not None:
+            progress(plan_index, len(plan.segments) + 2)
         kind = seg.kind
         # where this segment starts
         if "sim_attitude_deg" in seg.extra:  # the true attitude (a fixture error, or unknown)
