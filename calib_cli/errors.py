@@ -6,6 +6,29 @@ messages, so library users get ordinary exceptions.
 
 from __future__ import annotations
 
+import re
+
+# numpy scalars formatted with repr() read "np.float64(1.98)": a message shows numbers
+_NP_REPR = re.compile(r"np\.(?:float|int|uint|complex)\d*\(([^()]*)\)|np\.(?:True|False)_")
+
+
+def num(x) -> str:
+    """A number as a message shows it: ``1.98``, ``1e+20``, ``-3``, ``nan``
+    (never ``np.float64(1.98)``, never an overflowed integer)."""
+    try:
+        f = float(x)
+    except (TypeError, ValueError):
+        return str(x)
+    if f.is_integer() and abs(f) < 1e15:
+        return str(int(f))
+    return f"{f:.10g}"
+
+
+def plain_numbers(text: str) -> str:
+    """Strip numpy's scalar reprs from a message (a safety net; sites use num())."""
+    return _NP_REPR.sub(lambda m: m.group(1) if m.group(1) is not None
+                        else m.group(0)[3:-1], text)
+
 
 class CalibError(Exception):
     """Base class. ``exit_code`` is the contract's exit status."""
@@ -19,13 +42,19 @@ class CalibError(Exception):
 
     def line(self) -> str:
         """The one line printed on stderr."""
-        return f"{self.path}: {self.message}" if self.path else self.message
+        msg = plain_numbers(self.message)
+        return f"{self.path}: {msg}" if self.path else msg
 
 
 class InputError(CalibError):
     """Bad or unreadable input (exit 3). Always names the file where known."""
 
     exit_code = 3
+
+
+class DamagedInput(InputError):
+    """Damaged content (checksum mismatch, NaN/inf samples, broken HDF5
+    structure): exit 3 wherever it is found, never turned into a note."""
 
 
 class EstimationError(CalibError):

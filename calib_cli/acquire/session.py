@@ -221,8 +221,48 @@ class Session:
         return (float(rows[:, 2:2 + n].std(axis=0).max()),
                 float(rows[:, 2 + n:2 + 2 * n].std(axis=0).max()))
 
+    def measure_noise(self, seconds: float, timeout_s: float = 30.0) -> tuple[float, float]:
+        """Stillness limits measured at the start: record ``seconds`` of data
+        (journalled, outside any segment) and return the largest channel std
+        of accel and gyro in the quietest ``window_s`` stretch of it (a unit
+        picked up for part of the time does not raise the figure)."""
+        rows, got = [], 0
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end:
+            r = self.pump()
+            if len(r):
+                rows.append(r)
+                got += len(r)
+                if rows[-1][-1, 0] - rows[0][0, 0] >= seconds:
+                    break
+        if not rows:
+            return float("nan"), float("nan")
+        x = np.concatenate(rows)
+        n = self.nsens
+        m = max(int(round(self.cfg.window_s * self.prof.rate_hz)), 5)
+        best = (float("inf"), float("inf"))
+        for k in range(0, max(len(x) - m, 0) + 1, max(m // 2, 1)):
+            w = x[k:k + m]
+            if len(w) < 5:
+                continue
+            a = float(w[:, 2:2 + n].std(axis=0).max())
+            g = float(w[:, 2 + n:2 + 2 * n].std(axis=0).max())
+            if a + g * 9.81 < best[0] + best[1] * 9.81:
+                best = (a, g)
+        self.start_noise = best if np.isfinite(best[0]) else (float("nan"), float("nan"))
+        return self.start_noise
+
     def _last_time(self) -> float:
         return self.recent[-1][-1, 0] if self.recent else -np.inf
+
+    def _limits_source(self) -> str:
+        sn = getattr(self, "start_noise", None)
+        why = getattr(self, "limits_from", "")
+        out = f" (limits {why})" if why else ""
+        if sn is not None and np.isfinite(sn[0]):
+            out += (f"; at the start the quietest {self.cfg.window_s:g} s measured accel "
+                    f"{sn[0]:.4g} m/s^2, gyro {sn[1]:.4g} rad/s")
+        return out
 
     def wait_settled(self, check_still: bool = True) -> None:
         """Table status first, then stillness of the IMU data."""
@@ -248,10 +288,11 @@ class Session:
                 a_std, g_std = self._measured_std()
                 raise InputError(
                     f"the unit did not keep still within {self.cfg.timeout_s:g} s: measured "
-                    f"std accel {a_std:.4g} m/s^2 (limit {self.cfg.accel_std:g}, "
-                    f"--accel-still), gyro {g_std:.4g} rad/s (limit {self.cfg.gyro_std:g}, "
-                    f"--gyro-still) over {self.cfg.window_s:g} s; if the unit was still, its "
-                    "noise is above the limits: raise them (or state [noise] in the profile)")
+                    f"std accel {a_std:.4g} m/s^2 (limit {self.cfg.accel_std:.3g}, "
+                    f"--accel-still), gyro {g_std:.4g} rad/s (limit {self.cfg.gyro_std:.3g}, "
+                    f"--gyro-still) over {self.cfg.window_s:g} s{self._limits_source()}; if the "
+                    "unit was still, its noise is above the limits: raise them (or state "
+                    "[noise] in the profile)")
 
     def record_segment(self, index: int, duration: float | None, schedule=None) -> None:
         """Tag the next ``duration`` seconds of samples with plan index ``index``

@@ -103,3 +103,52 @@ def inside(out_dir: str, key: str, name: str) -> str:
     if not target.is_relative_to(root) or target == root:
         raise InputError(f"output path {key}/{name} would leave the output directory", out_dir)
     return str(target)
+
+
+def vanished(inputs, out_dir: str, found: list[BatchInput]) -> list[BatchInput]:
+    """Inputs of an earlier run under a directory given now that are gone
+    (deleted or moved): found through the ``batch_input``/``batch_key``
+    attributes of the outputs under OUT. They are run like a missing file
+    (they fail, "no such file"; their old outputs are left alone), so a
+    deleted recording never passes silently (issue 15)."""
+    import os
+
+    dirs = [Path(i).resolve() for i in inputs if Path(i).is_dir()]
+    root = Path(out_dir)
+    if not dirs or not root.is_dir():
+        return []
+    known = {b.key for b in found}
+    out, seen = [], set()
+    for base, subdirs, files in os.walk(root):
+        subdirs[:] = [d for d in subdirs if not d.startswith(".")]
+        if Path(base).relative_to(root).as_posix() in known:
+            continue  # an input found now: its outputs are not opened (large archives)
+        for f in sorted(files):
+            if not f.endswith(".h5") or f.startswith("."):
+                continue
+            src, key = _attrs(os.path.join(base, f), ("batch_input", "batch_key"))
+            if not src or not key or key in known or key in seen:
+                continue
+            sp = Path(src)
+            try:
+                full = sp.resolve()
+            except (OSError, RuntimeError):
+                continue
+            hit = next((d for d in dirs if full.is_relative_to(d)), None)
+            if hit is None or sp.exists():
+                continue
+            seen.add(key)
+            out.append(BatchInput(str(src), full.relative_to(hit).as_posix(), key))
+    return sorted(out, key=lambda b: b.key)
+
+
+def _attrs(path: str, names) -> list:
+    """String root attributes of one of batch's own outputs ('' when absent or unreadable)."""
+    try:
+        import h5py
+
+        with h5py.File(path, "r") as h5:
+            vals = [h5.attrs.get(n, "") for n in names]
+    except Exception:  # noqa: BLE001 - not ours or damaged: not an input of ours
+        return ["" for _ in names]
+    return [v.decode(errors="replace") if isinstance(v, bytes) else str(v) for v in vals]

@@ -136,7 +136,7 @@ def batch_cmd(pipeline, inputs, out, workers, force, as_json, log_path, tol_path
 
     Exit 0 all done, 1 some inputs failed, 5 a unit is out of tolerance.
     """
-    from calib_cli.batch.paths import discover
+    from calib_cli.batch.paths import discover, vanished
     from calib_cli.batch.pipeline import load_pipeline
     from calib_cli.batch.runner import output_lock, run_tasks
     from calib_cli.batch.tolerance import load_tolerances
@@ -153,6 +153,7 @@ def batch_cmd(pipeline, inputs, out, workers, force, as_json, log_path, tol_path
     log = _logger(log_path)
     with output_lock(out):
         found = discover(inputs, pipe.globs, exclude=out)
+        found += vanished(inputs, out, found)  # deleted from a directory: reported failed
         if not found:
             raise InputError(f"no input files (globs {', '.join(pipe.globs)})",
                              " ".join(inputs))

@@ -100,10 +100,10 @@ def _raise_interrupt(*_):
               help="Stillness window, s.")
 @click.option("--accel-still", type=click.FloatRange(0, min_open=True),
               help="Stillness: max accel std, m/s^2 (default: 5x the profile's [noise] "
-              "accel_std, at least 0.05).")
+              "accel_std, else 5x the std measured in the first second; at least 0.05).")
 @click.option("--gyro-still", type=click.FloatRange(0, min_open=True),
               help="Stillness: max gyro std, rad/s (default: 5x the profile's [noise] "
-              "gyro_std, at least 0.01).")
+              "gyro_std, else 5x the std measured in the first second; at least 0.01).")
 @click.option("--settle-timeout", default=120.0, show_default=True, type=float,
               help="Give up when the unit has not settled after S seconds.")
 @click.option("--segment-duration", default=10.0, show_default=True, type=float,
@@ -233,10 +233,25 @@ def _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
         noise = tomllib.loads(prof.raw_text or "").get("noise", {})
     except (tomllib.TOMLDecodeError, RecursionError):
         noise = {}
-    if accel_still is None:  # from the unit's profile noise where it states it
+    # stillness limits: the options; else the profile's [noise]; else measured at the start
+    measure = {}
+    limits_from = []
+    if accel_still is None:
+        if "accel_std" in noise:
+            limits_from.append("accel: 5x the profile's [noise] accel_std")
+        else:
+            measure["accel"] = True
         accel_still = max(0.05, 5.0 * float(noise.get("accel_std", 0.0)))
+    else:
+        limits_from.append("accel: --accel-still")
     if gyro_still is None:
+        if "gyro_std" in noise:
+            limits_from.append("gyro: 5x the profile's [noise] gyro_std")
+        else:
+            measure["gyro"] = True
         gyro_still = max(0.01, 5.0 * float(noise.get("gyro_std", 0.0)))
+    else:
+        limits_from.append("gyro: --gyro-still")
     cfg = SettleConfig(window_s=settle_window, accel_std=accel_still, gyro_std=gyro_still,
                        timeout_s=settle_timeout, default_duration_s=segment_duration,
                        reconnect_s=reconnect_timeout)
@@ -253,6 +268,10 @@ def _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
     interrupted = False
     try:
         session.start()
+        if plan_path and measure:
+            _measure_limits(session, measure, limits_from)
+        elif limits_from:
+            session.limits_from = "; ".join(limits_from)
         if plan_path:
             session.run_plan()
         else:
@@ -309,3 +328,28 @@ def _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
         err_console.print("calib: interrupted" + ("" if session.finished else
                                                   " before the plan was finished"), markup=False)
     return 130 if interrupted and not session.finished else 0
+
+
+START_NOISE_S = 1.0  # s of data measured at the start (at least 2 stillness windows)
+START_NOISE_K = 5.0  # limit = K x the quietest measured std (as from a profile's [noise])
+
+
+def _measure_limits(session, measure: dict, limits_from: list) -> None:
+    """Stillness limits measured at the start where neither an option nor the
+    profile's [noise] gives them: never below the defaults (0.05 m/s^2,
+    0.01 rad/s), raised to 5x the std of the quietest stillness window of
+    the first second (a unit whose own noise is above the defaults)."""
+    import numpy as np
+
+    cfg = session.cfg
+    a, g = session.measure_noise(max(START_NOISE_S, 2 * cfg.window_s))
+    if "accel" in measure and np.isfinite(a):
+        cfg.accel_std = max(cfg.accel_std, START_NOISE_K * a)
+        limits_from.append(f"accel: max(0.05, 5x {a:.3g}) measured at the start")
+    if "gyro" in measure and np.isfinite(g):
+        cfg.gyro_std = max(cfg.gyro_std, START_NOISE_K * g)
+        limits_from.append(f"gyro: max(0.01, 5x {g:.3g}) measured at the start")
+    session.limits_from = "; ".join(limits_from)
+    info(f"stillness limits: accel std < {cfg.accel_std:.3g} m/s^2, gyro std < "
+         f"{cfg.gyro_std:.3g} rad/s ({session.limits_from}; --accel-still/--gyro-still "
+         "set them)")

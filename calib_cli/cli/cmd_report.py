@@ -8,7 +8,7 @@ import click
 
 from calib_cli.cli.common import info
 from calib_cli.cli.main import cli
-from calib_cli.errors import CalibError, InputError
+from calib_cli.errors import CalibError, DamagedInput, InputError
 from calib_cli.io.h5 import file_kind, provenance, read_calibration
 
 MIN_ALLAN_S = 60.0  # a record shorter than this is not a free-running noise record
@@ -25,6 +25,8 @@ def _allan_for(raw: str, kind: str):
     try:
         res = compute_allan(raw, hint="`calib allan RAW --segment LABEL --out ALLAN.h5`, then "
                             "`calib report CAL ALLAN.h5`")
+    except DamagedInput:
+        raise  # damaged samples are exit 3, not a note in a report (issue 15)
     except CalibError as exc:
         return None, f"No Allan deviation of {Path(raw).name}: {exc.message}"
     if res.duration < MIN_ALLAN_S:

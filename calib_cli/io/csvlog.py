@@ -15,13 +15,25 @@ from pathlib import Path
 import numpy as np
 
 from calib_cli.data import Recording, Segment
-from calib_cli.errors import InputError
+from calib_cli.errors import InputError, num
 from calib_cli.io.plan import Plan, PlanSegment
 from calib_cli.methods.cycle_detect import CycleDetection, detect_cycles, trim_intervals
 from calib_cli.methods.static_detect import DetectionReport, detect_static
 from calib_cli.model.effects import Layout
 
 OPTIONAL = ("temp", "table_angle", "table_rate")
+SEG_MAX = 2**31  # a segment index beyond this is no index (and would overflow an int)
+TIME_MAX = 1e12  # s (31,700 years): a time beyond this is no recording's (or not in seconds)
+
+
+def check_time_range(t, path, unit_hint: str = "") -> None:
+    """Exit 3 on a time value no recording has (|t| > TIME_MAX s): at 1e20 s
+    the float steps are 16384 s and every rate and duration would be garbage."""
+    t = np.asarray(t, dtype=float)
+    if len(t) and not np.all(np.abs(t) <= TIME_MAX):
+        v = t[np.flatnonzero(~(np.abs(t) <= TIME_MAX))[0]]
+        raise InputError(f"time value {num(v)} s is beyond any recording (|t| <= "
+                         f"{TIME_MAX:g} s){unit_hint}", path)
 
 
 def _read_table(path: str):
@@ -69,7 +81,7 @@ def _read_table(path: str):
     bad = ~np.isfinite(data)
     if bad.any():
         r, c = np.argwhere(bad)[0]
-        raise InputError(f"line {rows[r][0]}, column {header[c]!r}: {data[r, c]} (NaN or "
+        raise InputError(f"line {rows[r][0]}, column {header[c]!r}: {num(data[r, c])} (NaN or "
                          "infinite values are not allowed)", path)
     return header, data
 
@@ -92,16 +104,21 @@ def read_columns(path: str, layout: Layout):
     if gmiss and len(gmiss) < len(gn):
         raise InputError(f"missing column{'s' * (len(gmiss) > 1)} {', '.join(gmiss)}", path)
     t = col["time"]
+    check_time_range(t, path)
     if len(t) > 1 and np.any(np.diff(t) <= 0):
         i = int(np.flatnonzero(np.diff(t) <= 0)[0])
         raise InputError(f"time is not increasing at data row {i + 2} "
-                         f"({t[i]!r} then {t[i + 1]!r})", path)
+                         f"({num(t[i])} then {num(t[i + 1])})", path)
     accel = np.column_stack([col[c] for c in an])
     gyro = None if gmiss else np.column_stack([col[c] for c in gn])
     opt = {k: col.get(k) for k in OPTIONAL}
     seg = col.get("segment")
     if seg is not None and np.any(seg != np.round(seg)):
         raise InputError("column 'segment' must hold integers", path)
+    if seg is not None and np.any(np.abs(seg) > SEG_MAX):
+        v = seg[np.flatnonzero(np.abs(seg) > SEG_MAX)[0]]
+        raise InputError(f"segment index {num(v)} out of range: segment indices are 0..N-1 "
+                         "for the plan's N segments (-1 between segments)", path)
     return t, accel, gyro, opt, None if seg is None else seg.astype(int)
 
 
@@ -120,7 +137,7 @@ def segments_from_column(seg: np.ndarray, plan: Plan, path: str) -> list[Segment
     n_plan = len(plan.segments)
     bad = (seg < -1) | (seg >= n_plan)
     if bad.any():
-        raise InputError(f"segment index {int(seg[bad][0])} out of range: the plan has "
+        raise InputError(f"segment index {num(seg[bad][0])} out of range: the plan has "
                          f"{n_plan} segments (use -1 between segments)", path)
     out, counts = [], {}
     d = np.flatnonzero(np.diff(seg)) + 1
@@ -572,7 +589,7 @@ def _text_chunks(path, header, cols_or_error, hasher=None):
         bad = ~np.isfinite(data)
         if bad.any() and nonfinite is None:
             r, c = np.argwhere(bad)[0]
-            nonfinite = (f"line {rows[r][0]}, column {header[c]!r}: {data[r, c]} (NaN or "
+            nonfinite = (f"line {rows[r][0]}, column {header[c]!r}: {num(data[r, c])} (NaN or "
                          "infinite values are not allowed)")
         if nonfinite is None and not isinstance(cols_or_error, InputError):
             ti, si = cols_or_error[0], cols_or_error[4]
@@ -582,7 +599,7 @@ def _text_chunks(path, header, cols_or_error, hasher=None):
                 i = int(np.flatnonzero(np.diff(tt) <= 0)[0])
                 gi = n_rows + i - (t_last is not None)
                 time_err = (f"time is not increasing at data row {gi + 2} "
-                            f"({tt[i]!r} then {tt[i + 1]!r})")
+                            f"({num(tt[i])} then {num(tt[i + 1])})")
             t_last = t[-1]
             if si is not None and seg_err is None and np.any(data[:, si] != np.round(data[:, si])):
                 seg_err = "column 'segment' must hold integers"

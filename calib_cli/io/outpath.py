@@ -10,6 +10,12 @@
   ``.NAME.calib-PID.tmpdir``) beside the output; a later run writing the same
   output removes those whose process no longer runs (a killed run's leftovers).
 - Written files follow the umask (``mkstemp`` alone would make them 0600).
+- Two commands writing the same output at once: the second fails at once
+  with exit 3 naming the holder (its process id and command line), through
+  an flock on ``.NAME.calib-lock`` beside the output, held while writing and
+  removed after (the kernel drops the lock of a killed run; its file is
+  reused and removed by the next run). Never a mixed file either way: each
+  run writes its own temp file and renames it whole.
 """
 
 from __future__ import annotations
@@ -138,8 +144,100 @@ def check_output(out, inputs=(), directory: bool = False) -> None:
         raise OutputError(f"cannot write here: {exc.strerror or exc}", str(out)) from None
 
 
+def _lock_name(path: Path) -> Path:
+    parent = path.parent if str(path.parent) else Path(".")
+    return parent / f".{path.name}.calib-lock"
+
+
+_held: dict[str, int] = {}  # lock files this process holds (re-entrant per output)
+
+
+@contextlib.contextmanager
+def output_lock(path):
+    """Hold the output lock of ``path`` (see the module docstring); exit 3
+    naming the holder when another process holds it."""
+    import fcntl
+    import sys
+
+    path = Path(path)
+    lock = _lock_name(path)
+    key = os.path.abspath(lock)
+    if key in _held:  # this process writes the same output again (nested): already held
+        _held[key] += 1
+        try:
+            yield
+        finally:
+            _held[key] -= 1
+        return
+    for _ in range(20):
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise OutputError(f"cannot write here: {exc.strerror or exc}", str(path)) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            try:
+                holder = os.pread(fd, 300, 0).decode(errors="replace").strip()
+            except OSError:
+                holder = ""
+            os.close(fd)
+            holder = " ".join(holder.split()) or "pid ?"
+            raise InputError(f"another command is writing this output ({holder}); wait for "
+                             "it to end or choose another --out", str(path)) from None
+        # the holder before us may have removed the file after we opened it: retry on
+        # the file now at that path (else two runs would each hold a lock of their own)
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(lock))
+        except OSError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    else:  # pragma: no cover - 20 removals in a row
+        raise InputError("the output lock keeps changing; is another command writing it?",
+                         str(path))
+    try:
+        cmd = " ".join(os.path.basename(a) if i == 0 else a for i, a in enumerate(sys.argv))
+        os.ftruncate(fd, 0)
+        os.write(fd, f"pid {os.getpid()}: {cmd[:200]}\n".encode(errors="replace"))
+    except OSError:
+        pass
+    _held[key] = 1
+    try:
+        yield
+    finally:
+        del _held[key]
+        with contextlib.suppress(OSError):
+            os.unlink(lock)
+        os.close(fd)
+
+
+def _write_error(exc: OSError, path) -> None:
+    """An OS error while writing an output: exit 2 naming it (a full disk says so)."""
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT) or "No space" in str(exc):
+        raise OutputError("disk full while writing; nothing was left behind",
+                          str(path)) from None
+    if exc.errno in (errno.EACCES, errno.EROFS, errno.EPERM, errno.EFBIG):
+        raise OutputError(f"cannot write: {exc.strerror}", str(path)) from None
+    raise exc
+
+
 @contextlib.contextmanager
 def atomic_file(path):
+    """``_atomic_file`` under the output lock."""
+    path = Path(path)
+    if path.is_dir():
+        raise InputError("is a directory; give a file name for the output", str(path))
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise OutputError(f"cannot write: the directory {parent} does not exist", str(path))
+    with output_lock(path), _atomic_file(path) as tmp:
+        yield tmp
+
+
+@contextlib.contextmanager
+def _atomic_file(path):
     """A temporary path beside ``path``, renamed onto it on success and
     removed on any failure; the file follows the umask. OS errors while
     writing are exit 2 naming the output (a full disk says so)."""
@@ -163,12 +261,7 @@ def atomic_file(path):
     except OSError as exc:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
-        if exc.errno == errno.ENOSPC or "No space" in str(exc):
-            raise OutputError("disk full while writing; nothing was left behind",
-                              str(path)) from None
-        if exc.errno in (errno.EACCES, errno.EROFS, errno.EPERM, errno.EDQUOT):
-            raise OutputError(f"cannot write: {exc.strerror}", str(path)) from None
-        raise
+        _write_error(exc, path)
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
@@ -177,6 +270,19 @@ def atomic_file(path):
 
 @contextlib.contextmanager
 def atomic_dir(path):
+    """``_atomic_dir`` under the output lock."""
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    if path.exists() and not path.is_dir():
+        raise InputError("exists and is not a directory", str(path))
+    if not parent.is_dir():
+        raise OutputError(f"cannot write: the directory {parent} does not exist", str(path))
+    with output_lock(path), _atomic_dir(path) as tmp:
+        yield tmp
+
+
+@contextlib.contextmanager
+def _atomic_dir(path):
     """A temporary directory beside ``path`` that replaces ``path`` whole on
     success (an older report's files do not survive), removed on failure."""
     path = Path(path)
@@ -201,6 +307,9 @@ def atomic_dir(path):
         os.replace(tmp, path)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        _write_error(exc, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

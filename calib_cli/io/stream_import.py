@@ -301,6 +301,7 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
 
 def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_static_s,
                    accel_units, gyro_units, hashes, counters, check, sample_kind):
+    from calib_cli.io.csvlog import check_time_range
     from calib_cli.io.textlog import convert_units
 
     layout = plan_layout(plan)
@@ -318,6 +319,7 @@ def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_st
                 a, g = ch.accel, ch.gyro  # SI already: no copy
             else:
                 a, g, _ = convert_units(ch.accel, ch.gyro, accel_units, gyro_units, path)
+            check_time_range(ch.time, path)  # 1e20 s: one line, exit 3 (issue 15)
             sink.append("time", ch.time)
             sink.append("accel", a)
             if runs is None and ch.segment is None:

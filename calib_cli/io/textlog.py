@@ -17,8 +17,13 @@ from pathlib import Path
 import numpy as np
 
 from calib_cli.data import Recording
-from calib_cli.errors import InputError
-from calib_cli.io.csvlog import plan_cycles, segments_from_column, segments_from_detection
+from calib_cli.errors import InputError, num
+from calib_cli.io.csvlog import (
+    check_time_range,
+    plan_cycles,
+    segments_from_column,
+    segments_from_detection,
+)
 from calib_cli.io.plan import Plan
 from calib_cli.methods.static_stream import detect_static_arrays
 from calib_cli.model.effects import Layout
@@ -360,8 +365,8 @@ def import_text(acc_path, plan: Plan, gyro_path=None, columns: str | None = None
             bad = np.flatnonzero(np.abs(gt - t) > tol)
             if len(bad):
                 i = int(bad[0])
-                raise InputError(f"line {glines[i]}: time {gt[i]!r} differs from the "
-                                 f"accelerometer file's {t[i]!r}: the files must share "
+                raise InputError(f"line {glines[i]}: time {num(gt[i])} differs from the "
+                                 f"accelerometer file's {num(t[i])}: the files must share "
                                  "timestamps", gyro_path)
     # time in seconds
     scale = TIME_UNITS[time_unit]
@@ -372,6 +377,7 @@ def import_text(acc_path, plan: Plan, gyro_path=None, columns: str | None = None
         t = (np.arange(n, dtype=float) if t is None else t) / rate
     else:
         t = t * scale
+    check_time_range(t, acc_path, "; give the clock's unit with --time-unit (s, ms, us, ns)")
     if n > 1 and np.any(np.diff(t) <= 0):
         if sort:
             order = np.argsort(t, kind="stable")
@@ -383,8 +389,8 @@ def import_text(acc_path, plan: Plan, gyro_path=None, columns: str | None = None
         if np.any(np.diff(t) <= 0):
             i = int(np.flatnonzero(np.diff(t) <= 0)[0])
             hint = "" if sort else " (--sort orders the rows by time)"
-            raise InputError(f"time is not increasing at line {lines[i + 1]} ({t[i]!r} then "
-                             f"{t[i + 1]!r}){hint}", acc_path)
+            raise InputError(f"time is not increasing at line {lines[i + 1]} ({num(t[i])} then "
+                             f"{num(t[i + 1])}){hint}", acc_path)
     accel, gyro, units = convert_units(accel, gyro, accel_units, gyro_units, acc_path)
 
     if segments_json is not None:

@@ -35,7 +35,7 @@ import os
 import h5py
 import numpy as np
 
-from calib_cli.errors import InputError
+from calib_cli.errors import DamagedInput, InputError
 
 _SLACK = 1 << 20
 MAX_COND = 1e10
@@ -87,7 +87,7 @@ def check_declared_sizes(h5: h5py.File, path: str) -> None:
     try:
         h5.visititems(visit)
     except (RuntimeError, OSError, KeyError, ValueError):
-        raise InputError("damaged HDF5 structure", path) from None
+        raise DamagedInput("damaged HDF5 structure", path) from None
     if bad:
         name, shape, nbytes = bad[0]
         raise InputError(f"dataset /{name} declares {shape} ({nbytes / 1e9:.3g} GB), far more "
@@ -104,7 +104,7 @@ def load(ds, path: str) -> np.ndarray:
         what = ("checksum mismatch (Fletcher-32): the file was altered or damaged"
                 if "letcher" in msg or "checksum" in msg or "filter" in msg
                 else "unreadable data")
-        raise InputError(f"damaged data in {ds.name}: {what}", path) from None
+        raise DamagedInput(f"damaged data in {ds.name}: {what}", path) from None
 
 
 def check_time(time, path: str, name: str = "/samples/time") -> None:
@@ -115,7 +115,7 @@ def check_time(time, path: str, name: str = "/samples/time") -> None:
         raise InputError(f"{name} is not numeric", path)
     if t.size and not np.all(np.isfinite(t)):
         i = int(np.flatnonzero(~np.isfinite(t))[0])
-        raise InputError(f"{name} holds a non-finite value at sample {i}", path)
+        raise DamagedInput(f"{name} holds a non-finite value at sample {i}", path)
     if t.size > 1:
         d = np.diff(t)
         if not np.all(d >= 0):
@@ -133,7 +133,7 @@ def check_finite(arr, path: str, name: str, offset: int = 0) -> None:
         raise InputError(f"{name} is not numeric", path)
     if a.size and a.dtype.kind == "f" and not np.all(np.isfinite(a)):
         i = int(np.flatnonzero(~np.all(np.isfinite(a.reshape(len(a), -1)), axis=1))[0])
-        raise InputError(f"{name} holds a NaN or infinite value at sample {offset + i}; "
+        raise DamagedInput(f"{name} holds a NaN or infinite value at sample {offset + i}; "
                          "repair or re-import the recording", path)
 
 
@@ -192,7 +192,7 @@ def check_recording(rec, path: str) -> None:
             if a.shape != (n,):
                 raise InputError(f"/samples/{name} has shape {a.shape}, expected ({n},)", path)
             if np.any(np.isinf(a)):
-                raise InputError(f"/samples/{name} holds an infinite value", path)
+                raise DamagedInput(f"/samples/{name} holds an infinite value", path)
     for i, s in enumerate(rec.segments):
         if not (0 <= s.start <= s.stop <= n):
             raise InputError(f"segment {i} ({s.label!r}) points outside the samples "

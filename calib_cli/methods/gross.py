@@ -30,6 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from calib_cli.errors import EstimationError
+from calib_cli.model.earth import EARTH_RATE
 
 Z_ABS = 30.0
 Z_REL = 10.0
@@ -50,7 +51,8 @@ def candidates(z, big) -> list[int]:
     return [int(i) for i in np.argsort(-z) if z[i] > Z_ABS and big[i]]
 
 
-def screen(z, big, labels, refit_without, what="position", describe=None) -> None:
+def screen(z, big, labels, refit_without, what="position", describe=None,
+           cause="the plan's attitude_deg is wrong") -> None:
     """Raise EstimationError (exit 4) when a position is a gross error.
 
     ``refit_without(k)`` returns (z, big) of the remaining positions of a
@@ -77,8 +79,7 @@ def screen(z, big, labels, refit_without, what="position", describe=None) -> Non
         raise EstimationError(
             f"gross error at {what} {k + 1} ({labels[k]!r}): its residual is {z[k]:.0f} times "
             f"its noise{extra}; a refit without it explains the other {what}s. The unit was "
-            f"placed wrong there or the plan's attitude_deg is wrong: re-record that {what} "
-            "or correct the plan")
+            f"placed wrong there or {cause}: re-record that {what} or correct the plan")
     names = ", ".join(f"{k + 1} ({labels[k]!r}, {z[k]:.0f} sigma)" for k in cand[:8])
     raise EstimationError(
         f"gross errors: the residuals of {what}s {names} are far beyond the noise and no "
@@ -218,11 +219,94 @@ def _screen_gyro_turns(res, rec, refit) -> None:
                           "turn explains it; check the plan's turn angles and axes")
 
 
+MISFIT_G = 2e-3  # align: residuals beyond 2 mg at z > Z_ABS are a model misfit
+GYRO_MISFIT = 0.05  # ... or gyro residuals beyond 5 % of the earth rate (0.75 deg/h)
+
+
+
+def _align_z(res, rec, segs):
+    """Whitened residual norm z and 'physically large' per static position of
+    a two-position alignment (accelerometer residuals: the positions' gravity)."""
+    r = np.asarray(res.residuals.get("accel_segment"), dtype=float)
+    sig = np.asarray(res.stats.get("accel_noise_sigma"), dtype=float)
+    if r.ndim != 2 or r.shape != (len(segs), 3) or sig.shape != (3,):
+        return None
+    n = np.array([max(s.n, 1) for s in segs], dtype=float)
+    w = (r * np.sqrt(n)[:, None] / np.maximum(sig, 1e-300)) ** 2
+    rw = np.asarray(res.residuals.get("gyro_segment", []), dtype=float)
+    sw = np.asarray(res.stats.get("gyro_noise_sigma", []), dtype=float)
+    if res.stats.get("earth_rate_used") and rw.shape == r.shape and sw.shape == (3,):
+        # the gyros resolve the earth rate: their residuals tell a misplaced heading too
+        w = np.hstack([w, (rw * np.sqrt(n)[:, None] / np.maximum(sw, 1e-300)) ** 2])
+    z = np.sqrt(np.mean(w, axis=1))
+    return z, np.max(np.abs(r), axis=1) > BIG_G * rec.site.gravity, np.max(np.abs(r), axis=1)
+
+
+def _screen_align(res, rec, refit) -> None:
+    """``fit align`` (two-position method, any number >= 2 of positions).
+
+    1. The leave-one-out screen of ``screen`` on the accelerometer residual of
+       each static position (z > Z_ABS and above BIG_G of g): a refit without
+       a position needs two positions left (the 12 equations of two positions
+       leave 3 residual degrees of freedom with the earth rate, 1 without), so
+       with three or more positions a misplaced one is named; with two, the
+       candidates are listed (exit 4).
+    2. A model misfit: the alignment model has biases and attitudes only, so
+       positions whose residuals are far beyond the noise (RMS z > Z_ABS) and
+       above MISFIT_G of g (or, with the earth rate used, gyro residuals above
+       GYRO_MISFIT of the earth rate) are scale-factor or misalignment errors it
+       does not model (a multi-position recording of an uncalibrated unit), or
+       positions not rigidly related by the turns: exit 4 pointing at
+       ``fit accel`` instead of biases quietly absorbing them."""
+    segs = rec.static_segments()
+    labels = [s.label for s in segs]
+    zb = _align_z(res, rec, segs)
+    if zb is None:
+        return
+    z, big, size = zb
+
+    def without(k):
+        if len(segs) < 3:
+            return None  # one position left: nothing to compare
+        rec2 = _without(rec, segs[k])
+        try:
+            r2 = refit(rec2)
+        except EstimationError:
+            return None
+        zb2 = _align_z(r2, rec2, rec2.static_segments())
+        return None if zb2 is None else zb2[:2]
+
+    def describe(k):
+        return f"{size[k] / rec.site.gravity * 1e3:.0f} mg off the aligned gravity"
+
+    screen(z, big, labels, without, "position", describe,
+           cause="a turn (rotation_angle_deg, rotation_axis_body) next to it is wrong")
+    zrms = float(np.sqrt(np.mean(z**2)))
+    rw = np.asarray(res.residuals.get("gyro_segment", []), dtype=float)
+    gyro_big = bool(res.stats.get("earth_rate_used")) and rw.size > 0 and \
+        float(np.max(np.abs(rw))) > GYRO_MISFIT * EARTH_RATE
+    if zrms > Z_ABS and (float(np.max(size)) > MISFIT_G * rec.site.gravity or gyro_big):
+        worst = [int(i) for i in np.argsort(-z)[:3]]
+        names = ", ".join(f"{labels[k]!r} ({size[k] / rec.site.gravity * 1e3:.1f} mg, "
+                          f"{z[k]:.0f} sigma)" for k in worst)
+        raise EstimationError(
+            f"the alignment model (biases and attitude) leaves residuals far beyond the noise "
+            f"at the static positions (RMS {zrms:.0f} sigma; largest {names}): the unit has "
+            "scale-factor or misalignment errors this model does not have, or the positions "
+            "are not related by the turns as stated (check rotation_angle_deg and "
+            "rotation_axis_body, or record the turns for --rotation gyro). For a "
+            "multi-position recording use `calib fit accel` (or apply a scale calibration "
+            "first, then align)")
+
+
 def screen_fit(res, rec, refit) -> None:
     """The gross-error screen for methods screened after the whole fit
-    (rimu: static positions; gyro: turns of known angle). ``refit(rec)``
-    repeats the same fit on a recording with one segment left out."""
+    (rimu: static positions; gyro: turns of known angle; align, two-position
+    method: static positions). ``refit(rec)`` repeats the same fit on a
+    recording with one segment left out."""
     if res.method == "rimu":
         _screen_rimu(res, rec, refit)
     elif res.method == "gyro":
         _screen_gyro_turns(res, rec, refit)
+    elif res.method == "align":
+        _screen_align(res, rec, refit)

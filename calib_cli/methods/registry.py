@@ -225,7 +225,7 @@ def _fit_turntable(rec, o: TurntableFitOptions, progress=None):
 @dataclass(frozen=True)
 class FitMethod:
     """One fit: ``function(rec, options) -> CalibrationResult``, its options type,
-    its requirements, and whether the gross-error screen refits it (rimu, gyro)."""
+    its requirements, and whether the gross-error screen refits it (rimu, gyro, align)."""
 
     name: str
     function: Callable
@@ -256,6 +256,7 @@ register(FitMethod("gyro", _fit_gyro, GyroOptions,
 register(FitMethod("align", _fit_align, AlignOptions,
                    Requires("triad", ("accel", "gyro"), min_static=2,
                             advice=": add a second position after a turn of 60-180 deg"),
+                   screened=True,  # two-position method: static positions (methods/gross.py)
                    summary="biases and attitude from two or more static positions"))
 register(FitMethod("rimu", _fit_rimu, RimuOptions,
                    Requires("redundant", ("accel",)), screened=True,

@@ -142,6 +142,22 @@ def too_few_hint(rec, needed: int) -> str:
     (import with --threshold/--min-static, or `calib detect RAW`)."""
     if rec is None or len(rec.time) < 3:
         return ""
+    counters = getattr(rec, "counters", None) or {}
+    if "plan_finished" in counters:  # made by calib record: its segments are the plan's
+        planned = ""
+        try:
+            import tomllib
+
+            n_plan = len(tomllib.loads(rec.plan_text or "").get("segment", []))
+            planned = f" ({len(rec.segments)} of the plan's {n_plan} segments are in it)"
+        except Exception:  # noqa: BLE001 - the count is a courtesy
+            pass
+        if not counters.get("plan_finished"):
+            return (f" (this recording was stopped before its plan ended{planned}: record "
+                    "the plan again with calib record; a recorded file's segments come from "
+                    "its plan, not from static detection)")
+        return (f" (recorded by calib record{planned}: its segments come from its plan; "
+                "check the plan's positions with calib plan check)")
     try:
         rep = detect_static(rec.time, rec.accel, rec.gyro)
     except (ValueError, FloatingPointError):
