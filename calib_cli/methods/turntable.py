@@ -387,15 +387,17 @@ def _skew_n(v: np.ndarray) -> np.ndarray:
     return S
 
 
-def _rate_sensitivity(w: np.ndarray, f: np.ndarray, Ginv: np.ndarray) -> np.ndarray:
-    """dw/dtheta_gyro (N, 3, 21) of the corrected rates w = G^-1 (W - d - D f) at each
-    sample: -G^-1 [I | e_j w_k | e_j f_k] (theta_gyro = d, G row-major, D row-major)."""
-    N = len(w)
-    M = np.empty((N, 3, 21))
-    M[:, :, 0:3] = -Ginv
-    M[:, :, 3:12] = -(Ginv[None, :, :, None] * w[:, None, None, :]).reshape(N, 3, 9)
-    M[:, :, 12:21] = -(Ginv[None, :, :, None] * f[:, None, None, :]).reshape(N, 3, 9)
-    return M
+def _n_moments(u: np.ndarray, v: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Block means of u_a N (..., 3a, 3j, 21) with N = [I | e_j v^T | e_j x^T] the
+    sample's dw/dtheta_gyro before the factor -G^-1: from the block means of u (...,3)
+    (as mean u_a), u v^T and u x^T (..., 3, 3)."""
+    sh = u.shape[:-1]
+    out = np.zeros(sh + (3, 3, 21))
+    for j in range(3):
+        out[..., :, j, j] = u
+        out[..., :, j, 3 + 3 * j:6 + 3 * j] = v
+        out[..., :, j, 12 + 3 * j:15 + 3 * j] = x
+    return out
 
 
 def _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, T, tangential):
@@ -404,24 +406,37 @@ def _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, T, tangential):
     from the corrected gyros, so a gyro scale error changes them too (at 0.5 m and
     200 deg/s, 12 m/s^2 per unit of scale). d(C r)/dtheta = sum_c r_c out[:, c] with
     C r = mean(w (w.r) - r |w|^2) + dw x r; d(w (w.r) - r |w|^2)/dw = (w.r) I + w r^T
-    - 2 r w^T. Also returns the block means of dw/dtheta_gyro (nb, 3, 21)."""
+    - 2 r w^T, and dw/dtheta = -G^-1 N, N = [I | e_j w^T | e_j f^T] linear in the
+    sample: every block mean comes from the block's first and second moments of w and f.
+    Also returns the block means of dw/dtheta_gyro (nb, 3, 21)."""
     nb = n // block_n
-    M = _rate_sensitivity(w, f, Ginv)
-    Mb = M[:n].reshape(nb, block_n, 3, 21)
     wb = w[:n].reshape(nb, block_n, 3)
-    wM = np.einsum("bma,bmap->bp", wb, Mb) / block_n  # mean w^T M
-    mbar = Mb.mean(axis=1)
+    fb = f[:n].reshape(nb, block_n, 3)
+    mw, mf = wb.mean(axis=1), fb.mean(axis=1)
+    Sww = np.einsum("bma,bmk->bak", wb, wb) / block_n
+    Swf = np.einsum("bma,bmk->bak", wb, fb) / block_n
+    # mean N (nb, 3j, 21) and mean w_a N (nb, 3a, 3j, 21)
+    one = _n_moments(np.ones((nb, 1)), mw[:, None, :], mf[:, None, :])[:, 0]
+    wN = _n_moments(mw, Sww, Swf)
+    mbar = -np.einsum("aj,bjp->bap", Ginv, one)
+    # mean w_a M_{a,:} summed over a, and mean w_c M (row a), mean w_a M_{c,:}
+    GwN = -np.einsum("cj,bajp->bcap", Ginv, wN)  # [b, c, a, p] = mean w_a M_{c,p}
+    wM = np.einsum("baap->bp", GwN)
     out = np.empty((nb, 3, 3, 21))
     for c in range(3):
-        t = np.einsum("bm,bmap->bap", wb[:, :, c], Mb) / block_n
-        t += np.einsum("bma,bmp->bap", wb, Mb[:, :, c, :]) / block_n
+        t = -np.einsum("aj,bjp->bap", Ginv, wN[:, c])  # mean w_c M
+        t += GwN[:, c]  # mean w_a M_{c,:} in row a
         t[:, c, :] -= 2.0 * wM
         out[:, c] = t
     if tangential:  # mean dw/dt from the rates at the block edges, as in _blocks
-        Mpad = np.concatenate([M[:1], M, M[n - 1:n] if n == len(w) else M[n:n + 1]])
         e0 = np.arange(nb) * block_n + 1
         e1 = e0 + block_n
-        dD = ((Mpad[e1] + Mpad[e1 - 1]) - (Mpad[e0] + Mpad[e0 - 1])) / (2 * T[:, None, None])
+        wpad = np.concatenate([w[:1], w, w[n - 1:n] if n == len(w) else w[n:n + 1]])
+        fpad = np.concatenate([f[:1], f, f[n - 1:n] if n == len(f) else f[n:n + 1]])
+        dwd = ((wpad[e1] + wpad[e1 - 1]) - (wpad[e0] + wpad[e0 - 1])) / (2 * T[:, None])
+        dfd = ((fpad[e1] + fpad[e1 - 1]) - (fpad[e0] + fpad[e0 - 1])) / (2 * T[:, None])
+        dN = _n_moments(np.zeros((nb, 1)), dwd[:, None, :], dfd[:, None, :])[:, 0]
+        dD = -np.einsum("aj,bjp->bap", Ginv, dN)
         for c in range(3):  # dw x e_c = -[e_c x] dw
             out[:, c] -= np.einsum("ab,nbp->nap", skew(np.eye(3)[c]), dD)
     return out, mbar
