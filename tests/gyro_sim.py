@@ -6,8 +6,8 @@ import numpy as np
 
 from calib_cli.io.plan import parse_plan
 from calib_cli.model.imu_model import base_model
+from calib_cli.model.truth import Truth
 from calib_cli.sim.simulate import simulate
-from calib_cli.sim.truth import Truth
 
 ATTITUDES = [[0, 0, 0], [180, 0, 0], [90, 0, 0], [-90, 0, 0], [0, -90, 0], [0, 90, 0],
              [45, 30, 10], [-30, 60, 100], [120, -40, 200], [-150, 20, 300],

@@ -10,9 +10,9 @@ import numpy as np
 
 from calib_cli import design
 from calib_cli.io.plan import parse_plan
+from calib_cli.io.truth import load_truth
 from calib_cli.sim import plan_make as pm
 from calib_cli.sim.simulate import plan_layout, simulate
-from calib_cli.sim.truth import load_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 RIMU_TRUTH = ROOT / "sample_data" / "rimu_truth_adis16405.toml"

@@ -7,7 +7,7 @@ import numpy as np
 from calib_cli.data import CalibrationResult
 from calib_cli.model.effects import Bias, GSensitivity, ScaleMisalignment
 from calib_cli.model.imu_model import ImuModel
-from calib_cli.sim.truth import describe_effect
+from calib_cli.model.truth import describe_effect
 
 PLAN = """
 name = "six"

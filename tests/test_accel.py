@@ -7,8 +7,8 @@ from calib_cli.errors import EstimationError
 from calib_cli.io.plan import parse_plan
 from calib_cli.methods.accel_lsq import fit_accel, fit_scalar, fit_vector
 from calib_cli.model.effects import Layout
+from calib_cli.model.truth import truth_from_dict
 from calib_cli.sim.simulate import simulate
-from calib_cli.sim.truth import truth_from_dict
 from tests.conftest import TRUTH_SI, TWELVE, random_unit_attitudes, static_plan_text
 
 HARD = 4.5

@@ -146,7 +146,7 @@ def test_turn_near_zero_or_full_is_exit_4():
 
 def test_mems_grade_falls_back_to_accelerometers():
     from calib_cli.model.effects import Layout
-    from calib_cli.sim.truth import default_truth
+    from calib_cli.model.truth import default_truth
 
     p = ac.plan([((1, 1, 1), 130.0)], duration=60.0)
     truth = default_truth(Layout(), np.random.default_rng(2))  # MEMS: 5e-3 rad/s biases

@@ -227,8 +227,8 @@ def test_gap_in_time_is_input_error_and_no_static_is_estimation_error(tmp_path):
 def test_simulator_bias_instability_has_the_0664_floor():
     """The catalogue's BiasInstability effect, simulated, seen by calib allan."""
     from calib_cli.io.plan import parse_plan
+    from calib_cli.model.truth import truth_from_dict
     from calib_cli.sim.simulate import plan_layout, simulate
-    from calib_cli.sim.truth import truth_from_dict
 
     plan = parse_plan('name = "bi"\nkind = "static"\nsample_rate_hz = 10.0\n[site]\n'
                       'latitude_deg = 0.0\n[[segment]]\nlabel = "rest"\n'

@@ -26,7 +26,7 @@ from calib_cli.acquire.chamber import (
 )
 from calib_cli.errors import InputError
 from calib_cli.io.plan import parse_plan
-from calib_cli.sim.thermal_cases import POSITIONS
+from calib_cli.validation.thermal_cases import POSITIONS
 
 ROOT = Path(__file__).resolve().parents[1]
 GROUPS = ("accel_bias", "accel_K", "accel_temp_bias", "accel_temp_scale", "gyro_bias",

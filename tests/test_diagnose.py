@@ -10,8 +10,8 @@ import pytest
 
 from calib_cli.io.plan import parse_plan
 from calib_cli.methods.diagnose import diagnose
+from calib_cli.model.truth import truth_from_dict
 from calib_cli.sim.simulate import plan_layout, simulate
-from calib_cli.sim.truth import truth_from_dict
 from calib_cli.validation import diagnose_cases as C
 
 
@@ -215,7 +215,7 @@ def test_diagonal_base_names_misalignment_on_the_turntable():
 def test_align_base_model_and_a_gyro_thermal_drift():
     from calib_cli.model.effects import make_effect
     from calib_cli.model.imu_model import ImuModel
-    from calib_cli.sim.truth import Truth
+    from calib_cli.model.truth import Truth
     from calib_cli.validation.align_cases import ROTATIONS, nav_truth, plan_text
 
     txt = plan_text([ROTATIONS[0][1:]], duration=120.0).replace(

@@ -22,8 +22,8 @@ import pytest
 
 from calib_cli.methods.diagnose import diagnose
 from calib_cli.methods.diagnose_candidates import effect_key
+from calib_cli.model.truth import truth_from_dict
 from calib_cli.sim.simulate import plan_layout, simulate
-from calib_cli.sim.truth import truth_from_dict
 from calib_cli.validation import diagnose_cases as C
 from calib_cli.validation import diagnose_validate as V
 

@@ -14,8 +14,8 @@ from click.testing import CliRunner
 from calib_cli.cli.main import cli
 from calib_cli.io.h5 import write_calibration, write_raw
 from calib_cli.io.plan import parse_plan
+from calib_cli.model.truth import describe_effect
 from calib_cli.sim.simulate import simulate
-from calib_cli.sim.truth import describe_effect
 
 try:  # tests/ as rootdir-inserted path (no __init__.py) or as a package
     from samples_9 import PLAN, triad_calibration

@@ -14,8 +14,8 @@ from calib_cli.cli.main import cli
 from calib_cli.io.h5 import read_calibration
 from calib_cli.methods.apply import model_of
 from calib_cli.model.correction import correct
-from calib_cli.sim import diagnose_cases as C
 from calib_cli.sim.simulate import simulate
+from calib_cli.validation import diagnose_cases as C
 
 TRUTH = ('[params]\naccel_bias_mg = [1, 2, 3]\n'
          'accel_nonlinearity = [6e-5, -4e-5, 5e-5]\n')  # about 600 ug/g^2: 40-60 sigma
@@ -208,8 +208,8 @@ def test_holdout_g_error_of_the_diagnose_calibration_20_seeds():
 def test_axis_aligned_plan_reports_nonlinearity_and_asymmetry_not_separable():
     from calib_cli.io.plan import parse_plan
     from calib_cli.methods.diagnose import diagnose
+    from calib_cli.model.truth import truth_from_dict
     from calib_cli.sim.simulate import plan_layout
-    from calib_cli.sim.truth import truth_from_dict
 
     six = ('name = "six"\nkind = "static"\nsample_rate_hz = 50.0\n[site]\n'
            'latitude_deg = 45.0\n' + "".join(
@@ -262,8 +262,8 @@ def test_fit_rimu_with_g_sensitivity_within_sigma_and_apply(tmp_path, capsys):
     from calib_cli.io.h5 import write_raw
     from calib_cli.io.plan import parse_plan
     from calib_cli.methods.fit_with import fit_with
+    from calib_cli.model.truth import truth_from_dict
     from calib_cli.sim.simulate import plan_layout
-    from calib_cli.sim.truth import truth_from_dict
 
     rimu = ('name = "rimu-six"\nkind = "rimu"\nsample_rate_hz = 50.0\ntransition_s = 2.0\n'
             '[site]\nlatitude_deg = 50.45\n[rimu]\nprofile = "tetrahedron"\n' + "".join(

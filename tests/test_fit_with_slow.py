@@ -1,5 +1,5 @@
 """calib fit --with, many cases (`make validate K=diagnose`; issue 18): for every
-hidden-effect case of calib_cli/sim/diagnose_cases.py, `fit METHOD --with` the
+hidden-effect case of calib_cli/validation/diagnose_cases.py, `fit METHOD --with` the
 hidden effect gives estimates within sigma of the truth (pooled over the seeds:
 RMS of (est - truth) / sigma in [0.8, 1.25], 99 % of |z| below 3.3) and leaves a
 residual within 1.05x the noise floor in every seed. The wandering biases are
@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 
 from calib_cli.methods.fit_with import fit_with, with_arg
-from calib_cli.sim import diagnose_cases as C
 from calib_cli.sim.simulate import simulate
+from calib_cli.validation import diagnose_cases as C
 
 pytestmark = pytest.mark.slow
 N_ENV = os.environ.get("CALIB_WITH_N")

@@ -217,7 +217,7 @@ def test_disk_full_mid_report_leaves_nothing(raw, run_cli, tmp_path, monkeypatch
 def _align_files(run_cli, d, stated, true, seed=3):
     """A recording simulated with the turns ``true`` and imported with a plan
     stating ``stated`` (a misplaced position, as far as the plan knows)."""
-    from calib_cli.sim.align_cases import plan_text
+    from calib_cli.validation.align_cases import plan_text
 
     (d / "true.toml").write_text(plan_text(true, duration=20.0))
     (d / "stated.toml").write_text(plan_text(stated, duration=20.0))

@@ -201,8 +201,8 @@ def _independent_case(seed):
     """A gyro run with an accelerometer calibration from a separate, noisy record
     (0.1 m/s^2 per sample, 2 s positions) of the same unit."""
     from calib_cli.methods.accel_lsq import fit_accel
+    from calib_cli.model.truth import Truth
     from calib_cli.sim.simulate import simulate
-    from calib_cli.sim.truth import Truth
 
     rng = np.random.default_rng(1000 + seed)
     t = truth(rng)

@@ -14,8 +14,8 @@ from log_writers import write_dataflash, write_ros1_bag, write_ros2_bag, write_u
 from calib_cli.io.h5 import read_calibration, read_raw
 from calib_cli.io.plan import parse_plan
 from calib_cli.model.effects import Layout
+from calib_cli.model.truth import truth_from_dict
 from calib_cli.sim.simulate import simulate
-from calib_cli.sim.truth import truth_from_dict
 
 T0_US = 1_700_000_000_000_000  # an epoch-like start, us
 

@@ -35,18 +35,7 @@ BASE = {"", "errors", "units", "geometry", "plan", "data", "docs_path"}  # one l
 
 # old path -> why it may import upwards: re-exports left for the branches open when the
 # module moved (delete each once those branches are merged)
-SHIMS = {
-    "sim/truth.py": "re-exports model/truth.py and io/truth.py (load_truth)",
-    "sim/align_cases.py": "moved to validation/",
-    "sim/diagnose_cases.py": "moved to validation/",
-    "sim/diagnose_validate.py": "moved to validation/",
-    "sim/thermal_cases.py": "moved to validation/",
-    "sim/thermal_validate.py": "moved to validation/",
-    "sim/rimu_truth.py": "moved to validation/",
-    "validate_datasets.py": "moved to validation/",
-    "batch/archive.py": "moved to validation/",
-    "methods/design.py": "moved to calib_cli/design.py",
-}
+SHIMS: dict = {}  # none left: the branches open when modules moved are merged
 
 
 def _unit(parts: list[str]) -> str:

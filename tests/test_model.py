@@ -150,8 +150,8 @@ def test_covariance_flags_null_directions_with_fewer_equations_than_unknowns():
 
 def test_simulate_accepts_truth_with_other_cycle_count():
     from calib_cli.io.plan import parse_plan
+    from calib_cli.model.truth import default_truth
     from calib_cli.sim.simulate import plan_layout, simulate
-    from calib_cli.sim.truth import default_truth
 
     plan = parse_plan("kind='rimu'\n[rimu]\nel0_deg=[0,0,90,45]\naz0_deg=[0,90,0,45]\n"
                       "[[segment]]\nlabel='a'\nduration_s=1\ntable_axis_enu=[0,0,1]\n"

@@ -57,8 +57,8 @@ def optimized_static(seeds, tmp_path, run_cli):
 
     from calib_cli.io.plan import load_plan
     from calib_cli.methods.accel_lsq import fit_accel
+    from calib_cli.model.truth import Truth, default_truth
     from calib_cli.sim.simulate import simulate
-    from calib_cli.sim.truth import Truth, default_truth
 
     src, opt = tmp_path / "s12.toml", tmp_path / "opt.toml"
     assert run_cli("plan", "make", "static", "--positions", "12", "--out", src)[0] == 0

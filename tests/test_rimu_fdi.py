@@ -15,8 +15,8 @@ from calib_cli.io.plan import load_plan, parse_plan
 from calib_cli.methods.rimu import fit_rimu, segment_kinematics
 from calib_cli.methods.rimu_fdi import noise_sigma, parity_check, sensor_cov_blocks
 from calib_cli.model.imu_model import ImuModel
+from calib_cli.model.truth import Truth
 from calib_cli.sim.simulate import plan_layout, simulate
-from calib_cli.sim.truth import Truth
 from calib_cli.validation.rimu_truth import rimu_truth
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -13,8 +13,8 @@ from calib_cli.io.h5 import write_calibration
 from calib_cli.io.plan import parse_plan
 from calib_cli.methods.accel_lsq import fit_accel
 from calib_cli.methods.compare import compare
+from calib_cli.model.truth import truth_from_dict
 from calib_cli.sim.simulate import plan_layout, simulate
-from calib_cli.sim.truth import truth_from_dict
 
 try:  # tests/ as rootdir-inserted path (no __init__.py) or as a package
     from samples_9 import PLAN

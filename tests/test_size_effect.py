@@ -170,7 +170,7 @@ def test_fitted_offsets_cut_the_error_5x():
     """The same with the offsets a 9-cycle fit gives (MEMS noise, 3 x 600 s + 6 x 300 s):
     the fitted p carries its real error (sigma ~0.25 mm), not a drawn one."""
     from calib_cli.methods.turntable import fit_turntable
-    from calib_cli.sim.truth import Truth
+    from calib_cli.model.truth import Truth
     from calib_cli.sim.turntable_plans import turntable_plan_text
 
     rec_p, rec_0, params = _records()

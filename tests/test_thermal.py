@@ -20,8 +20,8 @@ from calib_cli.methods.thermal import fit_thermal
 from calib_cli.model.effects import Layout, lag_temperature, make_effect, temp_poly
 from calib_cli.model.imu_model import ImuModel
 from calib_cli.model.kinematics import Kinematics
+from calib_cli.model.truth import effect_from_description
 from calib_cli.sim.simulate import simulate
-from calib_cli.sim.truth import effect_from_description
 from calib_cli.validation import thermal_cases as TC
 
 KEYS = ("accel_bias", "accel_K", "accel_temp_bias", "accel_temp_scale", "gyro_bias",

@@ -114,7 +114,7 @@ def emulate_cmd(imu, table, truth_path, plan_path, rate, seed, duration, attitud
         if chamber_ramp_dpm:
             cprof = dataclasses.replace(cprof, max_ramp_dpm=chamber_ramp_dpm)
         if truth is None and not prof.redundant:  # a unit with temperature drift
-            from calib_cli.sim.thermal_cases import thermal_truth
+            from calib_cli.sim.thermal_unit import thermal_truth
 
             truth = thermal_truth(np.random.default_rng(seed))
     faults = Faults(corrupt=corrupt, corrupt_where=corrupt_where, drop=drop, garbage=garbage,
