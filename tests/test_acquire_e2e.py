@@ -225,6 +225,13 @@ def _cli(*args):
     return CliRunner().invoke(cli, list(args))
 
 
+def _default_sigint():
+    """In the child: Ctrl-C's default disposition. A test run started in the background
+    of a non-interactive shell (a CI script, `cmd &`) inherits SIGINT ignored, and so
+    would the recorder, which then never sees the Ctrl-C the test sends."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start_record(tmp_path, em, plan_path, extra=()):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     return subprocess.Popen(
@@ -232,7 +239,8 @@ def _start_record(tmp_path, em, plan_path, extra=()):
          em.paths["imu"], "--table", "generic-3axis", "--table-port", em.paths["table"],
          "--plan", str(plan_path), "--out", str(tmp_path / "raw.h5"), "--journal",
          str(tmp_path / "rec.journal"), "--settle-window", "0.1", *extra],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=_default_sigint)
 
 
 def _wait_rows(journal, n, timeout=90):  # a busy machine starts the recorder slowly
