@@ -89,30 +89,17 @@ def _read_table(path: str):
 def read_columns(path: str, layout: Layout):
     """Time, accel, gyro, optional columns and segment index from a contract CSV."""
     header, data = _read_table(path)
-    col = {name: data[:, i] for i, name in enumerate(header)}
-    if "time" not in col:
-        raise InputError("missing column 'time'", path)
-    if layout.redundant:
-        an = [f"a{i}" for i in range(layout.n)]
-        gn = [f"g{i}" for i in range(layout.n)]
-    else:
-        an, gn = ["ax", "ay", "az"], ["gx", "gy", "gz"]
-    missing = [c for c in an if c not in col]
-    if missing:
-        raise InputError(f"missing column{'s' * (len(missing) > 1)} {', '.join(missing)}", path)
-    gmiss = [c for c in gn if c not in col]
-    if gmiss and len(gmiss) < len(gn):
-        raise InputError(f"missing column{'s' * (len(gmiss) > 1)} {', '.join(gmiss)}", path)
-    t = col["time"]
+    it, ia, ig, iopt, iseg = _layout_columns(header, layout, path)
+    t = data[:, it]
     check_time_range(t, path)
     if len(t) > 1 and np.any(np.diff(t) <= 0):
         i = int(np.flatnonzero(np.diff(t) <= 0)[0])
         raise InputError(f"time is not increasing at data row {i + 2} "
                          f"({num(t[i])} then {num(t[i + 1])})", path)
-    accel = np.column_stack([col[c] for c in an])
-    gyro = None if gmiss else np.column_stack([col[c] for c in gn])
-    opt = {k: col.get(k) for k in OPTIONAL}
-    seg = col.get("segment")
+    accel = data[:, ia]
+    gyro = None if ig is None else data[:, ig]
+    opt = {k: data[:, iopt[k]] if k in iopt else None for k in OPTIONAL}
+    seg = None if iseg is None else data[:, iseg]
     if seg is not None and np.any(seg != np.round(seg)):
         raise InputError("column 'segment' must hold integers", path)
     if seg is not None and np.any(np.abs(seg) > SEG_MAX):

@@ -60,19 +60,11 @@ def convert_units(accel, gyro, accel_units: str, gyro_units: str, path: str = ""
     return accel, gyro, units
 
 
-def _read_text_arrow(path: str, delimiter: str, header: str):
-    """read_text with pyarrow's reader: (names, cells (N, k) float, line
-    numbers), or None whenever the file needs the reference reader (no
-    pyarrow, whitespace-separated, comment or blank lines in the body, a cell
-    that is not a number, NaN): that reader then gives the data or the exact
-    error message."""
-    from calib_cli.io.csvlog import _CommentFilter, have_pyarrow
-
-    if not have_pyarrow():
-        return None
-    import pyarrow as pa
-    import pyarrow.csv as pacsv
-
+def _sniff(path: str, delimiter: str, header: str):
+    """The first data-or-header line of a delimited text log, for the pyarrow
+    readers: (separator, column count, names or None, data offset in bytes, line
+    number of the first data row), or None when the file needs the reference reader
+    (unreadable, empty, not UTF-8, whitespace-separated, repeated column names)."""
     try:
         fh = open(path, "rb")
     except OSError:
@@ -103,15 +95,35 @@ def _read_text_arrow(path: str, delimiter: str, header: str):
     names = cells0 if has_header else None
     if names is not None and len(set(names)) != len(names):
         return None
-    start = offset + (len(raw) if has_header else 0)
-    body_line = lineno + 1 if has_header else lineno
+    if has_header:
+        return sep, len(cells0), names, offset + len(raw), lineno + 1
+    return sep, len(cells0), names, offset, lineno
+
+
+def _read_text_arrow(path: str, delimiter: str, header: str):
+    """read_text with pyarrow's reader: (names, cells (N, k) float, line
+    numbers), or None whenever the file needs the reference reader (no
+    pyarrow, whitespace-separated, comment or blank lines in the body, a cell
+    that is not a number, NaN): that reader then gives the data or the exact
+    error message."""
+    from calib_cli.io.csvlog import _CommentFilter, have_pyarrow
+
+    if not have_pyarrow():
+        return None
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    sniff = _sniff(path, delimiter, header)
+    if sniff is None:
+        return None
+    sep, k, names, start, body_line = sniff
 
     class _NoHash:
         def update(self, b):
             pass
 
     stream = _CommentFilter(path, start, b"", _NoHash())
-    cols = [f"c{i}" for i in range(len(cells0))]
+    cols = [f"c{i}" for i in range(k)]
     try:
         table = pacsv.read_csv(
             stream, read_options=pacsv.ReadOptions(column_names=cols, block_size=8 << 20),
@@ -441,36 +453,10 @@ class _NotStreamable(Exception):
 def _text_stream_plan(path: str, columns, delimiter: str, header: str, rate, time_unit: str):
     """(separator, data offset, column names, field -> column index, time unit,
     rate) for pyarrow's streaming reader, or _NotStreamable."""
-    try:
-        fh = open(path, "rb")
-    except OSError:
-        raise _NotStreamable from None
-    with fh:
-        offset = 0
-        while True:
-            raw = fh.readline()
-            if not raw:
-                raise _NotStreamable
-            try:
-                first = raw.decode("utf-8").strip()
-            except UnicodeDecodeError:
-                raise _NotStreamable from None
-            if first and not first.startswith(("#", "%")):
-                break
-            offset += len(raw)
-    seps = {"comma": ",", "semicolon": ";", "tab": "\t", "whitespace": None}
-    if delimiter == "auto":
-        sep = next((s for s in (",", ";", "\t") if s in first), None)
-    else:
-        sep = seps.get(delimiter)
-    if sep is None:
+    sniff = _sniff(path, delimiter, header)
+    if sniff is None:
         raise _NotStreamable
-    cells0 = [c.strip() for c in first.split(sep)]
-    has_header = any(not _is_number(c) for c in cells0) if header == "auto" else header == "yes"
-    names = cells0 if has_header else None
-    if names is not None and len(set(names)) != len(names):
-        raise _NotStreamable
-    k = len(cells0)
+    sep, k, names, start, _line = sniff
     try:  # a bad column map: the in-memory path gives its error after the file's own
         cmap = parse_column_map(columns, path) or _default_map(names, k, "both")
     except InputError:
@@ -492,7 +478,6 @@ def _text_stream_plan(path: str, columns, delimiter: str, header: str, rate, tim
     scale = TIME_UNITS.get(time_unit, 0.0)
     if (scale is None or "time" not in idx) and (not rate or rate <= 0):
         raise _NotStreamable  # the in-memory path asks for --rate
-    start = offset + (len(raw) if has_header else 0)
     return sep, start, k, idx, scale
 
 

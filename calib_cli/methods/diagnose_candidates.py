@@ -87,7 +87,24 @@ def catalogue_order(pb: Problem, base_structure: str = "full") -> list[Candidate
     add("lever_arm", "")
     add("proof_mass_offsets", "")
     add("time_offset", "")
+    # any other catalogue effect (a new class in model/effects.py): on every sensor, where
+    # it is diagnosable and defined for this layout (Effect attributes); its own
+    # excitation rule decides in candidates()
+    for name, cls, defined in _extra_effects(pb):
+        if defined:
+            for s in ([""] if cls.sensorless else pb.sensors):
+                add(name, s)
     return out
+
+
+def _extra_effects(pb: Problem) -> list:
+    """(name, class, defined for this record's layout) of the diagnosable catalogue
+    effects beyond the ones catalogue_order lists by name."""
+    from calib_cli.model.effects import CATALOGUE
+
+    kind = "redundant" if pb.layout.redundant else "triad"
+    return [(n, c, kind in c.layouts) for n, c in CATALOGUE.items()
+            if n not in RULED and c.diagnosable]
 
 
 def why_key(c: Candidate) -> str:
@@ -110,27 +127,10 @@ def candidates(pb: Problem, model, base_structure: str, tried_names: set
             why.setdefault(why_key(c), reason)
         else:
             out.append(c)
-    # any other catalogue effect (a new class in model/effects.py): tried on every
-    # sensor where it is diagnosable and applies to this layout (Effect attributes),
-    # with its own excitation rule
-    from calib_cli.model.effects import CATALOGUE
-
-    redundant = pb.layout.redundant
-    for name, cls in CATALOGUE.items():
-        if name in RULED or not cls.diagnosable:
-            continue
-        if ("redundant" if redundant else "triad") not in cls.layouts:
-            why[name] = f"not defined for a {'redundant' if redundant else 'triad'} unit"
-            continue
-        for s_ in ([""] if cls.sensorless else pb.sensors):
-            c = Candidate(name, s_, make_effect(name, s_ or "accel"))
-            if c.key in tried_names:
-                continue
-            reason = c.effect.not_excited(ex)
-            if reason:
-                why.setdefault(why_key(c), reason)
-            else:
-                out.append(c)
+    for name, _cls, defined in _extra_effects(pb):
+        if not defined:
+            why[name] = (f"not defined for a {'redundant' if pb.layout.redundant else 'triad'} "
+                         "unit")
     return out, why
 
 

@@ -27,40 +27,11 @@ from scipy import stats
 
 from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError
-from calib_cli.methods.diagnose import ALPHA, MAX_STEPS, _zscore
+from calib_cli.methods.diagnose import ALPHA, MAX_STEPS, Step, _zscore
 from calib_cli.methods.diagnose_candidates import Candidate, describe, effect_key
-from calib_cli.methods.fit_with import GYRO_EFFECTS, fit_command, gyro_effect, with_arg
+from calib_cli.methods.fit_with import GYRO_EFFECTS, fit_command, gyro_effect
 
 R2D = 180.0 / np.pi
-
-
-@dataclass
-class GyroStep:
-    effect: str
-    sensor: str
-    params: dict
-    sigma: dict
-    score: float
-    threshold: float
-    k: int
-    p_value: float
-    residual_rms_before: float
-    residual_rms_after: float
-    evidence: str
-    runner_up: str | None = None
-
-    @property
-    def with_arg(self) -> str:
-        return with_arg(self.effect, self.sensor)
-
-    def to_json(self) -> dict:
-        return {"effect": self.effect, "sensor": self.sensor, "with": self.with_arg,
-                "params": self.params, "sigma": self.sigma, "score": self.score,
-                "threshold": self.threshold, "dof": self.k, "p_value": self.p_value,
-                "signature_correlation": None,
-                "residual_rms_before": self.residual_rms_before,
-                "residual_rms_after": self.residual_rms_after, "evidence": self.evidence,
-                "runner_up": self.runner_up}
 
 
 @dataclass
@@ -213,7 +184,8 @@ def diagnose_gyro(rec: Recording, base: str = "full", alpha: float = ALPHA,
               f"{m} candidates tried); residual RMS {before:.2f} -> {after:.2f} noise units")
         if runner:
             ev += f"; also above threshold but weaker: {runner}"
-        steps.append(GyroStep(n, "gyro", params, sigma, d, thr, k, p, before, after, ev, runner))
+        steps.append(Step(n, "gyro", params, sigma, d, thr, k, p, None, before, after, ev,
+                              runner))  # no signature correlation in the gyro fit
         added.append(n)
         cur = f
         results.append(cur)

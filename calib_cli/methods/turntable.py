@@ -330,7 +330,7 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
         step = wmb[:, m] * dtb[:, m, None]
         # a rate change during the step moves the attitude at its end by R J_l(step) dw dt,
         # J_l = I + [step x]/2 + ... (the left Jacobian of SO(3)); R alone lags half a step
-        RG = ((R @ (np.eye(3) + 0.5 * _skew_n(step))) * dtb[:, m, None, None]) @ Ginv
+        RG = ((R @ (np.eye(3) + 0.5 * skew(step))) * dtb[:, m, None, None]) @ Ginv
         dq = np.zeros((nb, 3, 21))
         dq[:, :, 0:3] = -RG
         dq[:, :, 3:12] = -(RG[:, :, :, None] * wmb[:, m, None, None, :]).reshape(nb, 3, 9)
@@ -377,14 +377,6 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
                    qbar=qbar / block_n, wg=wg / block_n, dw_raw=dw_raw,
                    wabs=np.linalg.norm(wb, axis=2).mean(axis=1), m=block_n,
                    w_start=wb[:, 0].copy())
-
-
-def _skew_n(v: np.ndarray) -> np.ndarray:
-    """Skew matrices (..., 3, 3) of vectors (..., 3)."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return S
 
 
 def _n_moments(u: np.ndarray, v: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -446,11 +438,6 @@ _I3 = np.eye(3)
 _LOW_RATE = float(np.radians(0.5))  # rad/s: blocks slower than this give the low-rate |g| figures
 
 
-def _sk(v) -> np.ndarray:
-    """Skew matrix of one vector (frames.skew without its checks: called per block)."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def _rotvec(M: np.ndarray) -> np.ndarray:
     """Rotation vector of one rotation matrix of angle below 180 deg (SciPy's per-call
     overhead doubled the fit's time at one call per block)."""
@@ -464,7 +451,7 @@ def _rot(phi):
     """Rotation matrix of one small rotation vector (Rodrigues; SciPy's per-call overhead
     is most of the filter's time at one call per block)."""
     a = float(np.sqrt(phi @ phi))
-    K = _sk(phi)
+    K = skew(phi)
     if a < 1e-8:
         return _I3 + K + 0.5 * (K @ K)
     return _I3 + (np.sin(a) / a) * K + ((1.0 - np.cos(a)) / a**2) * (K @ K)
@@ -740,7 +727,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         innov_scale = np.sqrt(b.m) / sig_a
         q_phi = block_n * sg2 * (1.0 / rec.sample_rate) ** 2
         Q_phi = _I3 * q_phi
-        Cw_all = b.cen + (_skew_n(b.dw) if opt.tangential else 0.0)
+        Cw_all = b.cen + (skew(b.dw) if opt.tangential else 0.0)
         if not first:  # linearised pass: the parameter-dependent parts are fixed per cycle
             s_lin = s_known[c] if s_known is not None else par_lin["s"][c]
             ab_lin = cy.a_nom + cy.basis @ par_lin["u"][c]
@@ -816,14 +803,14 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 H[p_rows, col_p] = KCw[p_rows, p_cols]
             # table axis fixed in ENU: Rbar a_b = a_enu (two components)
             ra = Rbar @ a_b
-            Hg = -Nperp @ _sk(ra) @ Rh @ b.qbar[j]
+            Hg = -Nperp @ skew(ra) @ Rh @ b.qbar[j]
             h[3:] = Nperp @ ra + Hg @ x[iG]
             if L.n_axes:  # the true axis: the plan's tilted by t (the table is not level)
                 ti = 3 + L.idx["t"][2 * cy.axis_group:2 * cy.axis_group + 2]
                 h[3:] -= cur["t"][cy.axis_group]
                 H[3:, ti] = -np.eye(2)
             H[3:, iG] = Hg
-            H[3:, sA] = -Nperp @ _sk(ra)
+            H[3:, sA] = -Nperp @ skew(ra)
             H[3:, 3 + L.idx["u"][2 * c:2 * c + 2]] = Nperp @ Rbar @ cy.basis
             if not first:  # the prediction linear in the parameter error about theta_lin
                 h = h - H[:, iG] @ x[iG] + H[:, 3:] @ x[3:]

@@ -145,7 +145,5 @@ def mean_rotation(phi: np.ndarray) -> np.ndarray:
     a_safe = np.where(small, 1.0, a)
     c1 = np.where(small, 0.5, (1 - np.cos(a_safe)) / a_safe**2)  # (1 - cos a)/a / a
     c2 = np.where(small, 1.0 / 6.0, (1 - np.sin(a_safe) / a_safe) / a_safe**2)
-    K = np.zeros(phi.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -phi[..., 2], phi[..., 1], -phi[..., 0]
-    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = phi[..., 2], -phi[..., 1], phi[..., 0]
+    K = skew(phi)
     return np.eye(3) + c1[..., None, None] * K + c2[..., None, None] * (K @ K)

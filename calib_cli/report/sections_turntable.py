@@ -192,53 +192,44 @@ def _blk(x, m: int, n: int) -> np.ndarray:
     return x[: m * n].reshape(m, n).mean(axis=1)
 
 
-def residual_time_figure(res) -> Figure:
-    """Accel and gyro residuals against time, a colour per cycle, cycle boundaries."""
+def _residual_figure(res, x: str, title: str, xlabel: str, boundaries: bool) -> Figure:
+    """Accel (and gyro) residuals against r[x] ("t" or "rate"), a colour per cycle;
+    grey lines at the cycle starts with ``boundaries``."""
     has_g = any(r["gyro"] is not None for r in res)
     fig = Figure(figsize=(10, 6.0 if has_g else 3.6), layout="constrained")
     axs = np.atleast_1d(fig.subplots(2 if has_g else 1, 1, sharex=True))
     for k, r in enumerate(res):
         sty = line_style(k)
-        axs[0].plot(r["t"], r["accel"], ".", ms=2, color=sty["color"], label=mpl_text(r["label"]))
+        axs[0].plot(r[x], r["accel"], ".", ms=2, color=sty["color"], label=mpl_text(r["label"]))
         if has_g and r["gyro"] is not None:
-            axs[1].plot(r["t"], r["gyro"], ".", ms=2, color=sty["color"])
-        for ax in axs:
-            ax.axvline(r["t"][0], color="0.6", lw=0.6)
+            axs[1].plot(r[x], r["gyro"], ".", ms=2, color=sty["color"])
+        if boundaries:
+            for ax in axs:
+                ax.axvline(r[x][0], color="0.6", lw=0.6)
     axs[0].set_ylabel("|g| residual (mg)")
-    axs[0].set_title(f"Turntable fit: residuals of the corrected data against time "
-                     f"({BLOCK_S:g} s means)")
+    axs[0].set_title(title)
     if has_g:
         axs[1].set_ylabel("rate residual along\nthe table axis (deg/h)")
-    axs[-1].set_xlabel("time from the record's start (s); grey lines: cycle starts")
+    axs[-1].set_xlabel(xlabel)
     for ax in axs:
         ax.axhline(0, color="k", lw=0.8)
         ax.grid(alpha=0.3)
     axs[0].legend(fontsize=7, markerscale=4, loc="upper left", bbox_to_anchor=(1.01, 1.0),
                   borderaxespad=0, title="cycle", title_fontsize=7)
     return fig
+
+
+def residual_time_figure(res) -> Figure:
+    """Accel and gyro residuals against time, a colour per cycle, cycle boundaries."""
+    return _residual_figure(res, "t", "Turntable fit: residuals of the corrected data against "
+                            f"time ({BLOCK_S:g} s means)",
+                            "time from the record's start (s); grey lines: cycle starts", True)
 
 
 def residual_rate_figure(res) -> Figure:
     """The same residuals against the table rate, a colour per cycle."""
-    has_g = any(r["gyro"] is not None for r in res)
-    fig = Figure(figsize=(10, 6.0 if has_g else 3.6), layout="constrained")
-    axs = np.atleast_1d(fig.subplots(2 if has_g else 1, 1, sharex=True))
-    for k, r in enumerate(res):
-        sty = line_style(k)
-        axs[0].plot(r["rate"], r["accel"], ".", ms=2, color=sty["color"], label=mpl_text(r["label"]))
-        if has_g and r["gyro"] is not None:
-            axs[1].plot(r["rate"], r["gyro"], ".", ms=2, color=sty["color"])
-    axs[0].set_ylabel("|g| residual (mg)")
-    axs[0].set_title("Turntable fit: residuals against the table rate, per cycle")
-    if has_g:
-        axs[1].set_ylabel("rate residual along\nthe table axis (deg/h)")
-    axs[-1].set_xlabel("table rate (deg/s)")
-    for ax in axs:
-        ax.axhline(0, color="k", lw=0.8)
-        ax.grid(alpha=0.3)
-    axs[0].legend(fontsize=7, markerscale=4, loc="upper left", bbox_to_anchor=(1.01, 1.0),
-                  borderaxespad=0, title="cycle", title_fontsize=7)
-    return fig
+    return _residual_figure(res, "rate", "Turntable fit: residuals against the table rate, "
+                            "per cycle", "table rate (deg/s)", False)
 
 
 @register("turntable")
