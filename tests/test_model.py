@@ -64,6 +64,37 @@ def test_table_kinematics_match_numerical_derivatives():
     assert np.allclose(np.linalg.norm(kin.f, axis=1), site.gravity)
 
 
+def test_wobbling_table_axis_matches_numerical_derivatives():
+    """A bearing's runout (the table axis rocking) (sim_table_axis_wobble_urad):
+    the gyros' rate integrates to the attitude; dw/dt matches to first order in the cone."""
+    from scipy.spatial.transform import Rotation
+
+    site = Site(latitude=0.7)
+    t = np.arange(0, 4, 1e-3)
+    theta = 2.0 * t**2 + 0.5 * np.sin(3 * t)
+    rate = 4.0 * t + 1.5 * np.cos(3 * t)
+    acc = 4.0 - 4.5 * np.sin(3 * t)
+    rot0 = attitude_to_rotation(np.array([10, 20, 30]) * D2R)
+    axis = np.array([0.0, 1.0, 0.0])
+    amp, phase = 2e-3, 0.4
+    kin = kn.table_kinematics(t, axis, theta, rate, acc, rot0, site, axis_wobble=(amp, phase))
+    e1 = np.cross(axis, [1.0, 0.0, 0.0])
+    e2 = np.cross(axis, e1)
+    eps = amp * (np.outer(np.cos(theta + phase), e1) + np.outer(np.sin(2 * theta + phase), e2))
+    W = Rotation.from_rotvec(eps)
+    rot = W * kn.table_attitude(axis, theta, Rotation.identity()) * W[0].inv() * rot0
+    assert np.allclose(rot[0].as_matrix(), rot0.as_matrix())
+    drot = (rot[:-1].inv() * rot[1:]).as_rotvec() / 1e-3
+    w_rel = kin.w - rot.inv().apply(np.tile(site.earth_rate_enu, (len(t), 1)))
+    assert np.allclose(drot, 0.5 * (w_rel[:-1] + w_rel[1:]), atol=1e-5)
+    # the axis really moves: the rate has a component off the nominal axis
+    off = np.linalg.norm(np.cross(rot.apply(w_rel), axis), axis=1)
+    assert off.max() > 0.5 * amp * np.abs(rate).max()
+    dw_num = np.gradient(kin.w, t, axis=0)
+    assert np.allclose(dw_num[5:-5], kin.dw[5:-5], atol=amp**2 * 300 + 1e-4)
+    assert np.allclose(np.linalg.norm(kin.f, axis=1), site.gravity)
+
+
 def test_slew_reaches_target_with_zero_end_rates():
     site = Site()
     a = attitude_to_rotation([0.1, 0.2, 0.3])

@@ -304,11 +304,8 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                           {'is_flag': True,
                                                            'name': 'as_json',
                                                            'opts': ['--json']}]},
-                                   'turntable': {'help': 'Accelerometer b, K (lower triangular), '
-                                                         'gyro d, G, D, lever arms and proof-mass '
-                                                         'offsets from rotation cycles on a '
-                                                         'single-axis table of imprecise angle '
-                                                         'and rate.',
+                                   'turntable': {'help': "'auto' or a number (a bad value is a "
+                                                         'usage error naming the option).',
                                                  'params': [{'argument': True,
                                                              'name': 'raw',
                                                              'opts': ['raw'],
@@ -331,6 +328,8 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                              'opts': ['--block']},
                                                             {'name': 'axis_sigma_mrad',
                                                              'opts': ['--axis-sigma-mrad']},
+                                                            {'name': 'runout_mrad',
+                                                             'opts': ['--runout-mrad']},
                                                             {'name': 'table_tilt_deg',
                                                              'opts': ['--table-tilt-deg']},
                                                             {'choices': ['mems', 'tactical',

@@ -27,8 +27,12 @@ from calib_cli.io.h5 import read_raw
                    "accelerates are left out of the accelerometer measurements).")
 @click.option("--block", "block_s", type=float, default=0.2, show_default=True,
               help="Measurement block length (s): the data are averaged over blocks.")
-@click.option("--axis-sigma-mrad", type=float, default=1.0, show_default=True,
-              help="How well the table axis stays fixed (per block, 1-sigma).")
+@click.option("--axis-sigma-mrad", default="auto", show_default=True,
+              help="How well the table axis stays fixed (per block, 1-sigma, mrad), or "
+                   "auto: estimated from the data (stats.table_axis_noise_mrad).")
+@click.option("--runout-mrad", type=float, default=0.5, show_default=True,
+              help="Prior 1-sigma of the table bearing's once-per-revolution rocking of the "
+                   "axis (estimated per cycle); 0: none.")
 @click.option("--table-tilt-deg", type=float, default=0.05, show_default=True,
               help="Prior 1-sigma of the table axis's tilt from the plan's direction "
                    "(estimated, one per table axis); 0: take the plan's axis as exact.")
@@ -52,8 +56,18 @@ from calib_cli.io.h5 import read_raw
 @click.option("--plot", type=click.Path(dir_okay=False),
               help="Write the sigma history of the lever arms and proof-mass offsets (PNG).")
 @with_options
+def _auto_or_number(text: str, name: str):
+    """'auto' or a number (a bad value is a usage error naming the option)."""
+    if str(text).strip().lower() == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise UsageError(f"{name} must be auto or a number, got {text!r}") from None
+
+
 def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis_sigma_mrad,
-                      table_tilt_deg, grade, priors, noise_spec, table_encoder, as_json, plot,
+                      runout_mrad, table_tilt_deg, grade, priors, noise_spec, table_encoder, as_json, plot,
                       with_text, list_effects, with_base, with_noise):
     """Accelerometer b, K (lower triangular), gyro d, G, D, lever arms and proof-mass
     offsets from rotation cycles on a single-axis table of imprecise angle and rate."""
@@ -77,7 +91,9 @@ def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis
         noise = kv
     opt = registry.options_from("turntable", lever_arm=lever_arm, proof_mass=proof_mass,
                                 tangential=tangential, block_s=block_s,
-                                axis_sigma_mrad=axis_sigma_mrad, table_tilt_deg=table_tilt_deg,
+                                axis_sigma_mrad=_auto_or_number(axis_sigma_mrad,
+                                                                "--axis-sigma-mrad"),
+                                runout_mrad=runout_mrad, table_tilt_deg=table_tilt_deg,
                                 grade=grade, prior=prior or None, noise=noise,
                                 table_encoder=table_encoder)
     rec = read_raw(raw)

@@ -129,7 +129,8 @@ class TurntableFitOptions:
     proof_mass: str = "auto"
     tangential: str = "on"
     block_s: float = 0.2
-    axis_sigma_mrad: float = 1.0
+    axis_sigma_mrad: float | str = "auto"  # "auto": estimated from the data
+    runout_mrad: float = 0.5
     table_tilt_deg: float = 0.05
     grade: str = "mems"
     prior: dict | None = None  # key -> 1-sigma (SI)
@@ -145,9 +146,13 @@ class TurntableFitOptions:
         if not (isinstance(self.block_s, (int, float)) and math.isfinite(self.block_s)
                 and 0 < self.block_s <= 5):
             raise InputError(f"--block must be in (0, 5] s, got {self.block_s}")
-        if not (isinstance(self.axis_sigma_mrad, (int, float))
+        if self.axis_sigma_mrad != "auto" and not (
+                isinstance(self.axis_sigma_mrad, (int, float))
                 and math.isfinite(self.axis_sigma_mrad) and self.axis_sigma_mrad > 0):
-            raise InputError(f"--axis-sigma-mrad must be > 0, got {self.axis_sigma_mrad}")
+            raise InputError(f"--axis-sigma-mrad must be auto or > 0, got {self.axis_sigma_mrad}")
+        if not (isinstance(self.runout_mrad, (int, float)) and math.isfinite(self.runout_mrad)
+                and 0 <= self.runout_mrad <= 50):
+            raise InputError(f"--runout-mrad must be in [0, 50], got {self.runout_mrad}")
         if not (isinstance(self.table_tilt_deg, (int, float))
                 and math.isfinite(self.table_tilt_deg) and 0 <= self.table_tilt_deg <= 10):
             raise InputError(f"--table-tilt-deg must be in [0, 10], got {self.table_tilt_deg}")
@@ -172,7 +177,9 @@ class TurntableFitOptions:
         return TurntableOptions(
             lever_arm=self.lever_arm, proof_mass=self.proof_mass,
             tangential=self.tangential in ("on", True), block_s=float(self.block_s),
-            axis_sigma=float(self.axis_sigma_mrad) * 1e-3,
+            axis_sigma=(None if self.axis_sigma_mrad == "auto"
+                        else float(self.axis_sigma_mrad) * 1e-3),
+            runout_sigma=float(self.runout_mrad) * 1e-3,
             table_tilt_sigma=float(np.radians(self.table_tilt_deg)), grade=self.grade,
             priors=dict(self.prior) if self.prior else None,
             noise=None if self.noise is None else {k: np.full(3, float(v))

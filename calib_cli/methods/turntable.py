@@ -75,7 +75,12 @@ class TurntableOptions:
     # passes' result depends on where they start only to second order (half the time)
     coarse_factor: int = 2
     converge_sigma: float = 0.1
-    axis_sigma: float = 1e-3
+    # the prior 1-sigma (rad) of the table bearing's once-per-revolution rocking of the axis
+    # (runout; cos and sin in each perpendicular direction, per cycle); 0: none
+    runout_sigma: float = 5e-4
+    # None: estimated from the axis innovations between passes (from _AXIS_START, at least
+    # _AXIS_FLOOR); a number: fixed
+    axis_sigma: float | None = None
     # prior 1-sigma (rad) of each table axis's tilt from the plan's direction (estimated);
     # 0: the plan's axis is exact. The tilt out of the horizontal is pinned by the data
     # whatever this prior; a loose prior mainly frees the axis azimuth, which only the
@@ -661,19 +666,29 @@ class _PassOut:
     # the running estimate of the sigma-history entries at the same times (issue 22: the
     # paper's fig. 4); recorded alongside hist_s, no part of the estimator
     hist_x: list = field(default_factory=list)
+    # the table-axis pseudo-measurement over the second half of each cycle: mean squared
+    # innovation and mean predicted variance without the axis noise (per component, rad^2)
+    axis_v2: float = float("nan")
+    axis_hph: float = float("nan")
+    runout: list = field(default_factory=list)  # per cycle: runout amplitudes (rad)
 
 
 def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: TurntableOptions,
                  sig_a, sig_g, block_n, s_known, record_history: bool, first: bool,
                  enc: list | None = None, sig_enc: float = 0.0,
                  rate: list | None = None, sig_rate: float = 0.0,
-                 start_info: np.ndarray | None = None, tick=None) -> _PassOut:
+                 start_info: np.ndarray | None = None, tick=None,
+                 axis_var: float = 1e-6) -> _PassOut:
     par = _unpack(theta_lin, L, cycles)
     par_lin = _unpack(theta_lin, L, cycles)
     if s_known is not None:
         par["s"] = s_known
     n = L.size
-    ns = 3 + n
+    # state: phi (3), theta (n), then the cycle's axis runout (cycle-local, like phi)
+    th = slice(3, 3 + n)
+    n_run = 4 * len(_RUNOUT_HARMONICS) if opt.runout_sigma > 0 else 0
+    irun = np.arange(3 + n, 3 + n + n_run)
+    ns = 3 + n + n_run
     g_n = rec.site.specific_force_enu
     g_sk = skew(g_n)
     w_e = rec.site.earth_rate_enu
@@ -690,11 +705,12 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
     # start_info (later passes): the information the pass starts from, in units of the
     # prior sigma (identity = the prior); see _START_DATA_FRACTION
     if start_info is None:
-        P[3:, 3:] = np.diag(prior_sd**2)
+        P[th, th] = np.diag(prior_sd**2)
     else:
-        P[3:, 3:] = _scaled_inv(start_info) * np.outer(prior_sd, prior_sd)
+        P[th, th] = _scaled_inv(start_info) * np.outer(prior_sd, prior_sd)
     innov, nis, hist_t, hist_s, lowrate, enc_innov = [], [], [], [], [], []
     rate_innov = []
+    ax_v2, ax_hph, runout = [], [], []
     interval = rec.sample_kind == "interval-mean"
     hist_idx, hist_x = [], []
     if record_history:
@@ -711,7 +727,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         T = b.m / rec.sample_rate
         E = _rot(-w_e * T)
         # coarse attitude: gravity from the first block, the table axis from the plan
-        cur = _unpack(theta_lin + x[3:], L, cycles)
+        cur = _unpack(theta_lin + x[th], L, cycles)
         f0 = np.linalg.solve(cur["K"], b.a_mean[0] - cur["ab"])
         a_b = cy.a_nom + cy.basis @ cur["u"][c]
         a_b /= np.linalg.norm(a_b)
@@ -723,6 +739,14 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         P[:3, :] = 0.0
         P[:, :3] = 0.0
         P[:3, :3] = np.eye(3) * np.radians(2.0) ** 2
+        # the axis runout of this cycle's mounting: fresh too (the rotor's angle at the
+        # cycle start is unknown without the encoder)
+        x[irun] = 0.0
+        P[irun, :] = 0.0
+        P[:, irun] = 0.0
+        P[irun, irun] = opt.runout_sigma**2
+        # the table angle since the cycle start at each block's middle, for the runout
+        psi_mid = np.cumsum(b.wbar @ a_b) * T - 0.5 * (b.wbar @ a_b) * T
         sg2 = float((sig_g**2).mean())
         innov_scale = np.sqrt(b.m) / sig_a
         q_phi = block_n * sg2 * (1.0 / rec.sample_rate) ** 2
@@ -770,7 +794,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             # from the prior at every pass keeps the bias of its early, poor linearisation,
             # which bilinear terms such as K (w x w x p) turn into tens of sigma)
             if first:
-                cur = _unpack(theta_lin + x[3:], L, cycles)
+                cur = _unpack(theta_lin + x[th], L, cycles)
                 s_c = s_known[c] if s_known is not None else cur["s"][c]
                 a_b = cy.a_nom + cy.basis @ cur["u"][c]
                 a_b /= np.linalg.norm(a_b)
@@ -812,6 +836,13 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             H[3:, iG] = Hg
             H[3:, sA] = -Nperp @ skew(ra)
             H[3:, 3 + L.idx["u"][2 * c:2 * c + 2]] = Nperp @ Rbar @ cy.basis
+            if n_run:  # the bearing's rocking of the axis (runout), harmonics of the angle
+                hp = np.multiply.outer(_RUNOUT_HARMONICS, psi_mid[j])
+                cs = np.concatenate([np.cos(hp), np.sin(hp)])
+                H[3, irun[:n_run // 2]] = -cs
+                H[4, irun[n_run // 2:]] = -cs
+                if first:
+                    h[3:] += H[3:, irun] @ x[irun]
             if not first:  # the prediction linear in the parameter error about theta_lin
                 h = h - H[:, iG] @ x[iG] + H[:, 3:] @ x[3:]
             z = np.concatenate([b.a_mean[j], Nperp @ cy.a_enu])
@@ -820,7 +851,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             if opt.tangential:
                 r_extra += (sg2 / 2 / T**2 + b.dw_var[j]) * ss
             Rm = np.diag(np.concatenate([sig_a**2 / b.m + r_extra,
-                                         np.full(2, opt.axis_sigma**2)]))
+                                         np.full(2, axis_var)]))
             if skip[j]:  # the table accelerates and the tangential term is off: axis only
                 H, h, z, Rm = H[3:], h[3:], z[3:], Rm[3:, 3:]
             # the state x holds phi = 0 after each reset; theta part is x[3:]
@@ -835,6 +866,9 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 P = 0.5 * (P + P.T)
             if not skip[j] and j >= nb // 2:  # the second half of each cycle: converged state
                 innov.append(v[:3] * innov_scale)
+            if j >= nb // 2:
+                ax_v2.append(float(v[-2:] @ v[-2:]) / 2)
+                ax_hph.append((float(S[-2, -2] + S[-1, -1]) / 2) - axis_var)
             nis.append(float(v @ Si @ v))
             if b.wabs[j] < _LOW_RATE:
                 fcorr = np.linalg.solve(Kc, b.a_mean[j] - cur["ab"])
@@ -845,7 +879,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 # encoder's zero, once-per-revolution error and clock offset as states
                 psi_ref += float(cy.a_enu @ _rotvec(Rh @ R_ref.T))
                 R_ref = Rh
-                cur_e = theta_lin + x[3:]
+                cur_e = theta_lin + x[th]
                 omega = float(a_b @ b.w_start[j])
                 th_abs = ec.theta[j]
                 He = np.zeros(ns)
@@ -884,7 +918,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 if first:
                     hr = (1.0 + kr) * (base + gs @ x[iG]) + br
                 else:
-                    hr = (1.0 + kr) * base + br + Hr[3:] @ x[3:]
+                    hr = (1.0 + kr) * base + br + Hr[th] @ x[th]
                 vr = rc.z[j] - hr
                 PHr = P @ Hr
                 Sr = Hr @ PHr + var_rate
@@ -912,27 +946,60 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 hist_s.append(np.sqrt(np.diag(P)[hist_idx]))
                 hist_x.append(theta_lin[np.asarray(hist_idx, int) - 3] + x[hist_idx])
                 next_hist = b.t[j] + opt.history_every
+        if n_run:  # the cycle's runout amplitude per perpendicular component (rad)
+            nh = len(_RUNOUT_HARMONICS)  # per direction: cos of each harmonic, then sin
+            runout.append([float(np.hypot(x[irun[m * 2 * nh + q]], x[irun[m * 2 * nh + nh + q]]))
+                           for m in range(2) for q in range(nh)])
     if start_info is None:
-        x[3:] += P[3:, 3:] @ ((prior_mean - theta_lin) / prior_sd**2)
+        x[th] += P[th, th] @ ((prior_mean - theta_lin) / prior_sd**2)
     else:
         # the pass is linear in the parameter error: its final information is the start's
         # plus the data's. Replace the start (mean theta_lin, information start_info) by the
         # prior (mean prior_mean, identity), in units of the prior sigma
-        lam_f = _scaled_inv(P[3:, 3:] / np.outer(prior_sd, prior_sd))
+        lam_f = _scaled_inv(P[th, th] / np.outer(prior_sd, prior_sd))
         lam = lam_f - start_info + np.eye(n)
         try:
             np.linalg.cholesky(0.5 * (lam + lam.T))
         except np.linalg.LinAlgError:  # the passes' information disagree: not linear enough
             raise _StartInfoError() from None
-        rhs = lam_f @ (x[3:] / prior_sd) + (prior_mean - theta_lin) / prior_sd
-        x[3:] = np.linalg.solve(lam, rhs) * prior_sd
-        P[3:, 3:] = _scaled_inv(lam) * np.outer(prior_sd, prior_sd)
-    return _PassOut(theta_lin + x[3:], P[3:, 3:], innov, nis, hist_t, hist_s, lowrate,
-                    enc_innov, rate_innov, hist_x)
+        rhs = lam_f @ (x[th] / prior_sd) + (prior_mean - theta_lin) / prior_sd
+        x[th] = np.linalg.solve(lam, rhs) * prior_sd
+        P[th, th] = _scaled_inv(lam) * np.outer(prior_sd, prior_sd)
+    return _PassOut(theta_lin + x[th], P[th, th], innov, nis, hist_t, hist_s, lowrate,
+                    enc_innov, rate_innov, hist_x,
+                    float(np.mean(ax_v2)) if ax_v2 else float("nan"),
+                    float(np.mean(ax_hph)) if ax_hph else float("nan"), runout)
 
 
 class _StartInfoError(Exception):
     pass
+
+
+# The table axis's per-block noise (rad): a rough stand's bearing wobbles, a simulated or a
+# good table's axis does not. Fixed at a rough stand's 1 mrad, a steady axis's information
+# was thrown away and the sigma it carried in was absent from the errors: gyro bias and
+# g-sensitivity came out 20-30 % conservative (RMS z 0.7-0.8; issues 14, 22). So the level
+# is estimated between passes from the axis innovations (mean square minus the filter's own
+# predicted part), starting loose; the floor keeps the update well conditioned.
+_AXIS_START = 1e-3
+# The runout's harmonics of the table angle: a tilted bearing race rocks the axis once per
+# revolution, an oval one twice. The first aliases with a gyro bias across the axis, the
+# second with g-sensitivity (gravity turns in the body once per revolution, D g in the
+# table frame holds the 0th and 2nd harmonics); only the holds at different rates tell them
+# apart, so left as white noise a 0.1 mrad runout made gyro_D overconfident (RMS z 1.4).
+_RUNOUT_HARMONICS = np.array([1.0, 2.0])
+_AXIS_FLOOR = 1e-5
+_AXIS_CAP = 2e-2
+
+
+def _axis_noise(out: "_PassOut", axis_var: float) -> tuple[float, bool]:
+    """The next pass's axis noise variance (rad^2) and whether it moved by more than
+    20 % in sigma (the passes then go on)."""
+    est = out.axis_v2 - out.axis_hph
+    if not np.isfinite(est):
+        return axis_var, False
+    new = float(np.clip(est, _AXIS_FLOOR**2, _AXIS_CAP**2))
+    return new, abs(np.log(new / axis_var)) > 2 * np.log(1.2)
 
 
 def _scaled_inv(A: np.ndarray) -> np.ndarray:
@@ -1053,17 +1120,22 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
                 steps[1] += nc
             progress(steps[0], steps[1])
 
+    if opt.axis_sigma is not None and not (np.isfinite(opt.axis_sigma) and opt.axis_sigma > 0):
+        raise InputError(f"axis_sigma must be > 0 rad, got {opt.axis_sigma!r}")
     for _attempt in range(6):
         theta = start.copy()
         info_start = None
         hist = None
         n_passes, moved = 0, np.inf
+        axis_var = (opt.axis_sigma if opt.axis_sigma is not None else _AXIS_START) ** 2
+        axis_moved = False
         for k in range(max(1, opt.passes)):
             coarse = k < min(2, opt.passes - 1)
             bn = coarse_n if coarse else block_n
             kw = dict(record_history=k == 0, enc=enc_coarse if coarse else enc,
                       sig_enc=sig_enc * enc_inflation, rate=rate_coarse if coarse else rate,
-                      sig_rate=sig_rate, tick=tick)
+                      sig_rate=sig_rate, tick=tick, axis_var=axis_var)
+            used_axis_var = axis_var
             try:
                 out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation,
                                    sig_g, bn, s_known, first=k == 0,
@@ -1087,9 +1159,11 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
             # converged: this pass moved less than the tolerance, or the next pass would,
             # extrapolating the last two moves at a linear rate (Gauss-Newton with exact
             # Jacobians converges faster: 35 -> 1.4 -> 0.004 sigma on a wide MEMS truth)
-            if k >= 2 and (moved < opt.converge_sigma
-                           or moved**2 / prev_move < opt.converge_sigma):
+            if k >= 2 and not axis_moved and (moved < opt.converge_sigma
+                                              or moved**2 / prev_move < opt.converge_sigma):
                 break
+            if opt.axis_sigma is None and k >= 1:
+                axis_var, axis_moved = _axis_noise(out, axis_var)
             # the next pass starts from the prior plus this pass's data information
             lam = _scaled_inv(out.P / np.outer(sd, sd))
             info_start = np.eye(L.size) + _START_DATA_FRACTION * (lam - np.eye(L.size))
@@ -1119,6 +1193,12 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     res = _result(rec, cycles, L, out, opt, s_known, sig_a * inflation, sig_g, block_n,
                   inflation, sd, width)
     res.stats["accel_clipped_samples"] = _clipped(rec, cycles)
+    # the table axis's per-block noise the final pass used (estimated unless given)
+    res.stats["table_axis_noise_mrad"] = float(np.sqrt(used_axis_var) * 1e3)
+    res.stats["table_axis_noise_mode"] = "given" if opt.axis_sigma is not None else "estimated"
+    # per cycle, the axis's rocking (runout) the final pass found, urad: the amplitude of the
+    # 1st and 2nd harmonic of the table angle in each of the two perpendicular directions
+    res.stats["table_axis_runout_urad"] = [[a * 1e6 for a in r] for r in out.runout]
     # the Gauss-Newton passes: how many ran, and the last pass's largest move in sigma
     res.stats["filter_passes"] = n_passes
     res.stats["filter_last_move_sigma"] = float(moved) if np.isfinite(moved) else None

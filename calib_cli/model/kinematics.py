@@ -91,14 +91,21 @@ def table_attitude(axis_enu, theta, rot0: Rotation) -> Rotation:
     return Rotation.from_rotvec(np.outer(theta - theta[0], a)) * rot0
 
 
-def table_kinematics(t, axis_enu, theta, rate, accel, rot0: Rotation, site: Site) -> Kinematics:
+def table_kinematics(t, axis_enu, theta, rate, accel, rot0: Rotation, site: Site,
+                     axis_wobble: tuple[float, float] | None = None) -> Kinematics:
     """Kinematics on a single-axis table turning about ``axis_enu``.
 
     theta (rad), rate (rad/s), accel (rad/s^2): table angle and its
-    derivatives, (N,). rot0: attitude at the first sample.
+    derivatives, (N,). rot0: attitude at the first sample. axis_wobble:
+    (amplitude rad, phase rad) of a bearing's runout: the turning part rocks by
+    eps(theta) = amp (cos(theta + phase) e1 + sin(2 theta + phase) e2), e1, e2
+    perpendicular to the axis (a tilt that turns with the table would be a
+    constant mounting error, not a wobble).
     """
     a = np.asarray(axis_enu, dtype=float)
     a = a / np.linalg.norm(a)
+    if axis_wobble is not None and axis_wobble[0] != 0.0:
+        return _wobbling_table(t, a, theta, rate, accel, rot0, site, *axis_wobble)
     rot = table_attitude(a, theta, rot0)
     inv = rot.inv()
     a_body = inv.apply(np.tile(a, (len(theta), 1)))
@@ -106,6 +113,38 @@ def table_kinematics(t, axis_enu, theta, rate, accel, rot0: Rotation, site: Site
     w_rel = a_body * np.asarray(rate, dtype=float)[:, None]
     dw_rel = a_body * np.asarray(accel, dtype=float)[:, None]
     return from_attitude(t, rot, site, w_rel, dw_rel)
+
+
+def _wobbling_table(t, a, theta, rate, accel, rot0, site, amp, phase) -> Kinematics:
+    """table_kinematics with the axis rocking (runout): R = W(theta) A W(theta_0)^T
+    R0, W = exp([eps x]). The rate is exact (the left Jacobian of SO(3)); the angular
+    acceleration is first order in eps (its error ~ amp^2 rate^2, far below any sensor's)."""
+    from scipy.spatial.transform import Rotation
+
+    theta = np.asarray(theta, dtype=float)
+    rate = np.asarray(rate, dtype=float)
+    accel = np.asarray(accel, dtype=float)
+    e1 = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(a, e1)
+    u, v = theta + phase, 2 * theta + phase
+    eps = amp * (np.outer(np.cos(u), e1) + np.outer(np.sin(v), e2))
+    deps = amp * (np.outer(-np.sin(u), e1) + np.outer(2 * np.cos(v), e2))  # d eps / d theta
+    d2eps = amp * (np.outer(-np.cos(u), e1) + np.outer(-4 * np.sin(v), e2))
+    W = Rotation.from_rotvec(eps)
+    rot = W * Rotation.from_rotvec(np.outer(theta - theta[0], a)) * W[0].inv() * rot0
+    # the left Jacobian of exp at eps: the spatial rate of W is J_l(eps) d(eps)/dt
+    n = np.linalg.norm(eps, axis=1)[:, None]
+    epsd = deps * rate[:, None]
+    ex_d = np.cross(eps, epsd)
+    Om_w = (epsd + (1 - np.cos(n)) / n**2 * ex_d
+            + (n - np.sin(n)) / n**3 * np.cross(eps, ex_d))
+    Wa = W.apply(np.tile(a, (len(theta), 1)))
+    Om = Om_w + Wa * rate[:, None]
+    dOm = (d2eps * rate[:, None] ** 2 + deps * accel[:, None] + np.cross(epsd, Wa * rate[:, None])
+           + Wa * accel[:, None])
+    inv = rot.inv()
+    return from_attitude(t, rot, site, inv.apply(Om), inv.apply(dOm))
 
 
 def slew_kinematics(t, rot_a: Rotation, rot_b: Rotation, site: Site, phi=None) -> Kinematics:

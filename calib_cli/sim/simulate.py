@@ -318,7 +318,10 @@ def _timeline(plan: Plan, fs: float, rng, progress=None):
             t, theta, rate, acc = _rate_profile(seg, fs, t_next)
             th, rt, ac = _table_errors(plan, t - t_next, theta, rate, acc, rng)
             axis = np.asarray(seg.extra.get("sim_table_axis_enu", seg.table_axis_enu), float)
-            kin = kn.table_kinematics(t, axis, th, rt, ac, start, site)
+            wob = _num_key(plan.extra, "sim_table_axis_wobble_urad", 0.0, "plan") * 1e-6
+            wob_phase = _num_key(plan.extra, "sim_table_axis_wobble_phase_deg", 0.0, "plan") * D2R
+            kin = kn.table_kinematics(t, axis, th, rt, ac, start, site,
+                                      axis_wobble=(wob, wob_phase) if wob else None)
             angle_ch, rate_ch = _table_channels(plan, th, rt, theta, rate, rng)
             add(kin, index, cycle, angle_ch, rate_ch)
             current = axis_angle(axis, th[-1] - th[0]) * start
