@@ -304,8 +304,11 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                           {'is_flag': True,
                                                            'name': 'as_json',
                                                            'opts': ['--json']}]},
-                                   'turntable': {'help': "'auto' or a number (a bad value is a "
-                                                         'usage error naming the option).',
+                                   'turntable': {'help': 'Accelerometer b, K (lower triangular), '
+                                                         'gyro d, G, D, lever arms and proof-mass '
+                                                         'offsets from rotation cycles on a '
+                                                         'single-axis table of imprecise angle '
+                                                         'and rate.',
                                                  'params': [{'argument': True,
                                                              'name': 'raw',
                                                              'opts': ['raw'],

@@ -10,6 +10,16 @@ from calib_cli.cli.common import info
 from calib_cli.io.h5 import read_raw
 
 
+def _auto_or_number(text: str, name: str):
+    """'auto' or a number (a bad value is a usage error naming the option)."""
+    if str(text).strip().lower() == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise UsageError(f"{name} must be auto or a number, got {text!r}") from None
+
+
 @fit_group.command("turntable")
 @click.argument("raw", required=False, type=click.Path(dir_okay=False))
 @click.option("--out", type=click.Path(dir_okay=False))
@@ -56,16 +66,6 @@ from calib_cli.io.h5 import read_raw
 @click.option("--plot", type=click.Path(dir_okay=False),
               help="Write the sigma history of the lever arms and proof-mass offsets (PNG).")
 @with_options
-def _auto_or_number(text: str, name: str):
-    """'auto' or a number (a bad value is a usage error naming the option)."""
-    if str(text).strip().lower() == "auto":
-        return "auto"
-    try:
-        return float(text)
-    except ValueError:
-        raise UsageError(f"{name} must be auto or a number, got {text!r}") from None
-
-
 def fit_turntable_cmd(raw, out, lever_arm, proof_mass, tangential, block_s, axis_sigma_mrad,
                       runout_mrad, table_tilt_deg, grade, priors, noise_spec, table_encoder, as_json, plot,
                       with_text, list_effects, with_base, with_noise):
