@@ -28,7 +28,7 @@ from calib_cli.model.truth import DEFAULT_NOISE, Truth, default_truth
 from calib_cli.plan import Plan, PlanSegment
 
 D2R = np.pi / 180.0
-METHODS = ("auto", "vector", "scalar", "gyro", "align", "rimu", "thermal")
+METHODS = ("auto", "vector", "scalar", "gyro", "align", "rimu", "thermal", "turntable")
 THERMAL_ORDER = 2  # plan check predicts the thermal fit at this polynomial order
 WEAK_TYPICAL = 0.3  # sigma above 0.3 x the catalogue's typical size of the entry: weak
 WEAK_SPREAD = 3.0  # ... or above 3 x the median sigma of the same key
@@ -43,6 +43,9 @@ class Noise:
     gyro: np.ndarray
     rate: float
     source: str = "stated"
+    # the recording the levels come from (--like): the turntable prediction takes from it
+    # which table channels the fit's checks accept, cycle by cycle
+    like: Recording | None = field(default=None, repr=False, compare=False)
 
     def as_dict(self) -> dict:
         return {"accel": self.accel, "gyro": self.gyro}
@@ -74,15 +77,12 @@ def resolve_method(plan: Plan, method: str = "auto") -> str:
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}",
                          plan.path)
-    if plan.kind == "turntable":
-        raise EstimationError("plan check for turntable plans: not yet (the turntable "
-                              "estimator is being rewritten); use simulate and fit")
-    if plan.kind in ("align", "rimu"):
+    if plan.kind in ("align", "rimu", "turntable"):
         if method not in ("auto", plan.kind):
             raise InputError(f"a plan of kind {plan.kind!r} goes to the {plan.kind} fit, "
                              f"not {method!r}", plan.path)
         return plan.kind
-    if method in ("align", "rimu"):
+    if method in ("align", "rimu", "turntable"):
         raise InputError(f"a static plan cannot be checked as {method!r}", plan.path)
     from calib_cli.sim.chamber import has_chamber
 
@@ -127,6 +127,17 @@ def noise_like(rec: Recording, path: str = "<raw>") -> Noise:
     standard deviation of its static positions (the statistic the fits use)."""
     from calib_cli.methods.segstats import static_stats
 
+    rot = [s for s in rec.segments if s.kind == "rotating"]
+    if rot and not rec.layout.redundant and rec.accel is not None and rec.gyro is not None:
+        # a turntable record: the fit's own estimate (third differences over its cycles)
+        from calib_cli.methods.turntable import _third_diff_sigma
+
+        if rec.in_counts("accel") or rec.in_counts("gyro"):
+            raise InputError("the recording is in raw counts: give --accel-noise/--gyro-noise "
+                             "in SI instead", path)
+        on = np.concatenate([np.arange(s.start, s.stop) for s in rot])
+        return Noise(_third_diff_sigma(rec.accel[on]), _third_diff_sigma(rec.gyro[on]),
+                     rec.sample_rate, f"like {path}", rec)
     out = {}
     for sensor in ("accel", "gyro"):
         data = rec.accel if sensor == "accel" else rec.gyro
@@ -156,6 +167,8 @@ def nominal_truth(plan: Plan, truth: Truth | None = None) -> Truth:
     from calib_cli.plan import plan_layout, same_layout
 
     layout = plan_layout(plan)
+    if truth is None and plan.kind == "turntable":
+        return _turntable_nominal(plan)
     if truth is None:
         if layout.redundant:
             model = default_truth(layout, np.random.default_rng(0)).model
@@ -182,6 +195,20 @@ def nominal_truth(plan: Plan, truth: Truth | None = None) -> Truth:
     return Truth(truth.model, truth.params, zero, truth.counts, False)
 
 
+def _turntable_nominal(plan: Plan) -> Truth:
+    """The turntable fit's model (methods/turntable.py) with neutral parameters, the
+    plan's lever arms (``lever_arm_m``; else 0) and no proof-mass offsets: the fit's
+    prior mean."""
+    from calib_cli.sim.turntable_plans import turntable_truth
+
+    t = turntable_truth(plan, np.random.default_rng(0))
+    params = t.model.neutral_params()
+    rot = [s for s in plan.segments if s.kind == "rotating"]
+    params["lever_arm"] = np.array([np.zeros(3) if s.lever_arm is None
+                                    else np.asarray(s.lever_arm, float) for s in rot])
+    return Truth(t.model, params, {"accel_white": 0.0, "gyro_white": 0.0})
+
+
 # ---------------------------------------------------------------------------
 # the prediction
 
@@ -205,11 +232,63 @@ def _fit(method: str, rec: Recording, noise: Noise, options: dict) -> Calibratio
         from calib_cli.methods.rimu import fit_rimu
 
         return fit_rimu(rec, noise=nz, strict=False)
+    if method == "turntable":
+        return _turntable_prediction(rec, noise, options)
     if method == "thermal":
         from calib_cli.methods.thermal import fit_thermal
 
         return fit_thermal(rec, order=int(options.get("temp_order", THERMAL_ORDER)), noise=nz)
     raise ValueError(method)
+
+
+TURNTABLE_OPTIONS = ("lever_arm", "proof_mass", "tangential", "block_s", "axis_sigma_mrad",
+                     "table_tilt_deg", "grade", "prior", "table_encoder")
+
+
+def _turntable_prediction(rec: Recording, noise: Noise, options: dict) -> CalibrationResult:
+    """The turntable fit's covariance at the simulated unit: its own set-up and one
+    linearised filter pass there (methods/turntable.covariance_at), no iterations."""
+    from calib_cli.methods.registry import options_from
+    from calib_cli.methods.turntable import covariance_at
+
+    o = options_from("turntable", {k: v for k, v in options.items()
+                                   if k in TURNTABLE_OPTIONS and v is not None})
+    topt = replace(o.to_method(), noise={"accel": np.asarray(noise.accel, float) * np.ones(3),
+                                         "gyro": np.asarray(noise.gyro, float) * np.ones(3)})
+    if noise.like is not None:
+        rec = _channels_like(rec, noise.like, topt)
+    return covariance_at(rec, topt, rec.truth["params"])
+
+
+def _channels_like(rec: Recording, like: Recording, topt) -> Recording:
+    """The noise-free record with the table channels the fit would not use on ``like``
+    blanked, cycle by cycle: the fit's own checks (methods/turntable.py) run on the
+    recording --like names (e.g. an encoder that drifts from the raw gyros' angle)."""
+    from calib_cli.methods import turntable as tt
+
+    try:
+        cyc_like = tt._select(like)
+    except (InputError, EstimationError):
+        return rec
+    cyc = tt._select(rec)
+    if len(cyc_like) != len(cyc):
+        return rec
+    bn = max(1, int(round(topt.block_s * like.sample_rate)))
+    q = replace(topt, table_encoder="auto" if topt.table_encoder != "off" else "off")
+    enc = tt._encoder_setup(like, cyc_like, bn, q)[0] if like.table_angle is not None else None
+    rate = tt._rate_setup(like, cyc_like, bn, q)[0] if like.table_rate is not None else None
+    ang = None if rec.table_angle is None else np.array(rec.table_angle, float)
+    rt = None if rec.table_rate is None else np.array(rec.table_rate, float)
+    for c, cy in enumerate(cyc):
+        if ang is not None and (enc is None or enc[c] is None):
+            ang[cy.sl] = np.nan
+        if rt is not None and (rate is None or rate[c] is None):
+            rt[cy.sl] = np.nan
+    if ang is not None and not np.isfinite(ang).any():
+        ang = None
+    if rt is not None and not np.isfinite(rt).any():
+        rt = None
+    return rec.with_(table_angle=ang, table_rate=rt)
 
 
 def _with_rate(plan: Plan, rate: float) -> Plan:
