@@ -113,6 +113,11 @@ def default_noise(plan: Plan, rate: float | None = None, truth: Truth | None = N
                 v = np.asarray(truth.noise[f"{sensor}_white_density"], float) * np.sqrt(rate)
             out.append(np.broadcast_to(v, (n,)).astype(float))
         return Noise(out[0], out[1], rate, "the truth model's")
+    if plan.kind == "turntable":
+        from calib_cli.sim.turntable_plans import MEMS_NOISE
+
+        return Noise(np.full(3, MEMS_NOISE["accel_white"]), np.full(3, MEMS_NOISE["gyro_white"]),
+                     rate, "simulator default (turntable MEMS)")
     if plan.kind == "align" and plan.extra.get("sim_grade", "navigation") != "mems":
         from calib_cli.sim.grades import ACCEL_NOISE, ARW
 
@@ -476,6 +481,8 @@ def candidates(plan: Plan, method: str) -> list[tuple[str, tuple]]:
             hold = PlanSegment(label=f"add-after-turn-{ax}", attitude=att, duration=dur)
             out.append((f"add a 360 deg turn about body {ax} ({tdur:g} s) and a position after "
                         "it", (turn, hold)))
+    if method == "turntable":
+        out += _tilted_cycles(plan)
     if method == "align":
         dur_a = _median_duration(plan)
         for i, ax in enumerate("xyz"):
@@ -485,6 +492,41 @@ def candidates(plan: Plan, method: str) -> list[tuple[str, tuple]]:
             hold = PlanSegment(label=f"add-position-{ax}", duration=dur_a)
             out.append((f"add a third position after a 90 deg turn about body {ax}",
                         (turn, hold)))
+    return out
+
+
+def _tilted_cycles(plan: Plan) -> list[tuple[str, tuple]]:
+    """The six tilted cycles of ``plan make turntable --tilted`` (with the plan's
+    generator parameters where it has them) that the plan lacks, one candidate each."""
+    import tomllib
+
+    from calib_cli.io.plan import parse_plan
+    from calib_cli.sim import plan_make as pm
+
+    try:
+        gen = tomllib.loads(plan.text).get("generator", {}) if plan.text else {}
+    except (tomllib.TOMLDecodeError, TypeError):
+        gen = {}
+    kw = {}
+    if isinstance(gen, dict) and gen.get("method") == "turntable":
+        for k, g in (("tilt_deg", "tilt_deg"), ("tilted_duration", "tilted_duration_s"),
+                     ("max_rate", "max_rate_dps"), ("max_accel", "max_accel_dps2"),
+                     ("profile", "profile")):
+            if g in gen:
+                kw[k] = gen[g]
+    try:
+        full = parse_plan(pm.to_toml(pm.turntable_plan(tilted=True, **kw)), "<tilted>")
+    except InputError:
+        return []
+    have = {s.label for s in plan.segments}
+    axis = next((s.table_axis_enu for s in plan.segments if s.kind == "rotating"), None)
+    out = []
+    for seg in full.segments[3:]:
+        if seg.label in have:
+            continue
+        if axis is not None:
+            seg = replace(seg, table_axis_enu=np.asarray(axis, float))
+        out.append((f"add the tilted cycle {seg.label} ({seg.duration:g} s)", (seg,)))
     return out
 
 
@@ -502,6 +544,9 @@ def segment_toml(seg: PlanSegment) -> dict:
         d["table_axis_enu"] = [float(x) for x in seg.table_axis_enu]
         if seg.table_rate is not None:
             d["table_rate_dps"] = round(float(np.degrees(seg.table_rate)), 6)
+    for k in ("rate_profile", "rate_shape"):  # a turntable cycle
+        if k in seg.extra:
+            d[k] = seg.extra[k]
     if seg.duration is not None:
         d["duration_s"] = float(seg.duration)
     return d
@@ -525,7 +570,8 @@ def suggest(plan: Plan, method: str, noise: Noise, base: CalibrationResult,
     before = {t: _sigma_of(base, t) for t in targets}
     trials = [(desc, segs, replace(plan, segments=plan.segments + segs))
               for desc, segs in candidates(plan, method)]
-    trials.append(("double the duration of every static position", (), _scaled(plan, 2.0)))
+    if method != "turntable":
+        trials.append(("double the duration of every static position", (), _scaled(plan, 2.0)))
     ranked = []
     for desc, segs, p in trials:
         try:

@@ -23,7 +23,9 @@ def plan_of(name: str):
          "scalar": lambda: pm.static_plan(12, "scalar"),
          "ferraris": pm.ferraris_plan,
          "align": lambda: pm.align_plan()[0],
-         "rimu": lambda: pm.rimu_plan()}[name]()
+         "rimu": lambda: pm.rimu_plan(),
+         "turntable3": lambda: pm.turntable_plan(),
+         "turntable9": lambda: pm.turntable_plan(tilted=True)}[name]()
     return parse_plan(pm.to_toml(d), f"<{name}>")
 
 
@@ -44,6 +46,10 @@ def fit(method: str, rec):
         from calib_cli.methods.align import fit_align
 
         return fit_align(rec)
+    if method == "turntable":
+        from calib_cli.methods.turntable import fit_turntable
+
+        return fit_turntable(rec)
     from calib_cli.methods.rimu import fit_rimu
 
     return fit_rimu(rec)
@@ -53,6 +59,8 @@ def sigma_ratios(pred, res) -> dict:
     """predicted sigma / (the fit's sigma without its chi^2 inflation), per key,
     over the entries both determine."""
     infl = float(res.stats.get("sigma_inflation") or 1.0)
+    if res.method == "turntable":  # its accelerometer noise widened by this factor
+        infl = float(res.stats.get("accel_noise_inflation") or 1.0) ** 2
     out = {}
     for k, s in pred.result.sigma.items():
         s = np.asarray(s, float)
