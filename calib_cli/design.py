@@ -838,7 +838,7 @@ def record_warning(plan: Plan, rate: float | None = None) -> str | None:
     cannot deliver what its method reports (unobservable entries, or the fit
     would fail); None when it can, for ``repeat = "auto"`` plans and for plans
     plan check does not cover yet. Never raises."""
-    if plan.kind == "turntable" or any(s.repeat_auto for s in plan.segments):
+    if any(s.repeat_auto for s in plan.segments):
         return None
     try:
         pr = check(plan, noise=default_noise(plan, rate), suggestions=False)
@@ -846,8 +846,27 @@ def record_warning(plan: Plan, rate: float | None = None) -> str | None:
         return f"plan check: {exc.message}"
     except Exception:  # noqa: BLE001 - a warning must never stop a recording
         return None
-    if pr.unobservable:
-        lost = ", ".join(pr.unobservable[:6]) + (" ..." if len(pr.unobservable) > 6 else "")
-        return (f"plan check: this plan leaves {lost} unobservable (calib plan check "
-                f"{plan.path} for the additions that help; --no-check to skip)")
+    lost = plan_unobservable(pr.result)
+    if lost:
+        return (f"plan check: this plan leaves {compact_labels(lost)} unobservable (calib plan "
+                f"check {plan.path} for the additions that help; --no-check to skip)")
     return None
+
+
+def plan_unobservable(res: CalibrationResult) -> list[str]:
+    """The unobservable entries the plan is to blame for: those of parameters the fit
+    estimates (in its covariance). Entries the method never determines (the thermal
+    fit's gyro_temp_scale without a rate table, proof masses held at 0 by an option)
+    are the method's, whatever the plan."""
+    est = {k for k, *_ in (res.cov_order or [])}
+    return [u for u in res.stats.get("unobservable", []) if u.partition("[")[0] in est]
+
+
+def compact_labels(labels: list[str]) -> str:
+    """Entry labels, a key with more than three of them as one item:
+    'proof_mass_offsets (6 entries), gyro_bias[0]'."""
+    keys: dict = {}
+    for u in labels:
+        keys.setdefault(u.partition("[")[0], []).append(u)
+    return ", ".join(", ".join(v) if len(v) <= 3 else f"{k} ({len(v)} entries)"
+                     for k, v in keys.items())

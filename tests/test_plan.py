@@ -273,6 +273,10 @@ def test_record_warning_one_line(run_cli):
     flat = parse_plan(pm.to_toml(d), "flat.toml")
     w = design.record_warning(flat, 100.0)
     assert w and "unobservable" in w and "flat.toml" in w and "\n" not in w
+    # a thermal plan without a rate table: gyro_temp_scale is the method's, not the plan's
+    th, _ = pm.thermal_plan(design="soak", temps=5, soak=300.0, duration=20.0)
+    assert design.record_warning(parse_plan(pm.to_toml(th), "th.toml"), 10.0) is None
+    assert design.compact_labels([f"p[{i}]" for i in range(6)] + ["b[0]"]) == "p (6 entries), b[0]"
     auto = parse_plan("kind = 'static'\n[[segment]]\nrepeat = 'auto'\n", "auto.toml")
     assert design.record_warning(auto, 100.0) is None
     code, out, _ = run_cli("record", "--help")
