@@ -1025,6 +1025,9 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     if L.est_rate:
         sd[L.idx["rk"]] = opt.rate_scale_sigma
         sd[L.idx["rb"]] = opt.rate_bias_sigma
+    if _at is not None:  # experiment design: one linearised pass at the given unit
+        return _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc,
+                        sig_enc, rate, sig_rate, width, _at)
     # a model that does not explain the data (e.g. lever arms ignored) leaves accelerometer
     # residuals far above the noise and can drag the attitude off; the fit then restarts with
     # the measurement noise widened to the residual level (stats.accel_noise_inflation), so
@@ -1042,9 +1045,6 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     # encoder's zero per cycle re-absorb the coarse start attitude at every pass
     rep_idx = np.concatenate([L.idx[k] for k in ("ab", "K", "gb", "G", "D", "s", "p")
                               if k in L.idx])
-    if _at is not None:  # experiment design: one linearised pass at the given unit
-        return _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc,
-                        sig_enc, rate, sig_rate, width, _at)
     inflation = 1.0
     enc_inflation = 1.0
     tick = None
@@ -1144,7 +1144,10 @@ def covariance_at(rec: Recording, options: TurntableOptions, at: dict) -> Calibr
     is the one the fit's Gauss-Newton passes end with on a record of that unit; on a
     noise-free record of it nothing else is needed. ``options.noise`` must be given. The
     result's params are ``at``'s; its sigma, covariance and stats.unobservable the fit's."""
-    return fit_turntable(rec, options, _at=at)
+    from dataclasses import replace
+
+    # coarse_factor 1: the coarse passes' table channels are not needed
+    return fit_turntable(rec, replace(options, coarse_factor=1), _at=at)
 
 
 def _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc, sig_enc,
