@@ -765,28 +765,34 @@ def optimize(plan: Plan, plan_dict: dict, targets: list[Target], method: str = "
         res, _ = predict_result(p, m, noise, truth, options)
         return worst_ratio(res, targets), p
 
+    gen = plan_dict.get("generator")
+    turntable = isinstance(gen, dict) and gen.get("method") == "turntable"
+    # log2 of the duration factor: its range, the bisection's tolerance, the rounding step
+    # (a turntable prediction is a filter pass over the record: fewer and nearer)
+    lo0, hi0, tol, step = (-8.0, 6.0, 0.01, 0.01) if not turntable else (None, 1.0, 0.05, 0.05)
+    scaled = _turntable_scaled if turntable else _durations_scaled
     best, tried = None, []
-    for desc, d0 in family(plan_dict):
-        r_hi, _ = ratio(_durations_scaled(d0, 64.0))
+    for desc, d0 in (_turntable_family(gen) if turntable else family(plan_dict)):
+        lo, hi = (lo0 if lo0 is not None else _turntable_lowest(d0)), hi0
+        r_hi, _ = ratio(scaled(d0, 2.0 ** hi))
         if not np.isfinite(r_hi) or r_hi > 1.0:
             tried.append((desc, None))
             continue
-        lo, hi = -8.0, 6.0  # log2 of the duration factor
-        if ratio(_durations_scaled(d0, 2.0 ** lo))[0] <= 1.0:
+        if ratio(scaled(d0, 2.0 ** lo))[0] <= 1.0:
             hi = lo
         for _ in range(14):
-            if hi - lo < 0.01:
+            if hi - lo < tol:
                 break
             mid = 0.5 * (lo + hi)
-            if ratio(_durations_scaled(d0, 2.0 ** mid))[0] <= 1.0:
+            if ratio(scaled(d0, 2.0 ** mid))[0] <= 1.0:
                 hi = mid
             else:
                 lo = mid
-        d = _durations_scaled(d0, 2.0 ** hi)
+        d = scaled(d0, 2.0 ** hi)
         r, p = ratio(d)
         while r > 1.0:  # rounding of the durations: a little more
-            hi += 0.01
-            d = _durations_scaled(d0, 2.0 ** hi)
+            hi += step
+            d = scaled(d0, 2.0 ** hi)
             r, p = ratio(d)
         tot = plan_total(p)
         tried.append((desc, tot))
@@ -794,17 +800,51 @@ def optimize(plan: Plan, plan_dict: dict, targets: list[Target], method: str = "
             best = (desc, d, tot, p)
     if best is None:
         names = ", ".join(t.text for t in targets)
+        far = "2 x the cycle durations" if turntable else "64 x the durations"
         raise EstimationError(f"no plan of this family meets {names} (unobservable, or beyond "
-                              "64 x the durations): change the plan's positions")
+                              f"{far}): change the plan's positions")
     desc, d, tot, p = best
     if max_duration is not None and tot > max_duration:
         raise EstimationError(f"the shortest plan that meets the targets takes {tot:.0f} s, "
                               f"over --max-duration {max_duration:g} s")
-    if isinstance(d.get("generator"), dict):
+    if turntable:
+        d["generator"] = {**d["generator"], "optimized_for": [t.text for t in targets]}
+    elif isinstance(d.get("generator"), dict):
         d["generator"] = {**d["generator"], "optimized_for": [t.text for t in targets],
                           "duration_scale": round(_duration_scale(d), 4)}
     pred = check(p, m, noise, truth, options, suggestions=False)
     return Optimized(d, p, pred, desc, before, tot, tried)
+
+
+TURNTABLE_MIN_CYCLE_S = 60.0  # the shortest cycle plan make turntable writes
+
+
+def _turntable_family(gen: dict) -> list[tuple[str, dict]]:
+    """The members of a generated turntable plan's family: with and without the six
+    tilted cycles, as ``plan_make.turntable_plan`` keyword arguments at the
+    generator's durations (scaled by ``_turntable_scaled``)."""
+    kw = {"tilt_deg": float(gen.get("tilt_deg", 5.0)),
+          "duration": float(gen.get("duration_s", 600.0)),
+          "tilted_duration": float(gen.get("tilted_duration_s", 300.0)),
+          "max_rate": float(gen.get("max_rate_dps", 200.0)),
+          "max_accel": float(gen.get("max_accel_dps2", 200.0)),
+          "profile": str(gen.get("profile", "steps")),
+          "rate": float(gen.get("sample_rate_hz", 100.0))}
+    return [("3 axial and 6 tilted cycles", {**kw, "tilted": True}),
+            ("3 axial cycles", {**kw, "tilted": False})]
+
+
+def _turntable_lowest(kw: dict) -> float:
+    """log2 of the smallest duration factor that keeps every cycle >= the shortest."""
+    shortest = min(kw["duration"], kw["tilted_duration"]) if kw["tilted"] else kw["duration"]
+    return float(np.log2(TURNTABLE_MIN_CYCLE_S / shortest))
+
+
+def _turntable_scaled(kw: dict, factor: float) -> dict:
+    from calib_cli.sim import plan_make as pm
+
+    return pm.turntable_plan(**{**kw, "duration": round(kw["duration"] * factor),
+                                "tilted_duration": round(kw["tilted_duration"] * factor)})
 
 
 def _duration_scale(d: dict) -> float:
