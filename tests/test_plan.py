@@ -203,12 +203,17 @@ def test_turntable_proof_masses_unobservable_without_tangential(short_turntable)
 
 def test_turntable_check_cli_options(tmp_path, run_cli):
     plan = tmp_path / "tt.toml"
-    assert run_cli("plan", "make", "turntable", "--duration", "120", "--out", plan)[0] == 0
+    assert run_cli("plan", "make", "turntable", "--duration", "60", "--tilted-duration", "60",
+                   "--out", plan)[0] == 0
     code, out, err = run_cli("plan", "check", plan, "--tangential", "off", "--json")
     assert code == 0, err
     d = json.loads(out)
     assert d["method"] == "turntable" and len(d["unobservable"]) == 6
     assert d["sigma"]["proof_mass_offsets"][0][1] is None
+    # each tilted cycle makes the proof-mass offset of its tilt observable
+    top = d["suggestions"][0]
+    assert top["add"].startswith("add the tilted cycle") and len(top["fixes"]) == 1
+    assert top["segments"][0]["rate_profile"] and top["segments"][0]["duration_s"] == 60
     static = _write(tmp_path, "s", pm.static_plan(6))
     code, _, err = run_cli("plan", "check", static, "--tangential", "off")
     assert code == 2 and "turntable" in err
