@@ -767,6 +767,10 @@ def optimize(plan: Plan, plan_dict: dict, targets: list[Target], method: str = "
 
     gen = plan_dict.get("generator")
     turntable = isinstance(gen, dict) and gen.get("method") == "turntable"
+    if m == "turntable" and not turntable:
+        raise EstimationError("plan optimize scales a turntable plan's cycles through its "
+                              "generator: give a plan made by `calib plan make turntable`",
+                              plan.path)
     # log2 of the duration factor: its range, the bisection's tolerance, the rounding step
     # (a turntable prediction is a filter pass over the record: fewer and nearer)
     lo0, hi0, tol, step = (-8.0, 6.0, 0.01, 0.01) if not turntable else (None, 1.0, 0.05, 0.05)
