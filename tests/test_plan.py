@@ -286,3 +286,23 @@ def test_record_warning_one_line(run_cli):
     assert design.record_warning(auto, 100.0) is None
     code, out, _ = run_cli("record", "--help")
     assert code == 0 and "--no-check" in out
+
+
+def test_optimize_turntable_family(tmp_path, run_cli):
+    """The turntable family: with and without the tilted cycles, the cycle durations
+    scaled through the generator (never below 60 s); a plan without [generator]: exit 4.
+    The 20-seed acceptance of the optimized plan is in test_plan_slow.py."""
+    gen = pm.turntable_plan(tilted=True)["generator"]
+    fam = dict(design._turntable_family(gen))
+    assert set(fam) == {"3 axial and 6 tilted cycles", "3 axial cycles"}
+    kw = fam["3 axial and 6 tilted cycles"]
+    assert 2 ** design._turntable_lowest(kw) * 300.0 == pytest.approx(60.0)
+    half = design._turntable_scaled(kw, 0.5)
+    assert half["generator"]["duration_s"] == 300 and half["generator"]["tilted_duration_s"] == 150
+    assert len(half["segment"]) == 9
+    assert len(design._turntable_scaled(fam["3 axial cycles"], 0.5)["segment"]) == 3
+    d = pm.turntable_plan()
+    del d["generator"]
+    plan = _write(tmp_path, "nogen", d)
+    code, _, err = run_cli("plan", "optimize", plan, "--target", "proof_mass_offsets=1e-3")
+    assert code == 4 and "plan make turntable" in err and len(err.strip().splitlines()) == 1
