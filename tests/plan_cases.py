@@ -83,8 +83,9 @@ def _true_params(name, rec, res):
     return tp
 
 
-def normalised_errors(name: str, seed: int, pred) -> dict:
-    """(estimate - truth) / predicted sigma per key, for one simulated seed."""
+def normalised_errors(name: str, seed: int, pred, own: bool = False) -> dict:
+    """(estimate - truth) / predicted sigma per key, for one simulated seed; with
+    ``own`` also / the fit's own sigma: {key: (z_predicted, z_fit)}."""
     plan = plan_of(name)
     rec = simulate(plan, truth_of(name, plan), seed)
     res = fit(pred.method, rec)
@@ -97,6 +98,9 @@ def normalised_errors(name: str, seed: int, pred) -> dict:
             e = (e + np.pi) % (2 * np.pi) - np.pi
         ok = np.isfinite(s) & (s > 0)
         out[k] = e[ok] / s[ok]
+        if own:
+            f = np.asarray(res.sigma[k], float)[ok]
+            out[k] = (out[k], e[ok] / np.where(np.isfinite(f) & (f > 0), f, np.nan))
     return out
 
 
