@@ -133,7 +133,8 @@ def noise_like(rec: Recording, path: str = "<raw>") -> Noise:
     from calib_cli.methods.segstats import static_stats
 
     rot = [s for s in rec.segments if s.kind == "rotating"]
-    if rot and not rec.layout.redundant and rec.accel is not None and rec.gyro is not None:
+    if (rot and not rec.layout.redundant and rec.accel is not None and rec.gyro is not None
+            and (rec.plan_kind == "turntable" or not rec.static_segments())):
         # a turntable record: the fit's own estimate (third differences over its cycles)
         from calib_cli.methods.turntable import _third_diff_sigma
 
