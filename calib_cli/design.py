@@ -28,7 +28,7 @@ from calib_cli.model.truth import DEFAULT_NOISE, Truth, default_truth
 from calib_cli.plan import Plan, PlanSegment
 
 D2R = np.pi / 180.0
-METHODS = ("auto", "vector", "scalar", "gyro", "align", "rimu", "thermal")
+METHODS = ("auto", "vector", "scalar", "gyro", "align", "rimu", "thermal", "turntable")
 THERMAL_ORDER = 2  # plan check predicts the thermal fit at this polynomial order
 WEAK_TYPICAL = 0.3  # sigma above 0.3 x the catalogue's typical size of the entry: weak
 WEAK_SPREAD = 3.0  # ... or above 3 x the median sigma of the same key
@@ -43,6 +43,9 @@ class Noise:
     gyro: np.ndarray
     rate: float
     source: str = "stated"
+    # the recording the levels come from (--like): the turntable prediction takes from it
+    # which table channels the fit's checks accept, cycle by cycle
+    like: Recording | None = field(default=None, repr=False, compare=False)
 
     def as_dict(self) -> dict:
         return {"accel": self.accel, "gyro": self.gyro}
@@ -74,15 +77,12 @@ def resolve_method(plan: Plan, method: str = "auto") -> str:
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}",
                          plan.path)
-    if plan.kind == "turntable":
-        raise EstimationError("plan check for turntable plans: not yet (the turntable "
-                              "estimator is being rewritten); use simulate and fit")
-    if plan.kind in ("align", "rimu"):
+    if plan.kind in ("align", "rimu", "turntable"):
         if method not in ("auto", plan.kind):
             raise InputError(f"a plan of kind {plan.kind!r} goes to the {plan.kind} fit, "
                              f"not {method!r}", plan.path)
         return plan.kind
-    if method in ("align", "rimu"):
+    if method in ("align", "rimu", "turntable"):
         raise InputError(f"a static plan cannot be checked as {method!r}", plan.path)
     from calib_cli.sim.chamber import has_chamber
 
@@ -113,6 +113,11 @@ def default_noise(plan: Plan, rate: float | None = None, truth: Truth | None = N
                 v = np.asarray(truth.noise[f"{sensor}_white_density"], float) * np.sqrt(rate)
             out.append(np.broadcast_to(v, (n,)).astype(float))
         return Noise(out[0], out[1], rate, "the truth model's")
+    if plan.kind == "turntable":
+        from calib_cli.sim.turntable_plans import MEMS_NOISE
+
+        return Noise(np.full(3, MEMS_NOISE["accel_white"]), np.full(3, MEMS_NOISE["gyro_white"]),
+                     rate, "simulator default (turntable MEMS)")
     if plan.kind == "align" and plan.extra.get("sim_grade", "navigation") != "mems":
         from calib_cli.sim.grades import ACCEL_NOISE, ARW
 
@@ -127,6 +132,18 @@ def noise_like(rec: Recording, path: str = "<raw>") -> Noise:
     standard deviation of its static positions (the statistic the fits use)."""
     from calib_cli.methods.segstats import static_stats
 
+    rot = [s for s in rec.segments if s.kind == "rotating"]
+    if (rot and not rec.layout.redundant and rec.accel is not None and rec.gyro is not None
+            and (rec.plan_kind == "turntable" or not rec.static_segments())):
+        # a turntable record: the fit's own estimate (third differences over its cycles)
+        from calib_cli.methods.turntable import _third_diff_sigma
+
+        if rec.in_counts("accel") or rec.in_counts("gyro"):
+            raise InputError("the recording is in raw counts: give --accel-noise/--gyro-noise "
+                             "in SI instead", path)
+        on = np.concatenate([np.arange(s.start, s.stop) for s in rot])
+        return Noise(_third_diff_sigma(rec.accel[on]), _third_diff_sigma(rec.gyro[on]),
+                     rec.sample_rate, f"like {path}", rec)
     out = {}
     for sensor in ("accel", "gyro"):
         data = rec.accel if sensor == "accel" else rec.gyro
@@ -156,6 +173,8 @@ def nominal_truth(plan: Plan, truth: Truth | None = None) -> Truth:
     from calib_cli.plan import plan_layout, same_layout
 
     layout = plan_layout(plan)
+    if truth is None and plan.kind == "turntable":
+        return _turntable_nominal(plan)
     if truth is None:
         if layout.redundant:
             model = default_truth(layout, np.random.default_rng(0)).model
@@ -182,6 +201,20 @@ def nominal_truth(plan: Plan, truth: Truth | None = None) -> Truth:
     return Truth(truth.model, truth.params, zero, truth.counts, False)
 
 
+def _turntable_nominal(plan: Plan) -> Truth:
+    """The turntable fit's model (methods/turntable.py) with neutral parameters, the
+    plan's lever arms (``lever_arm_m``; else 0) and no proof-mass offsets: the fit's
+    prior mean."""
+    from calib_cli.sim.turntable_plans import turntable_truth
+
+    t = turntable_truth(plan, np.random.default_rng(0))
+    params = t.model.neutral_params()
+    rot = [s for s in plan.segments if s.kind == "rotating"]
+    params["lever_arm"] = np.array([np.zeros(3) if s.lever_arm is None
+                                    else np.asarray(s.lever_arm, float) for s in rot])
+    return Truth(t.model, params, {"accel_white": 0.0, "gyro_white": 0.0})
+
+
 # ---------------------------------------------------------------------------
 # the prediction
 
@@ -205,11 +238,63 @@ def _fit(method: str, rec: Recording, noise: Noise, options: dict) -> Calibratio
         from calib_cli.methods.rimu import fit_rimu
 
         return fit_rimu(rec, noise=nz, strict=False)
+    if method == "turntable":
+        return _turntable_prediction(rec, noise, options)
     if method == "thermal":
         from calib_cli.methods.thermal import fit_thermal
 
         return fit_thermal(rec, order=int(options.get("temp_order", THERMAL_ORDER)), noise=nz)
     raise ValueError(method)
+
+
+TURNTABLE_OPTIONS = ("lever_arm", "proof_mass", "tangential", "block_s", "axis_sigma_mrad",
+                     "table_tilt_deg", "grade", "prior", "table_encoder")
+
+
+def _turntable_prediction(rec: Recording, noise: Noise, options: dict) -> CalibrationResult:
+    """The turntable fit's covariance at the simulated unit: its own set-up and one
+    linearised filter pass there (methods/turntable.covariance_at), no iterations."""
+    from calib_cli.methods.registry import options_from
+    from calib_cli.methods.turntable import covariance_at
+
+    o = options_from("turntable", {k: v for k, v in options.items()
+                                   if k in TURNTABLE_OPTIONS and v is not None})
+    topt = replace(o.to_method(), noise={"accel": np.asarray(noise.accel, float) * np.ones(3),
+                                         "gyro": np.asarray(noise.gyro, float) * np.ones(3)})
+    if noise.like is not None:
+        rec = _channels_like(rec, noise.like, topt)
+    return covariance_at(rec, topt, rec.truth["params"])
+
+
+def _channels_like(rec: Recording, like: Recording, topt) -> Recording:
+    """The noise-free record with the table channels the fit would not use on ``like``
+    blanked, cycle by cycle: the fit's own checks (methods/turntable.py) run on the
+    recording --like names (e.g. an encoder that drifts from the raw gyros' angle)."""
+    from calib_cli.methods import turntable as tt
+
+    try:
+        cyc_like = tt._select(like)
+    except (InputError, EstimationError):
+        return rec
+    cyc = tt._select(rec)
+    if len(cyc_like) != len(cyc):
+        return rec
+    bn = max(1, int(round(topt.block_s * like.sample_rate)))
+    q = replace(topt, table_encoder="auto" if topt.table_encoder != "off" else "off")
+    enc = tt._encoder_setup(like, cyc_like, bn, q)[0] if like.table_angle is not None else None
+    rate = tt._rate_setup(like, cyc_like, bn, q)[0] if like.table_rate is not None else None
+    ang = None if rec.table_angle is None else np.array(rec.table_angle, float)
+    rt = None if rec.table_rate is None else np.array(rec.table_rate, float)
+    for c, cy in enumerate(cyc):
+        if ang is not None and (enc is None or enc[c] is None):
+            ang[cy.sl] = np.nan
+        if rt is not None and (rate is None or rate[c] is None):
+            rt[cy.sl] = np.nan
+    if ang is not None and not np.isfinite(ang).any():
+        ang = None
+    if rt is not None and not np.isfinite(rt).any():
+        rt = None
+    return rec.with_(table_angle=ang, table_rate=rt)
 
 
 def _with_rate(plan: Plan, rate: float) -> Plan:
@@ -397,6 +482,8 @@ def candidates(plan: Plan, method: str) -> list[tuple[str, tuple]]:
             hold = PlanSegment(label=f"add-after-turn-{ax}", attitude=att, duration=dur)
             out.append((f"add a 360 deg turn about body {ax} ({tdur:g} s) and a position after "
                         "it", (turn, hold)))
+    if method == "turntable":
+        out += _tilted_cycles(plan)
     if method == "align":
         dur_a = _median_duration(plan)
         for i, ax in enumerate("xyz"):
@@ -406,6 +493,41 @@ def candidates(plan: Plan, method: str) -> list[tuple[str, tuple]]:
             hold = PlanSegment(label=f"add-position-{ax}", duration=dur_a)
             out.append((f"add a third position after a 90 deg turn about body {ax}",
                         (turn, hold)))
+    return out
+
+
+def _tilted_cycles(plan: Plan) -> list[tuple[str, tuple]]:
+    """The six tilted cycles of ``plan make turntable --tilted`` (with the plan's
+    generator parameters where it has them) that the plan lacks, one candidate each."""
+    import tomllib
+
+    from calib_cli.io.plan import parse_plan
+    from calib_cli.sim import plan_make as pm
+
+    try:
+        gen = tomllib.loads(plan.text).get("generator", {}) if plan.text else {}
+    except (tomllib.TOMLDecodeError, TypeError):
+        gen = {}
+    kw = {}
+    if isinstance(gen, dict) and gen.get("method") == "turntable":
+        for k, g in (("tilt_deg", "tilt_deg"), ("tilted_duration", "tilted_duration_s"),
+                     ("max_rate", "max_rate_dps"), ("max_accel", "max_accel_dps2"),
+                     ("profile", "profile")):
+            if g in gen:
+                kw[k] = gen[g]
+    try:
+        full = parse_plan(pm.to_toml(pm.turntable_plan(tilted=True, **kw)), "<tilted>")
+    except InputError:
+        return []
+    have = {s.label for s in plan.segments}
+    axis = next((s.table_axis_enu for s in plan.segments if s.kind == "rotating"), None)
+    out = []
+    for seg in full.segments[3:]:
+        if seg.label in have:
+            continue
+        if axis is not None:
+            seg = replace(seg, table_axis_enu=np.asarray(axis, float))
+        out.append((f"add the tilted cycle {seg.label} ({seg.duration:g} s)", (seg,)))
     return out
 
 
@@ -423,6 +545,9 @@ def segment_toml(seg: PlanSegment) -> dict:
         d["table_axis_enu"] = [float(x) for x in seg.table_axis_enu]
         if seg.table_rate is not None:
             d["table_rate_dps"] = round(float(np.degrees(seg.table_rate)), 6)
+    for k in ("rate_profile", "rate_shape"):  # a turntable cycle
+        if k in seg.extra:
+            d[k] = seg.extra[k]
     if seg.duration is not None:
         d["duration_s"] = float(seg.duration)
     return d
@@ -446,7 +571,8 @@ def suggest(plan: Plan, method: str, noise: Noise, base: CalibrationResult,
     before = {t: _sigma_of(base, t) for t in targets}
     trials = [(desc, segs, replace(plan, segments=plan.segments + segs))
               for desc, segs in candidates(plan, method)]
-    trials.append(("double the duration of every static position", (), _scaled(plan, 2.0)))
+    if method != "turntable":
+        trials.append(("double the duration of every static position", (), _scaled(plan, 2.0)))
     ranked = []
     for desc, segs, p in trials:
         try:
@@ -640,28 +766,38 @@ def optimize(plan: Plan, plan_dict: dict, targets: list[Target], method: str = "
         res, _ = predict_result(p, m, noise, truth, options)
         return worst_ratio(res, targets), p
 
+    gen = plan_dict.get("generator")
+    turntable = isinstance(gen, dict) and gen.get("method") == "turntable"
+    if m == "turntable" and not turntable:
+        raise EstimationError("plan optimize scales a turntable plan's cycles through its "
+                              "generator: give a plan made by `calib plan make turntable`",
+                              plan.path)
+    # log2 of the duration factor: its range, the bisection's tolerance, the rounding step
+    # (a turntable prediction is a filter pass over the record: fewer and nearer)
+    lo0, hi0, tol, step = (-8.0, 6.0, 0.01, 0.01) if not turntable else (None, 1.0, 0.05, 0.05)
+    scaled = _turntable_scaled if turntable else _durations_scaled
     best, tried = None, []
-    for desc, d0 in family(plan_dict):
-        r_hi, _ = ratio(_durations_scaled(d0, 64.0))
+    for desc, d0 in (_turntable_family(gen) if turntable else family(plan_dict)):
+        lo, hi = (lo0 if lo0 is not None else _turntable_lowest(d0)), hi0
+        r_hi, _ = ratio(scaled(d0, 2.0 ** hi))
         if not np.isfinite(r_hi) or r_hi > 1.0:
             tried.append((desc, None))
             continue
-        lo, hi = -8.0, 6.0  # log2 of the duration factor
-        if ratio(_durations_scaled(d0, 2.0 ** lo))[0] <= 1.0:
+        if ratio(scaled(d0, 2.0 ** lo))[0] <= 1.0:
             hi = lo
         for _ in range(14):
-            if hi - lo < 0.01:
+            if hi - lo < tol:
                 break
             mid = 0.5 * (lo + hi)
-            if ratio(_durations_scaled(d0, 2.0 ** mid))[0] <= 1.0:
+            if ratio(scaled(d0, 2.0 ** mid))[0] <= 1.0:
                 hi = mid
             else:
                 lo = mid
-        d = _durations_scaled(d0, 2.0 ** hi)
+        d = scaled(d0, 2.0 ** hi)
         r, p = ratio(d)
         while r > 1.0:  # rounding of the durations: a little more
-            hi += 0.01
-            d = _durations_scaled(d0, 2.0 ** hi)
+            hi += step
+            d = scaled(d0, 2.0 ** hi)
             r, p = ratio(d)
         tot = plan_total(p)
         tried.append((desc, tot))
@@ -669,17 +805,51 @@ def optimize(plan: Plan, plan_dict: dict, targets: list[Target], method: str = "
             best = (desc, d, tot, p)
     if best is None:
         names = ", ".join(t.text for t in targets)
+        far = "2 x the cycle durations" if turntable else "64 x the durations"
         raise EstimationError(f"no plan of this family meets {names} (unobservable, or beyond "
-                              "64 x the durations): change the plan's positions")
+                              f"{far}): change the plan's positions")
     desc, d, tot, p = best
     if max_duration is not None and tot > max_duration:
         raise EstimationError(f"the shortest plan that meets the targets takes {tot:.0f} s, "
                               f"over --max-duration {max_duration:g} s")
-    if isinstance(d.get("generator"), dict):
+    if turntable:
+        d["generator"] = {**d["generator"], "optimized_for": [t.text for t in targets]}
+    elif isinstance(d.get("generator"), dict):
         d["generator"] = {**d["generator"], "optimized_for": [t.text for t in targets],
                           "duration_scale": round(_duration_scale(d), 4)}
     pred = check(p, m, noise, truth, options, suggestions=False)
     return Optimized(d, p, pred, desc, before, tot, tried)
+
+
+TURNTABLE_MIN_CYCLE_S = 60.0  # the shortest cycle plan make turntable writes
+
+
+def _turntable_family(gen: dict) -> list[tuple[str, dict]]:
+    """The members of a generated turntable plan's family: with and without the six
+    tilted cycles, as ``plan_make.turntable_plan`` keyword arguments at the
+    generator's durations (scaled by ``_turntable_scaled``)."""
+    kw = {"tilt_deg": float(gen.get("tilt_deg", 5.0)),
+          "duration": float(gen.get("duration_s", 600.0)),
+          "tilted_duration": float(gen.get("tilted_duration_s", 300.0)),
+          "max_rate": float(gen.get("max_rate_dps", 200.0)),
+          "max_accel": float(gen.get("max_accel_dps2", 200.0)),
+          "profile": str(gen.get("profile", "steps")),
+          "rate": float(gen.get("sample_rate_hz", 100.0))}
+    return [("3 axial and 6 tilted cycles", {**kw, "tilted": True}),
+            ("3 axial cycles", {**kw, "tilted": False})]
+
+
+def _turntable_lowest(kw: dict) -> float:
+    """log2 of the smallest duration factor that keeps every cycle >= the shortest."""
+    shortest = min(kw["duration"], kw["tilted_duration"]) if kw["tilted"] else kw["duration"]
+    return float(np.log2(TURNTABLE_MIN_CYCLE_S / shortest))
+
+
+def _turntable_scaled(kw: dict, factor: float) -> dict:
+    from calib_cli.sim import plan_make as pm
+
+    return pm.turntable_plan(**{**kw, "duration": round(kw["duration"] * factor),
+                                "tilted_duration": round(kw["tilted_duration"] * factor)})
 
 
 def _duration_scale(d: dict) -> float:
@@ -713,7 +883,7 @@ def record_warning(plan: Plan, rate: float | None = None) -> str | None:
     cannot deliver what its method reports (unobservable entries, or the fit
     would fail); None when it can, for ``repeat = "auto"`` plans and for plans
     plan check does not cover yet. Never raises."""
-    if plan.kind == "turntable" or any(s.repeat_auto for s in plan.segments):
+    if any(s.repeat_auto for s in plan.segments):
         return None
     try:
         pr = check(plan, noise=default_noise(plan, rate), suggestions=False)
@@ -721,8 +891,27 @@ def record_warning(plan: Plan, rate: float | None = None) -> str | None:
         return f"plan check: {exc.message}"
     except Exception:  # noqa: BLE001 - a warning must never stop a recording
         return None
-    if pr.unobservable:
-        lost = ", ".join(pr.unobservable[:6]) + (" ..." if len(pr.unobservable) > 6 else "")
-        return (f"plan check: this plan leaves {lost} unobservable (calib plan check "
-                f"{plan.path} for the additions that help; --no-check to skip)")
+    lost = plan_unobservable(pr.result)
+    if lost:
+        return (f"plan check: this plan leaves {compact_labels(lost)} unobservable (calib plan "
+                f"check {plan.path} for the additions that help; --no-check to skip)")
     return None
+
+
+def plan_unobservable(res: CalibrationResult) -> list[str]:
+    """The unobservable entries the plan is to blame for: those of parameters the fit
+    estimates (in its covariance). Entries the method never determines (the thermal
+    fit's gyro_temp_scale without a rate table, proof masses held at 0 by an option)
+    are the method's, whatever the plan."""
+    est = {k for k, *_ in (res.cov_order or [])}
+    return [u for u in res.stats.get("unobservable", []) if u.partition("[")[0] in est]
+
+
+def compact_labels(labels: list[str]) -> str:
+    """Entry labels, a key with more than three of them as one item:
+    'proof_mass_offsets (6 entries), gyro_bias[0]'."""
+    keys: dict = {}
+    for u in labels:
+        keys.setdefault(u.partition("[")[0], []).append(u)
+    return ", ".join(", ".join(v) if len(v) <= 3 else f"{k} ({len(v)} entries)"
+                     for k, v in keys.items())

@@ -23,7 +23,9 @@ def plan_of(name: str):
          "scalar": lambda: pm.static_plan(12, "scalar"),
          "ferraris": pm.ferraris_plan,
          "align": lambda: pm.align_plan()[0],
-         "rimu": lambda: pm.rimu_plan()}[name]()
+         "rimu": lambda: pm.rimu_plan(),
+         "turntable3": lambda: pm.turntable_plan(),
+         "turntable9": lambda: pm.turntable_plan(tilted=True)}[name]()
     return parse_plan(pm.to_toml(d), f"<{name}>")
 
 
@@ -44,6 +46,10 @@ def fit(method: str, rec):
         from calib_cli.methods.align import fit_align
 
         return fit_align(rec)
+    if method == "turntable":
+        from calib_cli.methods.turntable import fit_turntable
+
+        return fit_turntable(rec)
     from calib_cli.methods.rimu import fit_rimu
 
     return fit_rimu(rec)
@@ -53,6 +59,8 @@ def sigma_ratios(pred, res) -> dict:
     """predicted sigma / (the fit's sigma without its chi^2 inflation), per key,
     over the entries both determine."""
     infl = float(res.stats.get("sigma_inflation") or 1.0)
+    if res.method == "turntable":  # its accelerometer noise widened by this factor
+        infl = float(res.stats.get("accel_noise_inflation") or 1.0) ** 2
     out = {}
     for k, s in pred.result.sigma.items():
         s = np.asarray(s, float)
@@ -75,8 +83,9 @@ def _true_params(name, rec, res):
     return tp
 
 
-def normalised_errors(name: str, seed: int, pred) -> dict:
-    """(estimate - truth) / predicted sigma per key, for one simulated seed."""
+def normalised_errors(name: str, seed: int, pred, own: bool = False) -> dict:
+    """(estimate - truth) / predicted sigma per key, for one simulated seed; with
+    ``own`` also / the fit's own sigma: {key: (z_predicted, z_fit)}."""
     plan = plan_of(name)
     rec = simulate(plan, truth_of(name, plan), seed)
     res = fit(pred.method, rec)
@@ -89,6 +98,9 @@ def normalised_errors(name: str, seed: int, pred) -> dict:
             e = (e + np.pi) % (2 * np.pi) - np.pi
         ok = np.isfinite(s) & (s > 0)
         out[k] = e[ok] / s[ok]
+        if own:
+            f = np.asarray(res.sigma[k], float)[ok]
+            out[k] = (out[k], e[ok] / np.where(np.isfinite(f) & (f > 0), f, np.nan))
     return out
 
 

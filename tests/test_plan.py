@@ -143,7 +143,7 @@ def test_plan_make_bad_options_exit_2(tmp_path, run_cli):
     assert not (tmp_path / "x.toml").exists()
 
 
-def test_plan_make_turntable_and_check_not_yet(tmp_path, run_cli):
+def test_plan_make_turntable_limits(tmp_path, run_cli):
     plan = tmp_path / "tt.toml"
     code, _, err = run_cli("plan", "make", "turntable", "--tilted", "--max-rate", "100",
                            "--max-accel", "50", "--max-duration", "2000", "--out", plan)
@@ -157,8 +157,6 @@ def test_plan_make_turntable_and_check_not_yet(tmp_path, run_cli):
         assert slope.max() <= 50.0 + 1e-6
     total = sum(s.duration for s in p.segments) + 4.0 * 8
     assert total <= 2000.0 + 1e-6
-    code, out, err = run_cli("plan", "check", plan)
-    assert code == 4 and "not yet" in err and len(err.strip().splitlines()) == 1
 
 
 def test_plan_make_turntable_simulate_fit(tmp_path, run_cli):
@@ -168,6 +166,57 @@ def test_plan_make_turntable_simulate_fit(tmp_path, run_cli):
     assert run_cli("simulate", plan, "--out", raw, "--seed", "1")[0] == 0
     code, _, err = run_cli("fit", "turntable", raw, "--out", cal)
     assert code == 0, err
+
+
+@pytest.fixture(scope="module")
+def short_turntable():
+    """A generated 3-cycle plan of 120 s cycles and one simulated record of it."""
+    plan = parse_plan(pm.to_toml(pm.turntable_plan(duration=120.0)), "<tt3>")
+    return plan, simulate(plan, None, 7)
+
+
+def test_turntable_predicted_sigma_matches_fit_sigma(short_turntable):
+    """The turntable plan check (the fit's own set-up and one linearised filter pass at
+    the unit) over the fit's sigma on the same record: [0.87, 1.15] for every entry."""
+    plan, rec = short_turntable
+    pred = design.check(plan, "auto", design.noise_like(rec), suggestions=False)
+    res = pc.fit("turntable", rec)
+    assert pred.method == "turntable" and sorted(pred.result.sigma) == sorted(res.sigma)
+    assert pred.unobservable == res.stats["unobservable"] == []
+    for key, r in pc.sigma_ratios(pred, res).items():
+        assert len(r), key
+        assert r.min() >= 0.87 and r.max() <= 1.15, (key, r.min(), r.max())
+
+
+def test_turntable_proof_masses_unobservable_without_tangential(short_turntable):
+    """Three axial cycles and the tangential term off: the proof-mass offsets are
+    unobservable, exactly as the fit's stats.unobservable on a record of the plan."""
+    from calib_cli.methods.turntable import TurntableOptions, fit_turntable
+
+    plan, rec = short_turntable
+    pred = design.check(plan, "turntable", design.noise_like(rec), None,
+                        {"tangential": "off"}, suggestions=False)
+    res = fit_turntable(rec, TurntableOptions(tangential=False))
+    want = [f"proof_mass_offsets[{i},{j}]" for i in range(3) for j in range(3) if i != j]
+    assert pred.unobservable == res.stats["unobservable"] == want
+
+
+def test_turntable_check_cli_options(tmp_path, run_cli):
+    plan = tmp_path / "tt.toml"
+    assert run_cli("plan", "make", "turntable", "--duration", "60", "--tilted-duration", "60",
+                   "--out", plan)[0] == 0
+    code, out, err = run_cli("plan", "check", plan, "--tangential", "off", "--json")
+    assert code == 0, err
+    d = json.loads(out)
+    assert d["method"] == "turntable" and len(d["unobservable"]) == 6
+    assert d["sigma"]["proof_mass_offsets"][0][1] is None
+    # each tilted cycle makes the proof-mass offset of its tilt observable
+    top = d["suggestions"][0]
+    assert top["add"].startswith("add the tilted cycle") and len(top["fixes"]) == 1
+    assert top["segments"][0]["rate_profile"] and top["segments"][0]["duration_s"] == 60
+    static = _write(tmp_path, "s", pm.static_plan(6))
+    code, _, err = run_cli("plan", "check", static, "--tangential", "off")
+    assert code == 2 and "turntable" in err
 
 
 def test_align_degenerate_axis_warns(tmp_path, run_cli):
@@ -229,7 +278,31 @@ def test_record_warning_one_line(run_cli):
     flat = parse_plan(pm.to_toml(d), "flat.toml")
     w = design.record_warning(flat, 100.0)
     assert w and "unobservable" in w and "flat.toml" in w and "\n" not in w
+    # a thermal plan without a rate table: gyro_temp_scale is the method's, not the plan's
+    th, _ = pm.thermal_plan(design="soak", temps=5, soak=300.0, duration=20.0)
+    assert design.record_warning(parse_plan(pm.to_toml(th), "th.toml"), 10.0) is None
+    assert design.compact_labels([f"p[{i}]" for i in range(6)] + ["b[0]"]) == "p (6 entries), b[0]"
     auto = parse_plan("kind = 'static'\n[[segment]]\nrepeat = 'auto'\n", "auto.toml")
     assert design.record_warning(auto, 100.0) is None
     code, out, _ = run_cli("record", "--help")
     assert code == 0 and "--no-check" in out
+
+
+def test_optimize_turntable_family(tmp_path, run_cli):
+    """The turntable family: with and without the tilted cycles, the cycle durations
+    scaled through the generator (never below 60 s); a plan without [generator]: exit 4.
+    The 20-seed acceptance of the optimized plan is in test_plan_slow.py."""
+    gen = pm.turntable_plan(tilted=True)["generator"]
+    fam = dict(design._turntable_family(gen))
+    assert set(fam) == {"3 axial and 6 tilted cycles", "3 axial cycles"}
+    kw = fam["3 axial and 6 tilted cycles"]
+    assert 2 ** design._turntable_lowest(kw) * 300.0 == pytest.approx(60.0)
+    half = design._turntable_scaled(kw, 0.5)
+    assert half["generator"]["duration_s"] == 300 and half["generator"]["tilted_duration_s"] == 150
+    assert len(half["segment"]) == 9
+    assert len(design._turntable_scaled(fam["3 axial cycles"], 0.5)["segment"]) == 3
+    d = pm.turntable_plan()
+    del d["generator"]
+    plan = _write(tmp_path, "nogen", d)
+    code, _, err = run_cli("plan", "optimize", plan, "--target", "proof_mass_offsets=1e-3")
+    assert code == 4 and "plan make turntable" in err and len(err.strip().splitlines()) == 1

@@ -21,6 +21,7 @@ def pooled_rule(z: np.ndarray) -> tuple[float, float]:
 def test_within_sigma_over_seeds(name):
     pred = pc.predicted(name)
     errs = [pc.normalised_errors(name, s, pred) for s in SEEDS]
+    bad = []
     for key in pred.result.sigma:
         z = np.concatenate([e[key].ravel() for e in errs])
         if name == "align" and key == "attitude":
@@ -28,7 +29,45 @@ def test_within_sigma_over_seeds(name):
         if not len(z):
             continue
         rms, q99 = pooled_rule(z)
-        assert 0.8 <= rms <= 1.25 and q99 < 3.3, (name, key, rms, q99)
+        print(f"{name} {key}: RMS z {rms:.3f}, 99th pct {q99:.2f} ({len(z)} values)")
+        if not (0.8 <= rms <= 1.25 and q99 < 3.3):
+            bad.append((key, rms, q99))
+    assert not bad, (name, bad)
+
+
+# Turntable groups whose errors miss the rule (or sit at its edge) against the fit's OWN
+# sigma as well: the estimator's calibration on these generated plans, not the
+# prediction's (docs/plan.md, measured figures). For them only the agreement of the
+# predicted z with the fit's own z is asserted.
+TURNTABLE_ESTIMATOR_LIMITS = {"turntable3": ("accel_K", "gyro_D"),
+                              "turntable9": ("gyro_bias", "gyro_D")}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["turntable3", "turntable9"])
+def test_turntable_within_sigma_over_seeds(name):
+    """The turntable plan check over 20 seeds of the simulator's random MEMS unit: error /
+    predicted sigma meets the pooled rule per group, except where the fit's own sigma
+    misses it too; everywhere the RMS of the predicted z is within 10 % of the RMS of
+    the fit's own z (the prediction is as good as the fit's own covariance)."""
+    pred = pc.predicted(name)
+    errs = [pc.normalised_errors(name, s, pred, own=True) for s in SEEDS]
+    bad = []
+    for key in pred.result.sigma:
+        z = np.concatenate([e[key][0].ravel() for e in errs])
+        zf = np.concatenate([e[key][1].ravel() for e in errs])
+        if not len(z):
+            continue
+        rms, q99 = pooled_rule(z)
+        rms_f, q99_f = pooled_rule(zf[np.isfinite(zf)])
+        print(f"{name} {key}: RMS z {rms:.3f}, 99th pct {q99:.2f}; against the fit's own "
+              f"sigma {rms_f:.3f}, {q99_f:.2f} ({len(z)} values)")
+        ok = 0.8 <= rms <= 1.25 and q99 < 3.3
+        ok_f = 0.8 <= rms_f <= 1.25 and q99_f < 3.3
+        known = key in TURNTABLE_ESTIMATOR_LIMITS.get(name, ())
+        if (not ok and not known) or abs(rms / rms_f - 1) > 0.1:
+            bad.append((key, rms, q99, rms_f, q99_f, ok_f))
+    assert not bad, (name, bad)
 
 
 # The heading is one number per seed: 20 values pool too few for the rule (its RMS then
@@ -91,4 +130,47 @@ def test_optimize_static_target_over_seeds(tmp_path, run_cli):
     d, worst, z = optimized_static(SEEDS, tmp_path, run_cli)
     assert worst <= 1.1
     rms, q99 = pooled_rule(z)
+    assert 0.8 <= rms <= 1.25 and q99 < 3.3, (rms, q99)
+
+
+def optimized_turntable(seeds, tmp_path, run_cli):
+    """plan optimize on the 9-cycle turntable plan with --target
+    proof_mass_offsets=1e-3 (the simulator's MEMS unit): the optimized plan,
+    simulated and fitted, reports sigma <= 1.1 x the target in every seed and its
+    proof-mass errors meet the within-sigma rule."""
+    import json
+
+    from calib_cli.io.plan import load_plan
+    from calib_cli.methods.turntable import fit_turntable
+    from calib_cli.sim.simulate import simulate
+
+    src, opt = tmp_path / "tt9.toml", tmp_path / "opt.toml"
+    assert run_cli("plan", "make", "turntable", "--tilted", "--out", src)[0] == 0
+    code, out, err = run_cli("plan", "optimize", src, "--target", "proof_mass_offsets=1e-3",
+                             "--out", opt, "--json")
+    assert code == 0, err
+    d = json.loads(out)
+    assert d["duration_s"] < d["duration_before_s"]
+    plan = load_plan(opt)
+    off = ~np.eye(3, dtype=bool)
+    z, worst = [], 0.0
+    for s in seeds:
+        rec = simulate(plan, None, s)
+        res = fit_turntable(rec)
+        sig = np.asarray(res.sigma["proof_mass_offsets"], float)[off]
+        worst = max(worst, float(np.max(sig)) / 1e-3)
+        e = (np.asarray(res.params["proof_mass_offsets"], float)
+             - np.asarray(rec.truth["params"]["proof_mass_offsets"], float))[off]
+        z.append(e / sig)
+    return d, worst, np.concatenate(z)
+
+
+@pytest.mark.slow
+def test_optimize_turntable_target_over_seeds(tmp_path, run_cli):
+    d, worst, z = optimized_turntable(SEEDS, tmp_path, run_cli)
+    rms, q99 = pooled_rule(z)
+    print(f"turntable optimize: {d['member']}, {d['duration_s']:.0f} s (was "
+          f"{d['duration_before_s']:.0f} s); worst fit sigma / target {worst:.3f}; "
+          f"RMS z {rms:.3f}, 99th pct {q99:.2f}")
+    assert worst <= 1.1
     assert 0.8 <= rms <= 1.25 and q99 < 3.3, (rms, q99)

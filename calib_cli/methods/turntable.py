@@ -1009,11 +1009,12 @@ def _scaled_inv(A: np.ndarray) -> np.ndarray:
 
 
 def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions(),
-                  progress=None) -> CalibrationResult:
+                  progress=None, _at: dict | None = None) -> CalibrationResult:
     """Fit the turntable model to a raw recording with rotating segments.
 
     progress: optional callback ``progress(done, total)``, called once per cycle
-    and filter pass (a retry with widened noise extends the total)."""
+    and filter pass (a retry with widened noise extends the total).
+    _at: see ``covariance_at`` (experiment design)."""
     opt = options
     if opt.lever_arm not in ("off", "known", "estimate"):
         raise InputError(f"lever_arm must be off, known or estimate, got {opt.lever_arm!r}")
@@ -1091,6 +1092,9 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     if L.est_rate:
         sd[L.idx["rk"]] = opt.rate_scale_sigma
         sd[L.idx["rb"]] = opt.rate_bias_sigma
+    if _at is not None:  # experiment design: one linearised pass at the given unit
+        return _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc,
+                        sig_enc, rate, sig_rate, width, _at)
     # a model that does not explain the data (e.g. lever arms ignored) leaves accelerometer
     # residuals far above the noise and can drag the attitude off; the fit then restarts with
     # the measurement noise widened to the residual level (stats.accel_noise_inflation), so
@@ -1208,6 +1212,51 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     from calib_cli.methods.check_positions import check_positions
 
     res.stats["check_positions"] = check_positions(rec, res)
+    return res
+
+
+def covariance_at(rec: Recording, options: TurntableOptions, at: dict) -> CalibrationResult:
+    """The fit's covariance at a known unit (``calib plan check``, docs/plan.md): the same
+    set-up as ``fit_turntable`` (prior, noise, table channels, nuisance states), then ONE
+    linearised filter pass about ``at`` (contract keys: accel_bias, accel_K, gyro_bias,
+    gyro_K, gyro_D, lever_arm (n_cycles, 3), proof_mass_offsets; missing: the prior mean),
+    started from the prior. The pass is linear in the parameter error, so its covariance
+    is the one the fit's Gauss-Newton passes end with on a record of that unit; on a
+    noise-free record of it nothing else is needed. ``options.noise`` must be given. The
+    result's params are ``at``'s; its sigma, covariance and stats.unobservable the fit's."""
+    from dataclasses import replace
+
+    # coarse_factor 1: the coarse passes' table channels are not needed
+    return fit_turntable(rec, replace(options, coarse_factor=1), _at=at)
+
+
+def _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc, sig_enc,
+             rate, sig_rate, width, at: dict) -> CalibrationResult:
+    theta = mean.copy()
+    if "accel_bias" in at:
+        theta[L.idx["ab"]] = np.asarray(at["accel_bias"], float)
+    if "accel_K" in at:
+        K = np.asarray(at["accel_K"], float)
+        theta[L.idx["K"]] = [K[i, j] for i, j in K_LOWER]
+    if "gyro_bias" in at:
+        theta[L.idx["gb"]] = np.asarray(at["gyro_bias"], float)
+    if "gyro_K" in at:
+        theta[L.idx["G"]] = np.asarray(at["gyro_K"], float).ravel()
+    if "gyro_D" in at:
+        theta[L.idx["D"]] = np.asarray(at["gyro_D"], float).ravel()
+    if L.est_s and at.get("lever_arm") is not None:
+        s = np.asarray(at["lever_arm"], float).reshape(-1, 3)
+        for c, cy in enumerate(cycles):
+            theta[L.idx["s"][2 * c:2 * c + 2]] = cy.basis.T @ s[c]
+    if L.est_p and at.get("proof_mass_offsets") is not None:
+        P = np.asarray(at["proof_mass_offsets"], float)
+        theta[L.idx["p"]] = [P[i, j] for i, j in P_OFF]
+    out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a, sig_g, block_n, s_known,
+                       record_history=False, first=False, enc=enc, sig_enc=sig_enc, rate=rate,
+                       sig_rate=sig_rate)
+    out.theta = theta
+    res = _result(rec, cycles, L, out, opt, s_known, sig_a, sig_g, block_n, 1.0, sd, width)
+    res.stats["table_encoder"] = _encoder_stats(enc, L, out, sig_enc, 1.0, [], rate, sig_rate)
     return res
 
 
