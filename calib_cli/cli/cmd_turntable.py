@@ -41,7 +41,7 @@ def _auto_or_number(text: str, name: str):
               help="How well the table axis stays fixed (per block, 1-sigma, mrad), or "
                    "auto: estimated from the data (stats.table_axis_noise_mrad).")
 @click.option("--runout-mrad", type=float, default=0.5, show_default=True,
-              help="Prior 1-sigma of the table bearing's once-per-revolution rocking of the "
+              help="Prior 1-sigma of the table bearing's twice-per-revolution rocking of the "
                    "axis (estimated per cycle); 0: none.")
 @click.option("--table-tilt-deg", type=float, default=0.05, show_default=True,
               help="Prior 1-sigma of the table axis's tilt from the plan's direction "

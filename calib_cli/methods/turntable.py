@@ -75,7 +75,7 @@ class TurntableOptions:
     # passes' result depends on where they start only to second order (half the time)
     coarse_factor: int = 2
     converge_sigma: float = 0.1
-    # the prior 1-sigma (rad) of the table bearing's once-per-revolution rocking of the axis
+    # the prior 1-sigma (rad) of the table bearing's twice-per-revolution rocking of the axis
     # (runout; cos and sin in each perpendicular direction, per cycle); 0: none
     runout_sigma: float = 5e-4
     # None: estimated from the axis innovations between passes (from _AXIS_START, at least
@@ -982,12 +982,13 @@ class _StartInfoError(Exception):
 # is estimated between passes from the axis innovations (mean square minus the filter's own
 # predicted part), starting loose; the floor keeps the update well conditioned.
 _AXIS_START = 1e-3
-# The runout's harmonics of the table angle: a tilted bearing race rocks the axis once per
-# revolution, an oval one twice. The first aliases with a gyro bias across the axis, the
-# second with g-sensitivity (gravity turns in the body once per revolution, D g in the
-# table frame holds the 0th and 2nd harmonics); only the holds at different rates tell them
-# apart, so left as white noise a 0.1 mrad runout made gyro_D overconfident (RMS z 1.4).
-_RUNOUT_HARMONICS = np.array([1.0, 2.0])
+# The runout's harmonics of the table angle: an oval bearing race rocks the axis twice per
+# revolution, which at any one rate looks like g-sensitivity (gravity turns once per
+# revolution in the body: D g in the table frame holds the 0th and 2nd harmonics); left as
+# white noise a 0.1 mrad runout made gyro_D overconfident (RMS z 1.4). The first harmonic
+# is not a state: in the axis measurement it repeats the cycle's mounting error u and a gyro
+# bias across the axis, and it took up 0.2-0.5 mrad of them on records without runout.
+_RUNOUT_HARMONICS = np.array([2.0])
 _AXIS_FLOOR = 1e-5
 _AXIS_CAP = 2e-2
 
@@ -1201,7 +1202,7 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     res.stats["table_axis_noise_mrad"] = float(np.sqrt(used_axis_var) * 1e3)
     res.stats["table_axis_noise_mode"] = "given" if opt.axis_sigma is not None else "estimated"
     # per cycle, the axis's rocking (runout) the final pass found, urad: the amplitude of the
-    # 1st and 2nd harmonic of the table angle in each of the two perpendicular directions
+    # harmonics of _RUNOUT_HARMONICS in each of the two perpendicular directions
     res.stats["table_axis_runout_urad"] = [[a * 1e6 for a in r] for r in out.runout]
     # the Gauss-Newton passes: how many ran, and the last pass's largest move in sigma
     res.stats["filter_passes"] = n_passes
@@ -1251,12 +1252,15 @@ def _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc,
     if L.est_p and at.get("proof_mass_offsets") is not None:
         P = np.asarray(at["proof_mass_offsets"], float)
         theta[L.idx["p"]] = [P[i, j] for i, j in P_OFF]
+    # the axis noise a fit estimates on a steady axis (its floor), unless given
+    axis_var = (opt.axis_sigma if opt.axis_sigma is not None else _AXIS_FLOOR) ** 2
     out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a, sig_g, block_n, s_known,
                        record_history=False, first=False, enc=enc, sig_enc=sig_enc, rate=rate,
-                       sig_rate=sig_rate)
+                       sig_rate=sig_rate, axis_var=axis_var)
     out.theta = theta
     res = _result(rec, cycles, L, out, opt, s_known, sig_a, sig_g, block_n, 1.0, sd, width)
     res.stats["table_encoder"] = _encoder_stats(enc, L, out, sig_enc, 1.0, [], rate, sig_rate)
+    res.stats["table_axis_noise_mrad"] = float(np.sqrt(axis_var) * 1e3)
     return res
 
 
