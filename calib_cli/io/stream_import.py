@@ -122,33 +122,31 @@ class _Sink:
 
 class _SpillStore:
     """The moving standard deviation of the detector, spilled to an anonymous
-    temporary file beside the output (deleted on close), read back by blocks
-    with plain reads (no memory map, so it never counts in the process's
-    resident memory)."""
+    temporary file beside the output (deleted on close), read back with plain
+    reads (no memory map, so it never counts in the process's resident
+    memory) in the blocks it was written in, column-major (every axis's
+    values contiguous, as the detector writes and reads them)."""
 
     def __init__(self, directory):
         import tempfile
 
         self.fh = tempfile.TemporaryFile(dir=directory)
         self.k = None
-        self.rows = 0
+        self.sizes: list[int] = []
 
     def write(self, arr):
-        arr = np.ascontiguousarray(arr, dtype=float)
-        self.k = arr.shape[1]
-        self.fh.write(memoryview(arr).cast("B"))
-        self.rows += len(arr)
+        cols = np.ascontiguousarray(np.asarray(arr, dtype=float).T)  # no copy if column-major
+        self.k = cols.shape[0]
+        self.fh.write(memoryview(cols).cast("B"))
+        self.sizes.append(cols.shape[1])
 
-    def blocks(self, rows=CHUNK_ROWS):
+    def blocks(self):
         self.fh.flush()
         self.fh.seek(0)
-        left = self.rows
-        while left > 0:
-            m = min(rows, left)
-            buf = np.empty((m, self.k))
+        for m in self.sizes:
+            buf = np.empty((self.k, m))
             self.fh.readinto(memoryview(buf).cast("B"))
-            left -= m
-            yield buf
+            yield buf.T
 
     def __enter__(self):
         return self

@@ -39,7 +39,7 @@ from calib_cli.methods.static_detect import (
 SAMPLE_ROWS = 100_000  # decimated series kept for the bracket
 BRACKET_CAP = 1_000_000  # values per axis kept inside a bracket
 HIST_BINS = 65536
-SUB_ROWS = 16384  # rows per moving-std step of StreamDetector.feed
+SUB_ROWS = 65536  # rows per moving-std step of StreamDetector.feed (bounds its buffers)
 
 Blocks = Callable[[], Iterable[tuple]]
 
@@ -47,7 +47,14 @@ Blocks = Callable[[], Iterable[tuple]]
 class MovingStd:
     """``static_detect.moving_std`` fed block by block: ``feed(x)`` returns the
     rows whose window is complete, ``finish(n)`` the rest (the last windows are
-    clipped to the record's end, so they wait for its length)."""
+    clipped to the record's end, so they wait for its length).
+
+    The rows come as (m, k) arrays in column-major (Fortran) order: every
+    axis's values contiguous, as the passes over them read them. The buffer
+    is (k, rows) complex: x - ref in the real part, its square in the
+    imaginary part, so that one complex cumulative sum along each row gives
+    both moving sums (two independent additions per element in one pass:
+    half the time of two real cumulative sums, and the same values)."""
 
     def __init__(self, w: int):
         self.w = w
@@ -60,7 +67,7 @@ class MovingStd:
         out = _window_std(self.buf, self.buf_start, self.next_out, i_max, w, w // 2, n)
         self.next_out = i_max
         keep = min(max(i_max - w, 0), n - w)  # the last windows reach back to n - w
-        self.buf = self.buf[keep - self.buf_start:]
+        self.buf = self.buf[:, keep - self.buf_start:]
         self.buf_start = keep
         return out
 
@@ -72,23 +79,20 @@ class MovingStd:
         k = sum(p.shape[1] for p in parts)
         if self.ref is None:
             self.ref = np.concatenate([p.mean(axis=0) for p in parts])  # conditioning
-        old = 0 if self.buf is None else len(self.buf)
-        # one complex buffer: real part x - ref, imaginary part its square, so that one
-        # complex cumulative sum gives both moving sums (two independent additions per
-        # element in one pass: half the time of two real cumulative sums, the same values)
-        buf = np.empty((old + m, k), dtype=complex)
+        old = 0 if self.buf is None else self.buf.shape[1]
+        buf = np.empty((k, old + m), dtype=complex)
         if old:
-            buf[:old] = self.buf
-        parts_of = buf[old:].view(float).reshape(m, k, 2)
-        re = parts_of[:, :, 0]
+            buf[:, :old] = self.buf
+        new = buf[:, old:].view(float).reshape(k, m, 2)
+        re = new[:, :, 0]
         j = 0
-        for p in parts:  # the reference subtracted straight into the buffer, column by
-            for c in range(p.shape[1]):  # column (long loops; no broadcast over 3 columns)
-                np.subtract(p[:, c], self.ref[j], out=re[:, j])
+        for p in parts:  # the reference subtracted straight into the buffer, axis by axis
+            for c in range(p.shape[1]):
+                np.subtract(p[:, c], self.ref[j], out=re[j])
                 j += 1
-        np.multiply(re, re, out=parts_of[:, :, 1])
+        np.multiply(re, re, out=new[:, :, 1])
         self.buf = buf
-        avail = self.buf_start + len(self.buf)
+        avail = self.buf_start + buf.shape[1]
         w, h = self.w, self.w // 2
         if avail < w:
             return None  # not one full window yet
@@ -120,21 +124,22 @@ def moving_std_blocks(xs: Iterable[np.ndarray], w: int, n: int) -> Iterator[np.n
 
 
 def _window_std(buf, buf_start, i0, i1, w, h, n):
-    """Moving standard deviation of the rows [i0, i1) from ``buf`` (complex:
-    x - ref and its square), a new contiguous (i1 - i0, k) array."""
+    """Moving standard deviation of the rows [i0, i1) from ``buf`` ((k, rows)
+    complex: x - ref and its square), a new (i1 - i0, k) array in column-major
+    order."""
     lo = np.clip(np.arange(i0, i1) - h, 0, n - w) - buf_start
     a, b = int(lo[0]), int(lo[-1]) + w
-    seg = buf[a:b]
-    c = np.empty((len(seg) + 1, seg.shape[1]), dtype=complex)
-    c[0] = 0.0
-    np.cumsum(seg, axis=0, out=c[1:])
+    seg = buf[:, a:b]
+    c = np.empty((seg.shape[0], seg.shape[1] + 1), dtype=complex)
+    c[:, 0] = 0.0
+    np.cumsum(seg, axis=1, out=c[:, 1:])
     lo = lo - a
     if lo[-1] - lo[0] == len(lo) - 1:  # contiguous windows: slices, not gathers (in place)
         j0, j1 = int(lo[0]), int(lo[-1]) + 1
-        s = c[j0 + w:j1 + w]
-        s -= c[j0:j1]
+        s = c[:, j0 + w:j1 + w]
+        s -= c[:, j0:j1]
     else:
-        s = c[lo + w] - c[lo]
+        s = c[:, lo + w] - c[:, lo]
     # var = (s2 - s1^2 / w) / (w - 1) with s1, s2 the moving sums of x and x^2, into a
     # new contiguous array
     out = np.multiply(s.real, s.real)
@@ -142,7 +147,7 @@ def _window_std(buf, buf_start, i0, i1, w, h, n):
     np.subtract(s.imag, out, out=out)
     out *= 1.0 / (w - 1)
     np.maximum(out, 0.0, out=out)
-    return np.sqrt(out, out=out)
+    return np.sqrt(out, out=out).T
 
 
 def _lerp(a, b, t):
@@ -192,17 +197,19 @@ def stream_percentile(values: Callable[[], Iterable[np.ndarray]], n: int, q: flo
         imax = np.full(len(todo), -np.inf)
         kept: list[list[np.ndarray]] | None = [[] for _ in todo]
         for blk in values():
-            # one column at a time, contiguous (a transposed copy of the block)
-            xt = np.ascontiguousarray(np.asarray(blk)[:, todo].T)
+            # one column at a time, contiguous (no copy of a column-major block)
+            xt = np.asarray(blk).T
+            xt = np.ascontiguousarray(xt if len(todo) == len(xt) else xt[todo])
             for j, c in enumerate(xt):
-                below[j] += np.count_nonzero(c < lo_t[j])
-                ins = c >= lo_t[j]
-                ins &= c <= hi_t[j]
-                cnt = np.count_nonzero(ins)
+                nb = np.count_nonzero(c < lo_t[j])
+                below[j] += nb
+                le = c <= hi_t[j]  # below the bracket or in it (lo <= hi)
+                cnt = np.count_nonzero(le) - nb
                 if not cnt:
                     continue
                 inside[j] += cnt
-                xj = c[ins]
+                xj = c[le]
+                xj = xj[xj >= lo_t[j]]
                 imin[j] = min(imin[j], xj.min())
                 imax[j] = max(imax[j], xj.max())
                 if kept is not None:
@@ -412,8 +419,8 @@ class StreamDetector:
         d = np.diff(t) if self.t_last is None else np.diff(np.concatenate([[self.t_last], t]))
         self.t_last = t[-1]
         self.diffs.feed(d[:, None])
-        # the moving std in sub-blocks: its buffers stay in the CPU's cache and the
-        # process's working set small (the same values: MovingStd is exact across feeds)
+        # the moving std in steps of at most SUB_ROWS rows: its buffers stay small
+        # whatever the source's block size (the same values: MovingStd is exact across feeds)
         for i in range(0, len(t), SUB_ROWS):
             self._out(self.ms.feed(accel[i:i + SUB_ROWS],
                                    None if gyro is None else gyro[i:i + SUB_ROWS]))
@@ -562,8 +569,11 @@ def _detect(blocks, times, stds, sample, n, dt, w, window_s, multiplier, min_dur
     need = []
     for a, b in run_pairs.values():
         need += [a, b - 1, a + half, np.maximum(b - half - 1, 0)]
-    need_idx = np.unique(np.clip(np.concatenate(need) if need else np.empty(0, np.int64),
-                                 0, max(n - 1, 0)))
+    need_idx = np.sort(np.clip(np.concatenate(need) if need else np.empty(0, np.int64),
+                               0, max(n - 1, 0)))
+    # np.unique without its first call's import of numpy.ma (20 ms of an import)
+    need_idx = need_idx[np.concatenate([[True], need_idx[1:] != need_idx[:-1]])] \
+        if len(need_idx) else need_idx
     tv = take_sorted(times, need_idx) if len(need_idx) else np.empty(0)
     tmap = dict(zip(need_idx.tolist(), tv.tolist()))
 
