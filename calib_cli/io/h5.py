@@ -24,7 +24,7 @@ from calib_cli.errors import InputError
 from calib_cli.io import validate
 from calib_cli.io.escape import line_text
 from calib_cli.model.earth import Site
-from calib_cli.model.effects import Layout
+from calib_cli.geometry import Layout
 
 FORMAT_VERSION = 1
 KINDS = ("raw", "calibration", "corrected", "diagnosis", "allan")

@@ -30,7 +30,7 @@ from calib_cli.io.h5 import (
     write_site_layout,
 )
 from calib_cli.methods.static_stream import StreamDetector
-from calib_cli.model.effects import Layout
+from calib_cli.geometry import Layout
 from calib_cli.plan import Plan, plan_layout  # noqa: F401  (plan_layout re-exported)
 
 CHUNK_ROWS = 65536

@@ -26,7 +26,7 @@ from calib_cli.io.csvlog import (
 )
 from calib_cli.io.plan import Plan
 from calib_cli.methods.static_stream import detect_static_arrays
-from calib_cli.model.effects import Layout
+from calib_cli.geometry import Layout
 
 G0 = 9.80665
 ACCEL_UNITS = {"count": None, "m/s^2": 1.0, "g": G0}
