@@ -106,10 +106,14 @@ class _Sink:
         self.tail.clear()
 
     def times(self, rows=READ_ROWS):
-        """Fresh iterator of the time blocks alone."""
+        """Fresh iterator of the time blocks alone: views of one buffer that
+        the next block overwrites (no fresh memory per block)."""
         t = self.ds["time"]
+        buf = np.empty(min(rows, self.n))
         for i in range(0, self.n, rows):
-            yield t[i:min(self.n, i + rows)]
+            out = buf[:min(self.n, i + rows) - i]
+            t.read_direct(out, np.s_[i:i + len(out)])
+            yield out
 
     def blocks(self, rows=READ_ROWS):
         """Fresh iterator of (t, accel, gyro) blocks of what was written."""

@@ -358,23 +358,32 @@ class Decimator:
     def __init__(self, limit: int = SAMPLE_ROWS):
         self.limit = limit
         self.stride = 1
-        self.parts: list[np.ndarray] = []
+        self.buf: np.ndarray | None = None  # the kept rows, then room: filled in place
         self.kept = 0
         self.off = 0
 
     def feed(self, x: np.ndarray) -> None:
+        x = np.asarray(x)
         first = (-self.off) % self.stride
         part = x[first::self.stride]
-        self.parts.append(np.array(part))
-        self.kept += len(part)
+        p = len(part)
         self.off += len(x)
-        if self.kept > 2 * self.limit:
-            cat = np.concatenate(self.parts)[::2]
-            self.parts, self.kept = [cat], len(cat)
+        if self.buf is None or self.kept + p > len(self.buf):
+            grown = np.empty((max(2 * self.limit + p, 2 * (self.kept + p)),) + x.shape[1:],
+                             dtype=x.dtype)
+            if self.kept:
+                grown[:self.kept] = self.buf[:self.kept]
+            self.buf = grown
+        self.buf[self.kept:self.kept + p] = part
+        self.kept += p
+        if self.kept > 2 * self.limit:  # every other kept row, in place
+            half = self.buf[:self.kept:2]
+            self.kept = len(half)
+            self.buf[:self.kept] = half
             self.stride *= 2
 
     def series(self) -> np.ndarray | None:
-        return np.concatenate(self.parts) if self.parts else None
+        return None if self.buf is None else self.buf[:self.kept].copy()
 
 
 def _median(x: np.ndarray) -> float:
@@ -407,6 +416,7 @@ class StreamDetector:
         self.diffs = Decimator()
         self.stds = Decimator()
         self.n = 0
+        self.axes = None  # (accelerometer axes, has a gyro), from the first block
 
     def feed(self, t, accel, gyro=None) -> None:
         t = np.asarray(t, dtype=float)
@@ -418,6 +428,7 @@ class StreamDetector:
             self.ms = MovingStd(self.w_est)
         d = np.diff(t) if self.t_last is None else np.diff(np.concatenate([[self.t_last], t]))
         self.t_last = t[-1]
+        self.axes = (np.shape(accel)[1], gyro is not None)
         self.diffs.feed(d[:, None])
         # the moving std in steps of at most SUB_ROWS rows: its buffers stay small
         # whatever the source's block size (the same values: MovingStd is exact across feeds)
@@ -452,7 +463,7 @@ class StreamDetector:
         else:
             stds, sample = _std_source(blocks, w, n), None
         return _detect(blocks, times, stds, sample, n, dt, w, self.window_s, multiplier,
-                       min_duration_s)
+                       min_duration_s, self.axes)
 
 
 class ListStore:
@@ -513,11 +524,15 @@ def detect_static_stream(blocks: Blocks, n: int, window_s: float = 1.0,
                    multiplier, min_duration_s)
 
 
-def _detect(blocks, times, stds, sample, n, dt, w, window_s, multiplier, min_duration_s):
+def _detect(blocks, times, stds, sample, n, dt, w, window_s, multiplier, min_duration_s,
+            axes=None):
+    """``axes``: (accelerometer axes, has a gyro) when known; else read from
+    the first block."""
     floors = stream_percentile(stds, n, FLOOR_QUANTILE, sample)
-    first = next(iter(blocks()))
-    na = first[1].shape[1]
-    has_g = first[2] is not None
+    if axes is None:
+        first = next(iter(blocks()))
+        axes = (first[1].shape[1], first[2] is not None)
+    na, has_g = axes
     fa = np.maximum(floors[:na], 1e-300)
     fg = np.maximum(floors[na:], 1e-300) if has_g else None
     f_all = floors.copy()
