@@ -16,10 +16,10 @@ import numpy as np
 
 from calib_cli.data import Recording, Segment
 from calib_cli.errors import InputError, num
+from calib_cli.geometry import Layout
 from calib_cli.io.plan import Plan, PlanSegment
 from calib_cli.methods.cycle_detect import CycleDetection, detect_cycles, trim_intervals
 from calib_cli.methods.static_detect import DetectionReport, detect_static
-from calib_cli.geometry import Layout
 
 OPTIONAL = ("temp", "table_angle", "table_rate")
 SEG_MAX = 2**31  # a segment index beyond this is no index (and would overflow an int)

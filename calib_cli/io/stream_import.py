@@ -22,6 +22,7 @@ import numpy as np
 
 from calib_cli.data import Segment
 from calib_cli.errors import InputError
+from calib_cli.geometry import Layout
 from calib_cli.io.h5 import (
     atomic_path,
     sha256_file,
@@ -30,7 +31,6 @@ from calib_cli.io.h5 import (
     write_site_layout,
 )
 from calib_cli.methods.static_stream import StreamDetector
-from calib_cli.geometry import Layout
 from calib_cli.plan import Plan, plan_layout  # noqa: F401  (plan_layout re-exported)
 
 CHUNK_ROWS = 65536
