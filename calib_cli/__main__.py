@@ -12,6 +12,8 @@ def run() -> None:
     import os
     import sys
 
+    import calib_cli.cli as pkg
+
     # the start-up imports (click, numpy, h5py, pyarrow, ...) allocate some 10^5 objects
     # that live as long as the process: with the default threshold (700) the cyclic
     # collector runs hundreds of times over them, about 30 ms of every command's start-up;
@@ -21,14 +23,16 @@ def run() -> None:
         # no linear algebra in an import: OpenBLAS's thread pool, started by the first
         # numpy import, only costs its start and spin (~50 ms CPU of an import of 1 s)
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+        # no collection at all until the import command has its modules (it turns the
+        # collector on again then, cli/cmd_import.py:_started; a usage error exits first)
+        gc.disable()
+        pkg.GC_DEFERRED = True
 
     if "_CALIB_COMPLETE" in os.environ:  # shell completion: from the static tree, < 0.3 s
         from calib_cli.cli.index import stub
 
         stub().main(prog_name="calib")
         return
-    import calib_cli.cli as pkg
-
     pkg.LAZY_COMMANDS = True
     from calib_cli.cli.main import main
 
