@@ -720,9 +720,9 @@ def import_csv_stream(path, plan: Plan, out, inputs=(), window_s: float = 1.0,
     kw = dict(window_s=window_s, multiplier=multiplier, min_static_s=min_static_s,
               accel_units=accel_units, gyro_units=gyro_units, sample_kind=sample_kind)
     if use_fast and not isinstance(cols, InputError):
-        # pyarrow reading the file itself; on a comment line (or anything else it does
-        # not take exactly as the reference reader does) through the comment filter;
-        # then the reference reader
+        # pyarrow parsing the log read in pieces (_segments); on a comment line (or
+        # anything else it does not take exactly as the reference reader does) through
+        # the comment filter; then the reference reader
         hasher = hashlib.sha256()
         try:
             return import_to_raw(out, _counted(prefetch(_arrow_chunks(path, header, offset, head,

@@ -30,7 +30,7 @@ from calib_cli.io.h5 import (
     write_segments,
     write_site_layout,
 )
-from calib_cli.methods.static_stream import StreamDetector
+from calib_cli.methods.static_stream import OnlineFloors, StreamDetector
 from calib_cli.plan import Plan, plan_layout  # noqa: F401  (plan_layout re-exported)
 
 CHUNK_ROWS = 65536
@@ -122,41 +122,6 @@ class _Sink:
         for i in range(0, self.n, rows):
             j = min(self.n, i + rows)
             yield t[i:j], a[i:j], (g[i:j] if g is not None else None)
-
-
-class _SpillStore:
-    """The moving standard deviation of the detector, spilled to an anonymous
-    temporary file beside the output (deleted on close), read back with plain
-    reads (no memory map, so it never counts in the process's resident
-    memory) in the blocks it was written in, column-major (every axis's
-    values contiguous, as the detector writes and reads them)."""
-
-    def __init__(self, directory):
-        import tempfile
-
-        self.fh = tempfile.TemporaryFile(dir=directory)
-        self.k = None
-        self.sizes: list[int] = []
-
-    def write(self, arr):
-        cols = np.ascontiguousarray(np.asarray(arr, dtype=float).T)  # no copy if column-major
-        self.k = cols.shape[0]
-        self.fh.write(memoryview(cols).cast("B"))
-        self.sizes.append(cols.shape[1])
-
-    def blocks(self):
-        self.fh.flush()
-        self.fh.seek(0)
-        for m in self.sizes:
-            buf = np.empty((self.k, m))
-            self.fh.readinto(memoryview(buf).cast("B"))
-            yield buf.T
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.fh.close()
 
 
 class _SegRuns:
@@ -308,11 +273,12 @@ def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_st
 
     layout = plan_layout(plan)
     units = convert_units(np.zeros((1, 3)), np.zeros((1, 3)), accel_units, gyro_units, path)[2]
-    with atomic_path(out) as tmp, h5py.File(tmp, "w") as h5, _SpillStore(Path(tmp).parent) as spill:
+    with atomic_path(out) as tmp, h5py.File(tmp, "w") as h5:
         smp = h5.create_group("samples")
         sink = _Sink(smp)
         runs = None
-        det = StreamDetector(window_s, spill)
+        # the detection's passes over the moving std done while it is computed (no spill)
+        det = StreamDetector(window_s, OnlineFloors(multiplier))
         for ch in source:
             m = len(ch.time)
             if not m:
