@@ -4,8 +4,10 @@ HDF5 file out, with memory bounded by the block size (docs/import.md).
 A *source* is an iterable of ``Chunk`` (time, accel, gyro, optional columns,
 segment index) in time order. ``import_to_raw`` writes the samples into
 chunked, resizable datasets as they come, then finds the segments (from the
-segment column's runs, or by the streaming static detection over the file it
-is writing, ``methods.static_stream``) and matches them to the plan exactly
+segment column's runs, or by the streaming static detection fed as it
+writes, whose passes are done on the way, ``methods.static_stream.OnlineFloors``:
+nothing is stored per row, and the moving std is computed again from the file
+only when its bracket missed a floor) and matches them to the plan exactly
 as ``import csv`` always has (``csvlog.segments_from_detection``). CSV, text,
 bag, ULog and DataFlash imports all go through here.
 """
