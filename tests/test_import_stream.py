@@ -344,3 +344,25 @@ def _tiny_bracket(orig):
         self.hi0 = np.maximum(self.hi, 1e-300)
         self.inv_min = 1.0 / self.hi0
     return bracket
+
+
+@pytest.mark.parametrize("shift", [1.0, 50.0])
+def test_online_floors_exact_or_gives_up(monkeypatch, shift):
+    """Narrowed brackets give np.percentile's floor exactly; data whose level
+    shifts after the first block (the floor outside every bracket) make the
+    store give up (None), never a wrong floor."""
+    from calib_cli.methods import static_stream as ss
+
+    monkeypatch.setattr(ss, "BRACKET_CAP", 500)
+    rng = np.random.default_rng(3)
+    blocks = [np.asfortranarray(np.abs(rng.normal(size=(1000, 2))) * (1.0 if i == 0 else shift))
+              for i in range(10)]
+    store = ss.OnlineFloors(3.0)
+    for b in blocks:
+        store.write(b)
+    got = store.result(10000, 3.0)
+    ref = np.percentile(np.concatenate(blocks), ss.FLOOR_QUANTILE, axis=0)
+    if shift == 1.0:
+        assert got is not None and np.array_equal(got[0], ref)
+    else:
+        assert got is None or np.array_equal(got[0], ref)

@@ -541,9 +541,11 @@ class OnlineFloors:
         kth = [i for i in (i_lo, i_hi) if 0 <= i < len(vals)]
         if kth:
             vals = np.partition(vals, kth)
-        if i_lo > 0:
+        # (a quantile outside the kept values leaves the bracket as it is: too many values
+        # stay in it, and the store gives up)
+        if 0 < i_lo < len(vals):
             self.lo[j] = vals[i_lo]
-        if i_hi < len(vals) - 1:
+        if 0 <= i_hi < len(vals) - 1:
             self.hi[j] = vals[i_hi]
         below = vals < self.lo[j]
         self.below[j] += np.count_nonzero(below)
