@@ -15,7 +15,11 @@ writing), the wall time and peak RSS of
 - the baseline: ``pyarrow.csv.open_csv`` streaming the same file to float64
   numpy arrays in one pass,
 
-and prints the median over ``--repeat`` runs (``--repeat-large`` for logs
+after one untimed run of each (the log in the page cache for all three;
+calib's modules compiled to bytecode first, as an installed wheel has them:
+with ``PYTHONDONTWRITEBYTECODE`` set, as on some CI machines, every run of an
+editable install would otherwise compile its ~30 modules again, about 0.1 s
+that no user pays), and prints the median over ``--repeat`` runs (``--repeat-large`` for logs
 over 200 MB; wall time and CPU time, user + system, which is steadier on a
 shared machine) with the ratios to the baseline measured in the same run.
 The runs of the three commands are interleaved (baseline, csv, text,
@@ -135,6 +139,12 @@ def main(argv=None) -> None:
     tmp = Path(a.dir or Path(tempfile.gettempdir()) / "calib-bench-import")
     tmp.mkdir(parents=True, exist_ok=True)
     py = sys.executable
+    # calib's bytecode, as pip writes it at install time (the baseline's libraries have it)
+    import compileall
+
+    import calib_cli
+
+    compileall.compile_dir(str(Path(calib_cli.__file__).parent), quiet=1)
     work = Path(tempfile.mkdtemp(prefix="calib-bench-import-", dir=tmp))
     try:
         plan = work / "plan.toml"
@@ -154,6 +164,8 @@ def main(argv=None) -> None:
                 runs["calib import text"] = [py, "-m", "calib_cli", "-q", "import", "text",
                                              str(log), "--plan", str(plan), "--out", str(out)]
             ms: dict[str, list] = {name: [] for name in runs}
+            for cmd in runs.values():  # warm-up, untimed: the log in the page cache for all
+                measure(cmd)
             load0 = os.getloadavg()[0]
             for _ in range(a.repeat if mb <= 200 else a.repeat_large):
                 for name, cmd in runs.items():  # interleaved: the load changes alike for all

@@ -302,3 +302,67 @@ def test_text_streamed_errors_from_the_in_memory_path(tmp_path, body, match):
         import_text_to_raw(tmp_path / "raw.h5", p, parse_plan(
             'name = "h"\nkind = "static"\n[[segment]]\nlabel = "pos"\nrepeat = "auto"\n'))
     assert not (tmp_path / "raw.h5").exists()
+
+
+@pytest.mark.parametrize("case", ["first_bracket", "narrowed", "fallback"])
+def test_online_floors_same_report(sim, case, monkeypatch):
+    """The import's detector without a spill (OnlineFloors): the same report,
+    bit for bit, as the passes over the whole moving std (ListStore); when
+    its bracket is narrowed on the way; and through the fallback (the moving
+    std computed again) when the bracket misses the floor."""
+    from calib_cli.methods import static_stream as ss
+
+    if case == "narrowed":
+        monkeypatch.setattr(ss, "BRACKET_CAP", 2000)
+    if case == "fallback":
+        monkeypatch.setattr(ss, "ONLINE_PAD", 0.0)  # a first bracket of one rank or so
+        monkeypatch.setattr(ss.OnlineFloors, "_bracket", _tiny_bracket(ss.OnlineFloors._bracket))
+    bs = 4096
+    reps = []
+    for store in (ss.OnlineFloors(3.0), ss.ListStore()):
+        det = ss.StreamDetector(1.0, store)
+        for i in range(0, len(sim.time), bs):
+            det.feed(sim.time[i:i + bs], sim.accel[i:i + bs], sim.gyro[i:i + bs])
+        reps.append(det.result(_blocks(sim, bs), 3.0, 1.0))
+        if isinstance(store, ss.OnlineFloors):
+            used = store.result(len(sim.time), 3.0) is not None
+            assert used == (case != "fallback")
+    got, ref = reps
+    assert got.intervals == ref.intervals and got.counts == ref.counts
+    assert got.short_runs == ref.short_runs and got.static_fraction == ref.static_fraction
+    if case != "fallback":  # the same moving std: the same floors, bit for bit
+        assert np.array_equal(got.floor_accel, ref.floor_accel)
+        assert np.array_equal(got.floor_gyro, ref.floor_gyro)
+    else:
+        assert np.allclose(got.floor_accel, ref.floor_accel, rtol=1e-9)
+
+
+def _tiny_bracket(orig):
+    def bracket(self, s):
+        orig(self, s)
+        self.hi = self.lo.copy()  # a bracket that holds no floor but the first block's
+        self.hi0 = np.maximum(self.hi, 1e-300)
+        self.inv_min = 1.0 / self.hi0
+    return bracket
+
+
+@pytest.mark.parametrize("shift", [1.0, 50.0])
+def test_online_floors_exact_or_gives_up(monkeypatch, shift):
+    """Narrowed brackets give np.percentile's floor exactly; data whose level
+    shifts after the first block (the floor outside every bracket) make the
+    store give up (None), never a wrong floor."""
+    from calib_cli.methods import static_stream as ss
+
+    monkeypatch.setattr(ss, "BRACKET_CAP", 500)
+    rng = np.random.default_rng(3)
+    blocks = [np.asfortranarray(np.abs(rng.normal(size=(1000, 2))) * (1.0 if i == 0 else shift))
+              for i in range(10)]
+    store = ss.OnlineFloors(3.0)
+    for b in blocks:
+        store.write(b)
+    got = store.result(10000, 3.0)
+    ref = np.percentile(np.concatenate(blocks), ss.FLOOR_QUANTILE, axis=0)
+    if shift == 1.0:
+        assert got is not None and np.array_equal(got[0], ref)
+    else:
+        assert got is None or np.array_equal(got[0], ref)

@@ -16,6 +16,8 @@ from calib_cli.errors import EstimationError, InputError
 from calib_cli.io.h5 import _attr_str, atomic_path, open_checked, read_segments
 from calib_cli.methods import allan as A
 
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
+
 CHUNK = 1 << 18  # samples per read
 DEFAULT_TARGET = {"m/s^2": 1e-4, "rad/s": 1e-5}  # ~10 ug, ~2 deg/h
 

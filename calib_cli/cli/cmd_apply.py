@@ -9,6 +9,8 @@ from calib_cli.cli.common import info, json_output_option, output_json
 from calib_cli.cli.main import cli
 from calib_cli.io.apply_file import CHUNK, apply_file  # noqa: F401  (CHUNK re-exported)
 
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
+
 
 @cli.command("apply")
 @click.argument("cal", type=click.Path(dir_okay=False))

@@ -14,6 +14,8 @@ from calib_cli.cli.common import Ctx, err_console, interactive, print_json
 from calib_cli.cli.main import cli
 from calib_cli.errors import InputError
 
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
+
 EXIT_FAILED = 1
 EXIT_TOLERANCE = 5
 

@@ -9,6 +9,8 @@ from rich.table import Table
 from calib_cli.cli.common import Ctx, err_console, out_console, print_json
 from calib_cli.cli.main import cli
 
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
+
 AUTO_PLAN = 'name = "detect"\nkind = "static"\n[[segment]]\nlabel = "pos"\nrepeat = "auto"\n'
 
 

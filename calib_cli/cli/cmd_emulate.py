@@ -13,6 +13,8 @@ import numpy as np
 from calib_cli.cli.common import complete_profile, info, to_jsonable
 from calib_cli.cli.main import cli
 
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
+
 
 @cli.command("emulate")
 @click.option("--imu", "imu", required=True, shell_complete=complete_profile("imu"),

@@ -13,6 +13,8 @@ from calib_cli.io import escape
 from calib_cli.io.export import ALL_FORMATS, export_object, to_c_header, to_csv, to_json, to_yaml
 from calib_cli.io.h5 import atomic_path, provenance, read_calibration, sha256_file
 
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
+
 
 class PrefixError(click.ClickException):
     """A bad --prefix: usage error (exit 2), one line on stderr."""

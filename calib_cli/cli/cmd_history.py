@@ -12,6 +12,8 @@ from calib_cli.cli.render import display_of
 from calib_cli.errors import InputError
 from calib_cli.io.escape import mpl_text, term_text
 
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
+
 
 def _keys(entries) -> list[str]:
     keys: list[str] = []

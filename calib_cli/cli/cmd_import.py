@@ -12,6 +12,29 @@ from calib_cli.io.plan import load_plan
 COMPLETE_COMMAND = True  # every `calib import` subcommand lives here (cli/main.py)
 
 
+def _started(*modules) -> None:
+    """The command's modules imported (those that import themselves later too,
+    ``modules``, when installed): the cyclic garbage collector, which the
+    entry point keeps off while an import starts up (``calib_cli.__main__``:
+    a few 10^5 objects of numpy, h5py, pyarrow and click that live as long as
+    the process, over which it would otherwise run again and again), is on
+    again, with those objects frozen out of its passes."""
+    import gc
+    import importlib
+
+    import calib_cli.cli as pkg
+
+    for name in modules:
+        try:
+            importlib.import_module(name)
+        except ImportError:  # an optional extra: its command says so itself
+            pass
+    if getattr(pkg, "GC_DEFERRED", False):
+        pkg.GC_DEFERRED = False
+        gc.freeze()
+        gc.enable()
+
+
 @cli.group("import")
 def import_group():
     """Bring logs from other sources into raw.h5."""
@@ -45,6 +68,8 @@ def import_csv_cmd(log, plan_path, out, window_s, multiplier, min_static_s, acce
     the plan's static segments in order (docs/import.md).
     """
     from calib_cli.io.csvlog import import_csv_stream
+
+    _started("calib_cli.io.stream_import", "pyarrow.csv")
 
     plan = load_plan(plan_path)
     with bar("import csv") as cb:
@@ -98,6 +123,8 @@ def import_text_cmd(acc, gyro, plan_path, out, columns, gyro_columns, accel_unit
     header, raw counts or other units, accelerometer and gyro in one file or in
     two files sharing timestamps (docs/import.md)."""
     from calib_cli.io.textlog import import_text_to_raw
+
+    _started("calib_cli.io.stream_import", "pyarrow.csv")
 
     plan = load_plan(plan_path)
     inputs = [acc] + ([gyro] if gyro else []) + [plan_path] + ([segments_json] if segments_json
@@ -195,6 +222,8 @@ def import_bag_cmd(path, topic, stamp, plan_path, out, window_s, multiplier, min
     Without --topic, list the IMU topics with their message counts and rates."""
     from calib_cli.io.imu_logs import bag_stream, list_bag_topics
 
+    _started("calib_cli.io.stream_import")
+
     if topic is None:
         _list_streams(list_bag_topics(path), as_json, "topics")
         return
@@ -218,6 +247,8 @@ def import_ulog_cmd(path, source, instance, plan_path, out, window_s, multiplier
     Without --plan, list the IMU topics with their message counts and rates."""
     from calib_cli.io.imu_logs import list_ulog_streams, ulog_stream
 
+    _started("calib_cli.io.stream_import")
+
     if not plan_path and not out:
         _list_streams(list_ulog_streams(path), as_json, "topics")
         return
@@ -238,6 +269,8 @@ def import_dataflash_cmd(path, message, instance, plan_path, out, window_s, mult
     calib-cli[ardupilot]; docs/import.md). Without --plan, list the IMU
     messages with their counts and rates."""
     from calib_cli.io.imu_logs import dataflash_stream, list_dataflash_streams
+
+    _started("calib_cli.io.stream_import")
 
     if not plan_path and not out:
         _list_streams(list_dataflash_streams(path), as_json, "messages")

@@ -17,6 +17,8 @@ from calib_cli.cli.common import Ctx, complete_profile, err_console, info, inter
 from calib_cli.cli.main import cli
 from calib_cli.errors import InputError
 
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
+
 
 class LiveDisplay:
     """The live panel (rich) on a terminal; one line per segment otherwise."""

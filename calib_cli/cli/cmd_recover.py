@@ -8,6 +8,8 @@ import click
 from calib_cli.cli.common import info
 from calib_cli.cli.main import cli
 
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
+
 
 @cli.command("recover")
 @click.argument("journal", type=click.Path(dir_okay=False))

@@ -11,6 +11,8 @@ from calib_cli.cli.main import cli
 from calib_cli.errors import CalibError, DamagedInput, InputError
 from calib_cli.io.h5 import file_kind, provenance, read_calibration
 
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
+
 MIN_ALLAN_S = 60.0  # a record shorter than this is not a free-running noise record
 
 

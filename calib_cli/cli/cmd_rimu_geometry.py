@@ -10,6 +10,8 @@ from rich.table import Table
 from calib_cli.cli.common import out_console, print_json
 from calib_cli.cli.main import cli
 
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
+
 D2R = np.pi / 180.0
 
 

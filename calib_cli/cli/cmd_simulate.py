@@ -14,6 +14,8 @@ from calib_cli.io.truth import load_truth
 from calib_cli.plan import plan_layout
 from calib_cli.sim.simulate import simulate
 
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
+
 
 @cli.command("simulate")
 @click.argument("plan", type=click.Path(dir_okay=False))

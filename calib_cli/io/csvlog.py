@@ -16,10 +16,10 @@ import numpy as np
 
 from calib_cli.data import Recording, Segment
 from calib_cli.errors import InputError, num
+from calib_cli.geometry import Layout
 from calib_cli.io.plan import Plan, PlanSegment
 from calib_cli.methods.cycle_detect import CycleDetection, detect_cycles, trim_intervals
 from calib_cli.methods.static_detect import DetectionReport, detect_static
-from calib_cli.model.effects import Layout
 
 OPTIONAL = ("temp", "table_angle", "table_rate")
 SEG_MAX = 2**31  # a segment index beyond this is no index (and would overflow an int)
@@ -399,30 +399,47 @@ class _CommentFilter:
         self.closed = True
 
 
-class _FileHash:
-    """SHA-256 of a whole file, computed by a background thread while the
-    import reads it (hashlib releases the GIL on large blocks)."""
+SEGMENT = 4 << 20  # bytes of the log per pyarrow reader on the direct path
 
-    def __init__(self, path):
-        import hashlib
-        import threading
 
-        self.h = hashlib.sha256()
-        self.err = None
-        self.th = threading.Thread(target=self._run, args=(path,), daemon=True)
-        self.th.start()
-
-    def _run(self, path):
-        try:
-            with open(path, "rb") as fh:
-                for block in iter(lambda: fh.read(1 << 20), b""):
-                    self.h.update(block)
-        except OSError as exc:  # pragma: no cover - the file vanished mid-import
-            self.err = exc
-
-    def hexdigest(self):
-        self.th.join()
-        return None if self.err else self.h.hexdigest()
+def _segments(path, offset, hasher):
+    """The log's body after ``offset`` in pieces of at most ``SEGMENT`` bytes,
+    each cut after a newline (the last one at the end of the file), as
+    memoryviews of one reused buffer: a piece is valid until the next is asked
+    for. Every byte of the file goes through ``hasher`` (the provenance's
+    SHA-256) on the way: the file is read once, into memory that is reused
+    (pyarrow's own reading thread would read it into fresh buffers, and a
+    hashing thread would read it again)."""
+    buf = bytearray(SEGMENT)
+    mv = memoryview(buf)
+    with open(path, "rb", buffering=0) as fh:
+        head = b""
+        while len(head) < offset:
+            more = fh.read(offset - len(head))
+            if not more:
+                break
+            head += more
+        hasher.update(head)
+        carry = 0
+        while True:
+            k = fh.readinto(mv[carry:]) if carry < SEGMENT else 0
+            if k:
+                hasher.update(mv[carry:carry + k])
+            tot = carry + k
+            if not tot:
+                return
+            cut = buf.rfind(b"\n", 0, tot) + 1 if k else tot
+            if not cut:
+                if tot < SEGMENT:  # a short read: read on
+                    carry = tot
+                    continue
+                raise _Fallback("a line longer than a segment")
+            yield mv[:cut]
+            rest = tot - cut
+            buf[:rest] = buf[cut:tot]
+            carry = rest
+            if not k:
+                return
 
 
 class _Assembler:
@@ -473,21 +490,38 @@ class _Assembler:
         return Chunk(time=t, accel=acc, gyro=gyr, opt=opt, segment=seg)
 
 
-def _arrow_chunks(path, header, offset, head, cols, hasher, direct=False):
-    """The pyarrow reader: yields chunks; raises _Fallback on anything unusual.
+class _FileHash:
+    """SHA-256 of a whole file, computed by a background thread while the
+    import reads it (hashlib releases the GIL on large blocks)."""
 
-    ``direct``: pyarrow reads the file itself (no Python in its reading
-    threads) from the line after the header, and any comment or blank-only
-    line in the body is a parse error, hence a _Fallback to the filtering
-    stream (``_CommentFilter``); the hash is then computed by a thread."""
+    def __init__(self, path):
+        import hashlib
+        import threading
+
+        self.h = hashlib.sha256()
+        self.err = None
+        self.th = threading.Thread(target=self._run, args=(path,), daemon=True)
+        self.th.start()
+
+    def _run(self, path):
+        try:
+            with open(path, "rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    self.h.update(block)
+        except OSError as exc:  # pragma: no cover - the file vanished mid-import
+            self.err = exc
+
+    def hexdigest(self):
+        self.th.join()
+        return None if self.err else self.h.hexdigest()
+
+
+def _arrow_batches(stream, header):
+    """The record batches of one pyarrow reader over ``stream`` (none for an
+    empty one); _Fallback on anything else it does not take."""
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
-    if direct:
-        stream = pa.OSFile(path)
-        stream.seek(offset)
-    else:
-        stream = _CommentFilter(path, offset, head, hasher)
     try:
         reader = pacsv.open_csv(
             stream,
@@ -498,21 +532,45 @@ def _arrow_chunks(path, header, offset, head, cols, hasher, direct=False):
                 column_types={h: pa.float64() for h in header}, strings_can_be_null=False,
                 quoted_strings_can_be_null=False, null_values=[]))
     except pa.ArrowInvalid as exc:
-        stream.close()
         if "Empty CSV file" in str(exc):
-            raise InputError("no data rows after the header", path) from None
+            return
         raise _Fallback(str(exc)) from None
+    while True:
+        try:
+            batch = reader.read_next_batch()
+        except StopIteration:
+            return
+        except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
+            raise _Fallback(str(exc)) from None
+        yield batch
+
+
+def _arrow_chunks(path, header, offset, head, cols, hasher, direct=False):
+    """The pyarrow reader: yields chunks; raises _Fallback on anything unusual.
+
+    ``direct``: the body of the log, from the line after the header, read in
+    pieces (``_segments``, hashed on the way) that pyarrow parses from
+    memory; any comment or blank-only line in the body is a parse error,
+    hence a _Fallback to the filtering stream (``_CommentFilter``)."""
+    if direct:
+        import pyarrow as pa
+
+        def batches():
+            for piece in _segments(path, offset, hasher):
+                yield from _arrow_batches(pa.BufferReader(pa.py_buffer(piece)), header)
+                del piece  # the reader is done with the buffer before it is reused
+
+        stream = None
+        source = batches()
+    else:
+        stream = _CommentFilter(path, offset, head, hasher)
+        source = _arrow_batches(stream, header)
     t_last = None
     ti, si = cols[0], cols[4]
     asm = _Assembler(cols)
+    rows = 0
     try:
-        while True:
-            try:
-                batch = reader.read_next_batch()
-            except StopIteration:
-                break
-            except (pa.ArrowInvalid, pa.ArrowTypeError) as exc:
-                raise _Fallback(str(exc)) from None
+        for batch in source:
             data = [batch.column(i).to_numpy(zero_copy_only=False) for i in range(len(header))]
             if not len(data[0]):
                 continue
@@ -527,13 +585,18 @@ def _arrow_chunks(path, header, offset, head, cols, hasher, direct=False):
             if si is not None and np.any(data[si] != np.round(data[si])):
                 raise _Fallback("segment")
             t_last = t[-1]
+            rows += len(t)
             asm.add(data)
             while asm.n >= STREAM_ROWS:  # pyarrow's blocks are small: write in larger ones
                 yield asm.take(STREAM_ROWS)
         if asm.n:
             yield asm.take(asm.n)
+        if not rows:
+            raise InputError("no data rows after the header", path)
     finally:
-        stream.close()
+        source.close()
+        if stream is not None:
+            stream.close()
 
 
 def _text_chunks(path, header, cols_or_error, hasher=None):
@@ -657,14 +720,16 @@ def import_csv_stream(path, plan: Plan, out, inputs=(), window_s: float = 1.0,
     kw = dict(window_s=window_s, multiplier=multiplier, min_static_s=min_static_s,
               accel_units=accel_units, gyro_units=gyro_units, sample_kind=sample_kind)
     if use_fast and not isinstance(cols, InputError):
-        # pyarrow reading the file itself; on a comment line (or anything else it does
-        # not take exactly as the reference reader does) through the comment filter;
-        # then the reference reader
-        fh = _FileHash(path)
+        # pyarrow parsing the log read in pieces (_segments); on a comment line (or
+        # anything else it does not take exactly as the reference reader does) through
+        # the comment filter; then the reference reader
+        hasher = hashlib.sha256()
         try:
-            return import_to_raw(out, prefetch(_arrow_chunks(path, header, offset, head, cols,
-                                                             None, direct=True)),
-                                 plan, path, inputs, hashes=lambda: {path: fh.hexdigest()}, **kw)
+            return import_to_raw(out, _counted(prefetch(_arrow_chunks(path, header, offset, head,
+                                                                      cols, hasher, direct=True)),
+                                               progress),
+                                 plan, path, inputs, hashes=lambda: {path: hasher.hexdigest()},
+                                 **kw)
         except _Fallback:
             pass
         hasher = hashlib.sha256()

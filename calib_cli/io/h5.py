@@ -21,10 +21,10 @@ import numpy as np
 from calib_cli import __version__
 from calib_cli.data import SAMPLE_KINDS, CalibrationResult, Recording, Segment
 from calib_cli.errors import InputError
+from calib_cli.geometry import Layout
 from calib_cli.io import validate
 from calib_cli.io.escape import line_text
 from calib_cli.model.earth import Site
-from calib_cli.model.effects import Layout
 
 FORMAT_VERSION = 1
 KINDS = ("raw", "calibration", "corrected", "diagnosis", "allan")

@@ -4,8 +4,10 @@ HDF5 file out, with memory bounded by the block size (docs/import.md).
 A *source* is an iterable of ``Chunk`` (time, accel, gyro, optional columns,
 segment index) in time order. ``import_to_raw`` writes the samples into
 chunked, resizable datasets as they come, then finds the segments (from the
-segment column's runs, or by the streaming static detection over the file it
-is writing, ``methods.static_stream``) and matches them to the plan exactly
+segment column's runs, or by the streaming static detection fed as it
+writes, whose passes are done on the way, ``methods.static_stream.OnlineFloors``:
+nothing is stored per row, and the moving std is computed again from the file
+only when its bracket missed a floor) and matches them to the plan exactly
 as ``import csv`` always has (``csvlog.segments_from_detection``). CSV, text,
 bag, ULog and DataFlash imports all go through here.
 """
@@ -22,6 +24,7 @@ import numpy as np
 
 from calib_cli.data import Segment
 from calib_cli.errors import InputError
+from calib_cli.geometry import Layout
 from calib_cli.io.h5 import (
     atomic_path,
     sha256_file,
@@ -29,8 +32,7 @@ from calib_cli.io.h5 import (
     write_segments,
     write_site_layout,
 )
-from calib_cli.methods.static_stream import StreamDetector
-from calib_cli.model.effects import Layout
+from calib_cli.methods.static_stream import OnlineFloors, StreamDetector
 from calib_cli.plan import Plan, plan_layout  # noqa: F401  (plan_layout re-exported)
 
 CHUNK_ROWS = 65536
@@ -106,10 +108,14 @@ class _Sink:
         self.tail.clear()
 
     def times(self, rows=READ_ROWS):
-        """Fresh iterator of the time blocks alone."""
+        """Fresh iterator of the time blocks alone: views of one buffer that
+        the next block overwrites (no fresh memory per block)."""
         t = self.ds["time"]
+        buf = np.empty(min(rows, self.n))
         for i in range(0, self.n, rows):
-            yield t[i:min(self.n, i + rows)]
+            out = buf[:min(self.n, i + rows) - i]
+            t.read_direct(out, np.s_[i:i + len(out)])
+            yield out
 
     def blocks(self, rows=READ_ROWS):
         """Fresh iterator of (t, accel, gyro) blocks of what was written."""
@@ -118,43 +124,6 @@ class _Sink:
         for i in range(0, self.n, rows):
             j = min(self.n, i + rows)
             yield t[i:j], a[i:j], (g[i:j] if g is not None else None)
-
-
-class _SpillStore:
-    """The moving standard deviation of the detector, spilled to an anonymous
-    temporary file beside the output (deleted on close), read back by blocks
-    with plain reads (no memory map, so it never counts in the process's
-    resident memory)."""
-
-    def __init__(self, directory):
-        import tempfile
-
-        self.fh = tempfile.TemporaryFile(dir=directory)
-        self.k = None
-        self.rows = 0
-
-    def write(self, arr):
-        arr = np.ascontiguousarray(arr, dtype=float)
-        self.k = arr.shape[1]
-        self.fh.write(memoryview(arr).cast("B"))
-        self.rows += len(arr)
-
-    def blocks(self, rows=CHUNK_ROWS):
-        self.fh.flush()
-        self.fh.seek(0)
-        left = self.rows
-        while left > 0:
-            m = min(rows, left)
-            buf = np.empty((m, self.k))
-            self.fh.readinto(memoryview(buf).cast("B"))
-            left -= m
-            yield buf
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.fh.close()
 
 
 class _SegRuns:
@@ -306,11 +275,12 @@ def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_st
 
     layout = plan_layout(plan)
     units = convert_units(np.zeros((1, 3)), np.zeros((1, 3)), accel_units, gyro_units, path)[2]
-    with atomic_path(out) as tmp, h5py.File(tmp, "w") as h5, _SpillStore(Path(tmp).parent) as spill:
+    with atomic_path(out) as tmp, h5py.File(tmp, "w") as h5:
         smp = h5.create_group("samples")
         sink = _Sink(smp)
         runs = None
-        det = StreamDetector(window_s, spill)
+        # the detection's passes over the moving std done while it is computed (no spill)
+        det = StreamDetector(window_s, OnlineFloors(multiplier))
         for ch in source:
             m = len(ch.time)
             if not m:

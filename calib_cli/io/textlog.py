@@ -18,6 +18,7 @@ import numpy as np
 
 from calib_cli.data import Recording
 from calib_cli.errors import InputError, num
+from calib_cli.geometry import Layout
 from calib_cli.io.csvlog import (
     check_time_range,
     plan_cycles,
@@ -26,7 +27,6 @@ from calib_cli.io.csvlog import (
 )
 from calib_cli.io.plan import Plan
 from calib_cli.methods.static_stream import detect_static_arrays
-from calib_cli.model.effects import Layout
 
 G0 = 9.80665
 ACCEL_UNITS = {"count": None, "m/s^2": 1.0, "g": G0}

@@ -29,7 +29,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
 
 STRIDE_DIV = 16  # overlapping estimates kept per cluster length (0: every k)
 MIN_CLUSTERS = 3  # shortest usable: at least 3 independent clusters
@@ -135,6 +134,8 @@ def overlapping_adev(y: np.ndarray, tau0: float, stride_div: int = STRIDE_DIV,
 def ci_factors(clusters, level: float = CONFIDENCE) -> tuple[np.ndarray, np.ndarray]:
     """Multipliers (lo, hi) of an Allan deviation estimate that bound the true
     deviation at ``level`` with C independent clusters (chi-square, C - 1 dof)."""
+    from scipy.stats import chi2  # here: SciPy's stats take ~1 s to import (calib allan --help)
+
     nu = np.maximum(np.asarray(clusters, dtype=float) - 1.0, 1.0)
     a = (1.0 - level) / 2.0
     lo = np.sqrt(nu / chi2.ppf(1.0 - a, nu))

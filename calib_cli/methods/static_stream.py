@@ -39,6 +39,11 @@ from calib_cli.methods.static_detect import (
 SAMPLE_ROWS = 100_000  # decimated series kept for the bracket
 BRACKET_CAP = 1_000_000  # values per axis kept inside a bracket
 HIST_BINS = 65536
+SUB_ROWS = 65536  # rows per moving-std step of StreamDetector.feed (bounds its buffers)
+ONLINE_PAD = 0.10  # OnlineFloors: its first bracket, +- this fraction of the first block's ranks
+NARROW_PAD = 0.02  # OnlineFloors: a narrowed bracket, +- this fraction of the rows seen
+AMBIGUOUS_CAP = 500_000  # OnlineFloors: rows kept whose level the bracket leaves open
+RUNS_CAP = 2_000_000  # OnlineFloors: runs of the level bounds
 
 Blocks = Callable[[], Iterable[tuple]]
 
@@ -46,7 +51,14 @@ Blocks = Callable[[], Iterable[tuple]]
 class MovingStd:
     """``static_detect.moving_std`` fed block by block: ``feed(x)`` returns the
     rows whose window is complete, ``finish(n)`` the rest (the last windows are
-    clipped to the record's end, so they wait for its length)."""
+    clipped to the record's end, so they wait for its length).
+
+    The rows come as (m, k) arrays in column-major (Fortran) order: every
+    axis's values contiguous, as the passes over them read them. The buffer
+    is (k, rows) complex: x - ref in the real part, its square in the
+    imaginary part, so that one complex cumulative sum along each row gives
+    both moving sums (two independent additions per element in one pass:
+    half the time of two real cumulative sums, and the same values)."""
 
     def __init__(self, w: int):
         self.w = w
@@ -59,7 +71,7 @@ class MovingStd:
         out = _window_std(self.buf, self.buf_start, self.next_out, i_max, w, w // 2, n)
         self.next_out = i_max
         keep = min(max(i_max - w, 0), n - w)  # the last windows reach back to n - w
-        self.buf = self.buf[keep - self.buf_start:]
+        self.buf = self.buf[:, keep - self.buf_start:]
         self.buf_start = keep
         return out
 
@@ -71,16 +83,20 @@ class MovingStd:
         k = sum(p.shape[1] for p in parts)
         if self.ref is None:
             self.ref = np.concatenate([p.mean(axis=0) for p in parts])  # conditioning
-        old = 0 if self.buf is None else len(self.buf)
-        buf = np.empty((old + m, k))
+        old = 0 if self.buf is None else self.buf.shape[1]
+        buf = np.empty((k, old + m), dtype=complex)
         if old:
-            buf[:old] = self.buf
+            buf[:, :old] = self.buf
+        new = buf[:, old:].view(float).reshape(k, m, 2)
+        re = new[:, :, 0]
         j = 0
-        for p in parts:  # subtract the reference straight into the buffer
-            np.subtract(p, self.ref[j:j + p.shape[1]], out=buf[old:, j:j + p.shape[1]])
-            j += p.shape[1]
+        for p in parts:  # the reference subtracted straight into the buffer, axis by axis
+            for c in range(p.shape[1]):
+                np.subtract(p[:, c], self.ref[j], out=re[j])
+                j += 1
+        np.multiply(re, re, out=new[:, :, 1])
         self.buf = buf
-        avail = self.buf_start + len(self.buf)
+        avail = self.buf_start + buf.shape[1]
         w, h = self.w, self.w // 2
         if avail < w:
             return None  # not one full window yet
@@ -112,33 +128,30 @@ def moving_std_blocks(xs: Iterable[np.ndarray], w: int, n: int) -> Iterator[np.n
 
 
 def _window_std(buf, buf_start, i0, i1, w, h, n):
+    """Moving standard deviation of the rows [i0, i1) from ``buf`` ((k, rows)
+    complex: x - ref and its square), a new (i1 - i0, k) array in column-major
+    order."""
     lo = np.clip(np.arange(i0, i1) - h, 0, n - w) - buf_start
     a, b = int(lo[0]), int(lo[-1]) + w
-    seg = buf[a:b]
-    c1 = np.empty((len(seg) + 1, seg.shape[1]))
-    c1[0] = 0.0
-    np.cumsum(seg, axis=0, out=c1[1:])
-    c2 = np.empty_like(c1)
-    c2[0] = 0.0
-    np.multiply(seg, seg, out=c2[1:])
-    np.cumsum(c2[1:], axis=0, out=c2[1:])
+    seg = buf[:, a:b]
+    c = np.empty((seg.shape[0], seg.shape[1] + 1), dtype=complex)
+    c[:, 0] = 0.0
+    np.cumsum(seg, axis=1, out=c[:, 1:])
     lo = lo - a
     if lo[-1] - lo[0] == len(lo) - 1:  # contiguous windows: slices, not gathers (in place)
         j0, j1 = int(lo[0]), int(lo[-1]) + 1
-        s1 = c1[j0 + w:j1 + w]
-        s1 -= c1[j0:j1]
-        s2 = c2[j0 + w:j1 + w]
-        s2 -= c2[j0:j1]
+        s = c[:, j0 + w:j1 + w]
+        s -= c[:, j0:j1]
     else:
-        s1 = c1[lo + w] - c1[lo]
-        s2 = c2[lo + w] - c2[lo]
-    # var = (s2 - s1^2 / w) / (w - 1), in place
-    np.multiply(s1, s1, out=s1)
-    s1 *= 1.0 / w
-    s2 -= s1
-    s2 *= 1.0 / (w - 1)
-    np.maximum(s2, 0.0, out=s2)
-    return np.sqrt(s2, out=s2)
+        s = c[:, lo + w] - c[:, lo]
+    # var = (s2 - s1^2 / w) / (w - 1) with s1, s2 the moving sums of x and x^2, into a
+    # new contiguous array
+    out = np.multiply(s.real, s.real)
+    out *= 1.0 / w
+    np.subtract(s.imag, out, out=out)
+    out *= 1.0 / (w - 1)
+    np.maximum(out, 0.0, out=out)
+    return np.sqrt(out, out=out).T
 
 
 def _lerp(a, b, t):
@@ -188,17 +201,19 @@ def stream_percentile(values: Callable[[], Iterable[np.ndarray]], n: int, q: flo
         imax = np.full(len(todo), -np.inf)
         kept: list[list[np.ndarray]] | None = [[] for _ in todo]
         for blk in values():
-            # one column at a time, contiguous (a transposed copy of the block)
-            xt = np.ascontiguousarray(np.asarray(blk)[:, todo].T)
+            # one column at a time, contiguous (no copy of a column-major block)
+            xt = np.asarray(blk).T
+            xt = np.ascontiguousarray(xt if len(todo) == len(xt) else xt[todo])
             for j, c in enumerate(xt):
-                below[j] += np.count_nonzero(c < lo_t[j])
-                ins = c >= lo_t[j]
-                ins &= c <= hi_t[j]
-                cnt = np.count_nonzero(ins)
+                nb = np.count_nonzero(c < lo_t[j])
+                below[j] += nb
+                le = c <= hi_t[j]  # below the bracket or in it (lo <= hi)
+                cnt = np.count_nonzero(le) - nb
                 if not cnt:
                     continue
                 inside[j] += cnt
-                xj = c[ins]
+                xj = c[le]
+                xj = xj[xj >= lo_t[j]]
                 imin[j] = min(imin[j], xj.min())
                 imax[j] = max(imax[j], xj.max())
                 if kept is not None:
@@ -347,23 +362,43 @@ class Decimator:
     def __init__(self, limit: int = SAMPLE_ROWS):
         self.limit = limit
         self.stride = 1
-        self.parts: list[np.ndarray] = []
+        self.buf: np.ndarray | None = None  # the kept rows, then room: filled in place
         self.kept = 0
         self.off = 0
 
     def feed(self, x: np.ndarray) -> None:
+        x = np.asarray(x)
         first = (-self.off) % self.stride
         part = x[first::self.stride]
-        self.parts.append(np.array(part))
-        self.kept += len(part)
+        p = len(part)
         self.off += len(x)
-        if self.kept > 2 * self.limit:
-            cat = np.concatenate(self.parts)[::2]
-            self.parts, self.kept = [cat], len(cat)
+        if self.buf is None or self.kept + p > len(self.buf):
+            grown = np.empty((max(2 * self.limit + p, 2 * (self.kept + p)),) + x.shape[1:],
+                             dtype=x.dtype)
+            if self.kept:
+                grown[:self.kept] = self.buf[:self.kept]
+            self.buf = grown
+        self.buf[self.kept:self.kept + p] = part
+        self.kept += p
+        if self.kept > 2 * self.limit:  # every other kept row, in place
+            half = self.buf[:self.kept:2]
+            self.kept = len(half)
+            self.buf[:self.kept] = half
             self.stride *= 2
 
     def series(self) -> np.ndarray | None:
-        return np.concatenate(self.parts) if self.parts else None
+        return None if self.buf is None else self.buf[:self.kept].copy()
+
+
+def _median(x: np.ndarray) -> float:
+    """``np.median`` of a finite 1-d array (np.median's first call imports
+    numpy.ma, about 20 ms of an import's start-up)."""
+    m = len(x)
+    k = m // 2
+    if m % 2:
+        return float(np.partition(x, k)[k])
+    p = np.partition(x, [k - 1, k])
+    return float((p[k - 1] + p[k]) / 2.0)
 
 
 class StreamDetector:
@@ -385,24 +420,31 @@ class StreamDetector:
         self.diffs = Decimator()
         self.stds = Decimator()
         self.n = 0
+        self.axes = None  # (accelerometer axes, has a gyro), from the first block
 
     def feed(self, t, accel, gyro=None) -> None:
         t = np.asarray(t, dtype=float)
         if not len(t):
             return
         if self.ms is None:
-            dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+            dt = _median(np.diff(t)) if len(t) > 1 else 1.0
             self.w_est = max(3, int(round(self.window_s / dt))) if dt > 0 else 3
             self.ms = MovingStd(self.w_est)
         d = np.diff(t) if self.t_last is None else np.diff(np.concatenate([[self.t_last], t]))
         self.t_last = t[-1]
+        self.axes = (np.shape(accel)[1], gyro is not None)
         self.diffs.feed(d[:, None])
-        self._out(self.ms.feed(accel, gyro))
+        # the moving std in steps of at most SUB_ROWS rows: its buffers stay small
+        # whatever the source's block size (the same values: MovingStd is exact across feeds)
+        for i in range(0, len(t), SUB_ROWS):
+            self._out(self.ms.feed(accel[i:i + SUB_ROWS],
+                                   None if gyro is None else gyro[i:i + SUB_ROWS]))
         self.n += len(t)
 
     def _out(self, s):
         if s is not None and len(s):
-            self.stds.feed(s)
+            if not isinstance(self.store, OnlineFloors):  # the others' bracket
+                self.stds.feed(s)
             if self.store is not None:
                 self.store.write(s)
 
@@ -421,12 +463,184 @@ class StreamDetector:
 
         dt = stream_median_diff(times, n, self.diffs.series()) if n > 1 else 1.0
         w = max(3, int(round(self.window_s / dt)))
-        if w == self.w_est and self.store is not None:
+        online = self.store if isinstance(self.store, OnlineFloors) else None
+        got = online.result(n, multiplier) if online is not None and w == self.w_est else None
+        if got is not None:
+            floors, levels = got
+            na, has_g = self.axes
+            fa = np.maximum(floors[:na], 1e-300)
+            fg = np.maximum(floors[na:], 1e-300) if has_g else None
+            return _report(levels, times, n, dt, w, self.window_s, multiplier, min_duration_s,
+                           fa, fg)
+        if w == self.w_est and self.store is not None and online is None:
             stds, sample = self.store.blocks, self.stds.series()
-        else:
+        else:  # the moving std again, from the samples
             stds, sample = _std_source(blocks, w, n), None
         return _detect(blocks, times, stds, sample, n, dt, w, self.window_s, multiplier,
-                       min_duration_s)
+                       min_duration_s, self.axes)
+
+
+class OnlineFloors:
+    """A store for ``StreamDetector`` that keeps no moving std: the passes
+    after the feed are done during it, against a bracket of the noise floor.
+
+    The bracket of every axis's floor [lo, hi] is taken from the first block
+    (+- ``ONLINE_PAD`` of its ranks around the quantile); then for every
+    block it counts the values below lo and keeps those inside (the exact
+    floor is selected from them at the end, as ``stream_percentile`` does;
+    when more than ``BRACKET_CAP`` are kept, the bracket is narrowed to
+    +- ``NARROW_PAD`` of the rows seen around the quantile of those rows),
+    and bounds every row's level between its values for the floors hi and lo
+    of the first bracket
+    (the ratio max_j s_j / f_j is monotonic in every f_j, rounding included),
+    kept as runs; the rows whose two bounds differ are kept with their moving
+    std and get their exact level once the floors are known. The result is
+    exactly that of the passes over the whole series (``_detect``), or None
+    when the bracket did not hold the floor (a first block unlike the rest)
+    or a cap was reached: the detector then computes the moving std again from
+    the samples. Memory: the values in the bracket, the ambiguous rows and
+    the runs, each capped."""
+
+    def __init__(self, multiplier: float = DEFAULT_MULTIPLIER):
+        self.multiplier = multiplier
+        self.ks = _multipliers(multiplier)
+        self.lo = self.hi = None
+        self.off = 0
+        self.failed = False
+        self.last = None
+        self.starts: list[np.ndarray] = []
+        self.codes: list[np.ndarray] = []
+        self.n_runs = 0
+        self.amb_idx: list[np.ndarray] = []
+        self.amb_s: list[np.ndarray] = []
+        self.n_amb = 0
+
+    def _bracket(self, s):
+        m, k = s.shape
+        p = FLOOR_QUANTILE / 100.0 * (m - 1)
+        pad = max(50, int(ONLINE_PAD * m))
+        lo_i, hi_i = int(p) - pad, int(p) + 1 + pad
+        kth = [i for i in (lo_i, hi_i) if 0 <= i < m]
+        part = np.partition(s, kth, axis=0) if kth else s
+        self.lo = part[lo_i].copy() if lo_i >= 0 else np.full(k, -np.inf)
+        self.hi = part[hi_i].copy() if hi_i < m else np.full(k, np.inf)
+        # the floors are clipped at 1e-300 (_detect); the level bounds from the clipped ends
+        self.lo0, self.hi0 = np.maximum(self.lo, 1e-300), np.maximum(self.hi, 1e-300)
+        self.inv_min = 1.0 / self.hi0
+        self.inv_max = 1.0 / self.lo0
+        self.below = np.zeros(k, dtype=np.int64)
+        self.kept: list[list[np.ndarray]] = [[] for _ in range(k)]
+        self.n_kept = np.zeros(k, dtype=np.int64)
+
+    def _narrow(self, j, seen):
+        """Axis j's bracket narrowed around the quantile of the ``seen`` rows."""
+        vals = np.concatenate(self.kept[j])
+        p = FLOOR_QUANTILE / 100.0 * (seen - 1) - self.below[j]
+        pad = max(50, int(NARROW_PAD * seen))
+        i_lo, i_hi = int(p) - pad, int(p) + 1 + pad
+        kth = [i for i in (i_lo, i_hi) if 0 <= i < len(vals)]
+        if kth:
+            vals = np.partition(vals, kth)
+        # (a quantile outside the kept values leaves the bracket as it is: too many values
+        # stay in it, and the store gives up)
+        if 0 < i_lo < len(vals):
+            self.lo[j] = vals[i_lo]
+        if 0 <= i_hi < len(vals) - 1:
+            self.hi[j] = vals[i_hi]
+        below = vals < self.lo[j]
+        self.below[j] += np.count_nonzero(below)
+        vals = vals[~below & (vals <= self.hi[j])]
+        self.kept[j] = [vals]
+        self.n_kept[j] = len(vals)
+
+    def _fail(self):
+        self.failed = True
+        self.kept = self.starts = self.codes = self.amb_idx = self.amb_s = []
+
+    def write(self, s):
+        s = np.asarray(s, dtype=float)
+        m = len(s)
+        if not m:
+            return
+        if self.failed:
+            self.off += m
+            return
+        if self.lo is None:
+            self._bracket(s)
+        for j, c in enumerate(s.T):  # contiguous columns of a column-major block
+            nb = np.count_nonzero(c < self.lo[j])
+            self.below[j] += nb
+            le = c <= self.hi[j]  # below the bracket or in it (lo <= hi)
+            cnt = np.count_nonzero(le) - nb
+            if cnt:
+                xj = c[le]
+                self.kept[j].append(xj[xj >= self.lo[j]])
+                self.n_kept[j] += cnt
+        for j in np.flatnonzero(self.n_kept > BRACKET_CAP):
+            self._narrow(j, self.off + m)
+        low = _levels(s, self.inv_min, self.ks)
+        high = _levels(s, self.inv_max, self.ks)
+        amb = np.flatnonzero(low != high)
+        self.n_amb += len(amb)
+        code = low.astype(np.int16) * 16 + high
+        ch = np.flatnonzero(code[1:] != code[:-1]) + 1
+        if self.last is None or code[0] != self.last:
+            ch = np.concatenate([[0], ch])
+        self.n_runs += len(ch)
+        if self.n_kept.max() > BRACKET_CAP or self.n_amb > AMBIGUOUS_CAP \
+                or self.n_runs > RUNS_CAP:
+            self._fail()
+            self.off += m
+            return
+        if len(amb):
+            self.amb_idx.append(amb + self.off)
+            self.amb_s.append(s[amb])
+        self.starts.append(ch + self.off)
+        self.codes.append(code[ch])
+        self.last = code[-1]
+        self.off += m
+
+    def result(self, n: int, multiplier: float, rows: int = 65536):
+        """(floors, iterator of level blocks) or None (see the class doc)."""
+        if self.failed or self.lo is None or multiplier != self.multiplier or self.off != n:
+            return None
+        v = FLOOR_QUANTILE / 100.0 * (n - 1)
+        r0 = int(math.floor(v))
+        r1 = min(r0 + 1, n - 1)
+        frac = v - r0
+        k = len(self.lo)
+        floors = np.empty(k)
+        for j in range(k):
+            c = int(self.below[j])
+            if c > r0 or c + int(self.n_kept[j]) <= r1:
+                return None  # the floor is outside the bracket
+            vals = np.partition(np.concatenate(self.kept[j]), sorted({r0 - c, r1 - c}))
+            floors[j] = _lerp(np.float64(vals[r0 - c]), np.float64(vals[r1 - c]),
+                              np.float64(frac))
+        f_all = np.maximum(floors, 1e-300)
+        if np.any(f_all < self.lo0) or np.any(f_all > self.hi0):  # the level bounds' bracket
+            return None
+        inv = 1.0 / f_all
+        ks = self.ks
+        starts = np.concatenate(self.starts)
+        low = (np.concatenate(self.codes) // 16).astype(np.int8)
+        ends = np.append(starts[1:], n)
+        amb_idx = np.concatenate(self.amb_idx) if self.amb_idx else np.empty(0, np.int64)
+        amb_lvl = _levels(np.concatenate(self.amb_s), inv, ks) if self.amb_s \
+            else np.empty(0, np.int8)
+
+        def levels():
+            for b0 in range(0, n, rows):
+                b1 = min(n, b0 + rows)
+                i0 = int(np.searchsorted(starts, b0, "right")) - 1
+                i1 = int(np.searchsorted(starts, b1, "left"))
+                lengths = np.minimum(ends[i0:i1], b1) - np.maximum(starts[i0:i1], b0)
+                lvl = np.repeat(low[i0:i1], lengths)
+                a0, a1 = np.searchsorted(amb_idx, [b0, b1])
+                lvl[amb_idx[a0:a1] - b0] = amb_lvl[a0:a1]
+                yield lvl
+
+        return floors, levels()
 
 
 class ListStore:
@@ -487,11 +701,15 @@ def detect_static_stream(blocks: Blocks, n: int, window_s: float = 1.0,
                    multiplier, min_duration_s)
 
 
-def _detect(blocks, times, stds, sample, n, dt, w, window_s, multiplier, min_duration_s):
+def _detect(blocks, times, stds, sample, n, dt, w, window_s, multiplier, min_duration_s,
+            axes=None):
+    """``axes``: (accelerometer axes, has a gyro) when known; else read from
+    the first block."""
     floors = stream_percentile(stds, n, FLOOR_QUANTILE, sample)
-    first = next(iter(blocks()))
-    na = first[1].shape[1]
-    has_g = first[2] is not None
+    if axes is None:
+        first = next(iter(blocks()))
+        axes = (first[1].shape[1], first[2] is not None)
+    na, has_g = axes
     fa = np.maximum(floors[:na], 1e-300)
     fg = np.maximum(floors[na:], 1e-300) if has_g else None
     f_all = floors.copy()
@@ -499,21 +717,45 @@ def _detect(blocks, times, stds, sample, n, dt, w, window_s, multiplier, min_dur
     if has_g:
         f_all[na:] = fg
 
-    ks = sorted(set(MULTIPLIERS) | {multiplier})
+    ks = _multipliers(multiplier)
+    inv = 1.0 / f_all
+    levels = (_levels(s, inv, ks) for s in stds())  # one pass over the moving std
+    return _report(levels, times, n, dt, w, window_s, multiplier, min_duration_s, fa, fg)
+
+
+def _multipliers(multiplier):
+    return sorted(set(MULTIPLIERS) | {multiplier})
+
+
+def _ratio(s, inv):
+    """r = max_j s_j inv_j per row: s_j < k f_j for every axis j <=> r < k."""
+    r = s[:, 0] * inv[0]
+    for j in range(1, s.shape[1]):
+        np.maximum(r, s[:, j] * inv[j], out=r)
+    return r
+
+
+def _levels(s, inv, ks):
+    """Level per row: how many multipliers r reaches (quiet at k <=> level <=
+    index of k)."""
+    r = _ratio(s, inv)
+    lvl = np.zeros(len(r), dtype=np.int8)
+    for k in ks:
+        lvl += r >= k
+    return lvl
+
+
+def _report(levels, times, n, dt, w, window_s, multiplier, min_duration_s, fa, fg):
+    """The detection report from the level of every row (blocks in order)."""
+    ks = _multipliers(multiplier)
     trackers = {k: _RunTracker() for k in ks}
     n_quiet = 0
     i_mult = ks.index(multiplier)
     prev = None  # level of the last row of the previous block
     off = 0
-    inv = 1.0 / f_all
-    for s in stds():  # one pass: quiet masks for every multiplier, kept as runs
-        r = s[:, 0] * inv[0]  # s_j < k f_j for every axis j <=> r < k (r = max_j s_j / f_j)
-        for j in range(1, s.shape[1]):
-            np.maximum(r, s[:, j] * inv[j], out=r)
-        # level: how many multipliers r reaches; quiet at k <=> level <= index of k
-        lvl = np.zeros(len(r), dtype=np.int8)
-        for k in ks:
-            lvl += r >= k
+    for lvl in levels:  # quiet masks for every multiplier, kept as runs
+        if not len(lvl):
+            continue
         n_quiet += int(np.count_nonzero(lvl <= i_mult))
         # the masks change only where the level does: the runs of every multiplier from
         # those rows alone
@@ -534,7 +776,7 @@ def _detect(blocks, times, stds, sample, n, dt, w, window_s, multiplier, min_dur
             trackers[k].stops.append(idx[qb & ~qa] + off)
             trackers[k].prev = bool(lvl[-1] <= i)
         prev = lvl[-1]
-        off += len(r)
+        off += len(lvl)
     for k in ks:
         trackers[k].off = off
     run_pairs = {k: trackers[k].result() for k in ks}
@@ -543,8 +785,11 @@ def _detect(blocks, times, stds, sample, n, dt, w, window_s, multiplier, min_dur
     need = []
     for a, b in run_pairs.values():
         need += [a, b - 1, a + half, np.maximum(b - half - 1, 0)]
-    need_idx = np.unique(np.clip(np.concatenate(need) if need else np.empty(0, np.int64),
-                                 0, max(n - 1, 0)))
+    need_idx = np.sort(np.clip(np.concatenate(need) if need else np.empty(0, np.int64),
+                               0, max(n - 1, 0)))
+    # np.unique without its first call's import of numpy.ma (20 ms of an import)
+    need_idx = need_idx[np.concatenate([[True], need_idx[1:] != need_idx[:-1]])] \
+        if len(need_idx) else need_idx
     tv = take_sorted(times, need_idx) if len(need_idx) else np.empty(0)
     tmap = dict(zip(need_idx.tolist(), tv.tolist()))
 
