@@ -10,7 +10,6 @@ import numpy as np
 from calib_cli.errors import InputError
 from calib_cli.io.h5 import atomic_path, open_checked, read_calibration, write_provenance
 from calib_cli.methods.apply import (
-    redundant_extra,
     apply_redundant,
     apply_triad,
     check_temperature,
@@ -19,6 +18,7 @@ from calib_cli.methods.apply import (
     effective_temperature,
     is_thermal,
     proof_mass_offsets,
+    redundant_extra,
 )
 from calib_cli.methods.rimu import apply_rimu
 

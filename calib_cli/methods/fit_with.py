@@ -28,8 +28,7 @@ from calib_cli.errors import EstimationError
 from calib_cli.methods import diagnose_candidates as dc
 from calib_cli.methods import result as _result
 from calib_cli.methods.blas_threads import one_blas_thread
-from calib_cli.methods.diagnose_fit import (MOUNT_KEY, Fit, ModelSpec, columns, fit_model,
-                                            settle_noise)
+from calib_cli.methods.diagnose_fit import MOUNT_KEY, Fit, ModelSpec, columns, fit_model, settle_noise
 from calib_cli.methods.diagnose_problem import Problem, build_problem
 from calib_cli.model.correction import correct
 from calib_cli.model.effects import TEMP_REF_C, make_effect
