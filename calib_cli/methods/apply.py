@@ -135,8 +135,8 @@ def correct_redundant(model: ImuModel, params: dict, layout, sensor: str, m: np.
     sensor's own input S_i . x + (m_i - predict_i(x)) / (1 + ks_i), which keeps each
     sensor's own noise and faults (for the fault detection) and is (m_i - b_i) /
     (1 + ks_i) for the base model. ``other``: the corrected body specific force for
-    the gyros' g-sensitivity (zero if None); rate-dependent terms (lever arms) are not inverted (the contract's correction
-    point), as for a triad."""
+    the gyros' g-sensitivity (zero if None); rate-dependent terms (lever arms) are
+    not inverted (the contract's correction point), as for a triad."""
     from calib_cli.methods.rimu import measurement_matrix
     from calib_cli.model.kinematics import Kinematics
 
