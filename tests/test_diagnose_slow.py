@@ -9,7 +9,8 @@ docs/diagnose-validation.md.
   and the gap left is reported, not claimed to be the noise floor;
 - a two-effect case (lever arm and g-sensitivity) is resolved in two steps.
 
-CALIB_DIAG_N sets the cases per effect (default 40).
+CALIB_DIAG_N sets the cases per effect (default 40); CALIB_DIAG_CACHE=DIR keeps each
+finished row there, so an interrupted run resumes where it stopped.
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ _RESULTS: dict = {}
 @pytest.fixture(scope="module")
 def rates():
     if "rows" not in _RESULTS:
-        rows, md = V.run_all(N, workers=int(os.environ.get("CALIB_DIAG_WORKERS", "2")))
+        rows, md = V.run_all(N, workers=int(os.environ.get("CALIB_DIAG_WORKERS", "2")),
+                             cache=os.environ.get("CALIB_DIAG_CACHE"))
         _RESULTS["rows"], _RESULTS["md"] = rows, md
     return _RESULTS["rows"]
 

@@ -94,8 +94,31 @@ def table(rows: list[dict]) -> str:
 
 
 def _row(job):
-    case, n, method = job
-    return case_rates(case, n, method=method)
+    case, n, method = job[:3]
+    cache = job[3] if len(job) > 3 else None
+    path = _cache_path(cache, case, n, method)
+    if path is not None and path.is_file():
+        import json
+
+        return json.loads(path.read_text())
+    row = case_rates(case, n, method=method)
+    if path is not None:  # a finished row survives an interrupted run
+        import json
+
+        path.write_text(json.dumps(row))
+    return row
+
+
+def _cache_path(cache, case, n, method):
+    """Where a finished row is kept (``run_all(cache=DIR)``, CALIB_DIAG_CACHE), or None."""
+    if not cache:
+        return None
+    import re
+    from pathlib import Path
+
+    Path(cache).mkdir(parents=True, exist_ok=True)
+    name = re.sub(r"[^A-Za-z0-9]+", "_", case or f"none {method}")
+    return Path(cache) / f"{name}-{n}.json"
 
 
 HEADER = "# calib diagnose: validation"
@@ -126,12 +149,13 @@ def _cost(job) -> float:
     return {"rimu": 4.0, "align": 2.5, "turntable": 1.0}.get(method, 0.5)
 
 
-def run_all(n: int, workers: int = 1, cases=None, methods=("accel", "turntable", "rimu", "align")
-            ) -> tuple[list[dict], str]:
+def run_all(n: int, workers: int = 1, cases=None, methods=("accel", "turntable", "rimu", "align"),
+            cache=None) -> tuple[list[dict], str]:
     """Every case (default: all but the gyro method's) and the no-effect rows of
-    each method, on ``workers`` processes."""
-    jobs = [(c, n, None) for c in (C.MAIN_CASES if cases is None else cases)]
-    jobs += [(None, n, m) for m in methods]
+    each method, on ``workers`` processes. ``cache``: a directory where each finished
+    row is kept and from where a re-run takes it (an interrupted run resumes)."""
+    jobs = [(c, n, None, cache) for c in (C.MAIN_CASES if cases is None else cases)]
+    jobs += [(None, n, m, cache) for m in methods]
     if workers > 1:
         from concurrent.futures import ProcessPoolExecutor
 
