@@ -1,106 +1,51 @@
-"""calib fit --with, many cases (`make validate K=diagnose`; issue 18): for every
-hidden-effect case of calib_cli/validation/diagnose_cases.py, `fit METHOD --with` the
-hidden effect gives estimates within sigma of the truth (pooled over the seeds:
-RMS of (est - truth) / sigma in [0.8, 1.25], 99 % of |z| below 3.3) and leaves a
-residual within 1.05x the noise floor in every seed. The wandering biases are
-noise-model terms: their fitted figure against the truth is reported (its sigma
-is rough, docs/diagnose.md), not judged by the pooled rule.
+"""calib fit --with, many cases (`make validate K=fit_with`, or one part:
+K=fit_with_static, fit_with_turntable, fit_with_rimu, fit_with_align, fit_with_gyro;
+issue 18): for every hidden-effect case of calib_cli/validation/diagnose_cases.py,
+`fit METHOD --with` the hidden effect gives estimates within sigma of the truth
+(pooled over the seeds: RMS of (est - truth) / sigma in [0.8, 1.25], 99 % of |z|
+below 3.3) and leaves a residual within 1.05x the noise floor in every seed. The
+wandering biases are noise-model terms: their fitted figure against the truth is
+reported (its sigma is rough, docs/diagnose.md), not judged by the pooled rule.
 
-Appends its table to docs/diagnose-validation.md (after tests/test_diagnose_slow.py
-has written it). Seeds per case: 40 for the static-plan (accel) cases, as the
-issue asks, 20 for the turntable, rimu and align cases (their refits take 3-10 s
-each; 20 is the pooled rule's minimum); CALIB_WITH_N sets one number for all.
+40 seeds per case and method (CALIB_WITH_N sets another number), the (case, seed)
+fits on CALIB_DIAG_WORKERS processes (default 2). Each part writes its own
+section of docs/diagnose-validation.md.
 """
 
 from __future__ import annotations
 
 import os
-import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from calib_cli.methods.fit_with import fit_with, with_arg
-from calib_cli.sim.simulate import simulate
 from calib_cli.validation import diagnose_cases as C
+from calib_cli.validation import diagnose_validate as V
 
 pytestmark = pytest.mark.slow
-N_ENV = os.environ.get("CALIB_WITH_N")
-
-
-def n_seeds(case: str) -> int:
-    if N_ENV:
-        return int(N_ENV)
-    return 40 if C.CASES[case][0] == "accel" else 20
+N = int(os.environ.get("CALIB_WITH_N", "40"))
+WORKERS = int(os.environ.get("CALIB_DIAG_WORKERS", "2"))
 DOC = Path(__file__).resolve().parent.parent / "docs" / "diagnose-validation.md"
-MARK = "## fit --with: estimates against the truth"
-_ROWS: dict = {}
+PARTS = {"static": ("accel",), "turntable": ("turntable",), "rimu": ("rimu",),
+         "align": ("align",), "gyro": ("gyro",)}
 # measured and reported, not asserted: {case: why}
-REPORTED_ONLY = {
-    "align: gyro temperature_drift": (
-        "sigma conservative: RMS z 0.77 over 20 seeds (100 entries, none beyond 3.3; the "
-        "accel row of the same plan gives 0.83); the cause is not established"),
-}
-WANDER = ("bias_random_walk", "bias_instability")
+REPORTED_ONLY: dict = {}
+_ROWS: dict = {}
 
 
-def _z(case: str, seed: int):
-    """(normalised errors of the effect's entries, residual / floor, wander ratios)."""
-    method, name, sensor, base = C.CASES[case]
-    rng = np.random.default_rng(seed)
-    truth = C.hidden_effect_truth(case, rng)
-    rec = simulate(C.plan_of(method), truth, seed=seed + 1)
-    res, pb, fit = fit_with(rec, method, [(name, sensor)], base=base)
-    gap = res.stats["residual_rms_noise_units"] / res.stats["noise_rms"]
-    if name in WANDER:
-        nm = res.stats["noise_model"]
-        (key, vals), = next(iter(nm.values()))["params"].items()
-        return np.zeros(0), gap, np.asarray(vals) / np.asarray(truth.params[key])
-    z = []
-    eff = C._effect(method, name, sensor)
-    for sp in eff.specs(pb.layout):
-        est = np.asarray(res.params[sp.key], float)
-        sig = np.asarray(res.sigma[sp.key], float)
-        true = np.asarray(truth.params[sp.key], float)
-        if sp.key == "lever_arm":  # the axial convention s . a = 0
-            ax = pb.cycle_axes
-            true = true - (true * ax).sum(axis=1)[:, None] * ax
-        ok = np.isfinite(sig) & (sig > 0)
-        z.append(((est - true)[ok] / sig[ok]).ravel())
-    return np.concatenate(z), gap, None
+def part_cases(part: str) -> list:
+    return [c for c, v in C.CASES.items() if v[0] in PARTS[part]
+            and not (v[0] == "gyro" and v[1] in V.WANDER)]  # fit gyro --with: no wanders
 
 
-def _row(case: str) -> dict:
-    t0 = time.time()
-    zs, gaps, ratios = [], [], []
-    n = n_seeds(case)
-    for k in range(n):
-        z, gap, ratio = _z(case, 3000 + 11 * k)
-        zs.append(z)
-        gaps.append(gap)
-        if ratio is not None:
-            ratios.append(ratio)
-    z = np.concatenate(zs)
-    method, name, sensor, _ = C.CASES[case]
-    row = {"case": case, "with": f"fit {method} --with {with_arg(name, sensor)}", "n": n,
-           "gap_ok": float(np.mean(np.array(gaps) <= 1.05)), "gap_max": float(np.max(gaps)),
-           "seconds": time.time() - t0}
-    if len(z):
-        row["rms_z"] = float(np.sqrt(np.mean(z ** 2)))
-        row["frac_33"] = float(np.mean(np.abs(z) < 3.3))
-        row["entries"] = int(len(z))
-    if ratios:
-        r = np.concatenate(ratios)
-        row["ratio_median"] = float(np.median(r))
-        row["ratio_range"] = [float(r.min()), float(r.max())]
-    return row
+def rows_of(part: str) -> dict:
+    if part not in _ROWS:
+        _ROWS[part] = V.fit_with_rows(part_cases(part), lambda c: N, workers=WORKERS)
+    return _ROWS[part]
 
 
-@pytest.mark.parametrize("case", list(C.CASES))
-def test_diagnose_fit_with_within_sigma(case):
-    r = _row(case)
-    _ROWS[case] = r
+def check(part: str, case: str) -> None:
+    r = rows_of(part)[case]
     assert r["gap_ok"] == 1.0, r
     if "rms_z" in r and case in REPORTED_ONLY:
         assert r["frac_33"] >= 0.99 and r["rms_z"] <= 1.25, r  # conservative sigma only
@@ -108,29 +53,54 @@ def test_diagnose_fit_with_within_sigma(case):
         assert 0.8 <= r["rms_z"] <= 1.25 and r["frac_33"] >= 0.99, r
 
 
-def test_diagnose_fit_with_write_table():
-    if not _ROWS:
-        pytest.skip("no rows")
-    lines = [MARK, "",
-             "`calib fit METHOD --with EFFECT` on 40 seeds per static-plan case and 20 per "
-             "turntable, rimu and align case (the hidden-effect cases "
-             "above, the effect drawn the same way), generated by "
-             "tests/test_fit_with_slow.py. z = (estimate - truth) / sigma over every "
-             "observable entry of the effect (the lever arm's perpendicular part), pooled; "
-             "residual / floor: residual RMS over the noise floor, per seed. The wandering "
-             "biases are noise-model terms: fitted figure / truth instead.", "",
-             "| case | command | seeds | entries | RMS z | |z| < 3.3 | residual <= 1.05x floor "
-             "| max residual / floor | fitted / true (noise terms) | s |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
-    for r in _ROWS.values():
-        rz = f"{r['rms_z']:.3f}" if "rms_z" in r else "-"
-        fz = f"{100 * r['frac_33']:.1f} %" if "frac_33" in r else "-"
-        rt = (f"median {r['ratio_median']:.2f} ({r['ratio_range'][0]:.2f}-"
-              f"{r['ratio_range'][1]:.2f})" if "ratio_median" in r else "-")
-        lines.append(f"| {r['case']} | `{r['with']}` | {r['n']} | {r.get('entries', '-')} | "
-                     f"{rz} | {fz} | {100 * r['gap_ok']:.0f} % | {r['gap_max']:.3f} | {rt} | "
-                     f"{r['seconds']:.0f} |")
-    lines += [""] + [f"- {k}: {v}." for k, v in REPORTED_ONLY.items() if k in _ROWS]
-    old = DOC.read_text(encoding="utf-8") if DOC.is_file() else ""
-    old = old.split(MARK)[0].rstrip("\n")
-    DOC.write_text((old + "\n\n" if old else "") + "\n".join(lines) + "\n", encoding="utf-8")
+def write(part: str) -> None:
+    rows = list(rows_of(part).values())
+    lines = [f"### fit --with: {part} ({', '.join(PARTS[part])} method)", "",
+             f"`make validate K=fit_with_{part}`.", "", V.fit_with_table(rows), ""]
+    lines += [f"- {k}: {v}." for k, v in REPORTED_ONLY.items() if k in rows_of(part)]
+    V.write_section(DOC, f"fit_with_{part}", "\n".join(lines))
+
+
+@pytest.mark.parametrize("case", part_cases("static"))
+def test_fit_with_static(case):
+    check("static", case)
+
+
+def test_fit_with_static_table():
+    write("static")
+
+
+@pytest.mark.parametrize("case", part_cases("turntable"))
+def test_fit_with_turntable(case):
+    check("turntable", case)
+
+
+def test_fit_with_turntable_table():
+    write("turntable")
+
+
+@pytest.mark.parametrize("case", part_cases("rimu"))
+def test_fit_with_rimu(case):
+    check("rimu", case)
+
+
+def test_fit_with_rimu_table():
+    write("rimu")
+
+
+@pytest.mark.parametrize("case", part_cases("align"))
+def test_fit_with_align(case):
+    check("align", case)
+
+
+def test_fit_with_align_table():
+    write("align")
+
+
+@pytest.mark.parametrize("case", part_cases("gyro"))
+def test_fit_with_gyro(case):
+    check("gyro", case)
+
+
+def test_fit_with_gyro_table():
+    write("gyro")

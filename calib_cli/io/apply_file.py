@@ -10,6 +10,7 @@ import numpy as np
 from calib_cli.errors import InputError
 from calib_cli.io.h5 import atomic_path, open_checked, read_calibration, write_provenance
 from calib_cli.methods.apply import (
+    apply_redundant,
     apply_triad,
     check_temperature,
     check_units,
@@ -17,6 +18,7 @@ from calib_cli.methods.apply import (
     effective_temperature,
     is_thermal,
     proof_mass_offsets,
+    redundant_extra,
 )
 from calib_cli.methods.rimu import apply_rimu
 
@@ -33,13 +35,9 @@ def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = F
     c = read_calibration(cal)
     validate.check_calibration(c, cal)
     rimu = c.layout.redundant
-    if rimu:
-        extra = sorted({d.get("name") for d in c.model} - {"bias", "installation", "lever_arm"})
-        if extra:  # the redundant-unit correction (docs/rimu.md) has no inverse for them
-            raise InputError(f"this redundant-unit calibration's model also has "
-                             f"{', '.join(extra)}, which the RIMU correction (bias, scale "
-                             "error, installation angles) does not invert yet; nothing "
-                             "was written", cal)
+    # a redundant unit's model with catalogue effects beyond bias and installation
+    # (fit rimu --with): inverted numerically through the forward model
+    rimu_extra = rimu and redundant_extra(c)
     with open_checked(raw, ("raw",)) as src:
         if "samples" not in src:
             raise InputError("missing group /samples (a recording is expected here)", raw)
@@ -109,7 +107,9 @@ def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = F
                                        time=smp["time"][a0:b0])
                     f, w = f[a - a0:a - a0 + b - a], w[a - a0:a - a0 + b - a]
                 elif rimu:
-                    res = apply_rimu(c, a_in, g_in)
+                    res = (apply_redundant(c, a_in, g_in,
+                                           temp=None if temp_eff is None else temp_eff[a:b])
+                           if rimu_extra else apply_rimu(c, a_in, g_in))
                     f, w = res["accel"], res["gyro"]
                     for s, ds in body.items():
                         ds[a:b] = res[f"{s}_body"]

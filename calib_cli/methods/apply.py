@@ -118,3 +118,67 @@ def apply_triad(cal: CalibrationResult, accel: np.ndarray, gyro: np.ndarray | No
             f = f - size_effect(p, w, rate_derivative(w, time))
             w = correct(model, params, "gyro", gyro, other=f, temp=temp)
     return f, w
+
+
+def redundant_extra(cal: CalibrationResult) -> bool:
+    return bool({d.get("name") for d in cal.model} - {"bias", "installation", "lever_arm"})
+
+
+def correct_redundant(model: ImuModel, params: dict, layout, sensor: str, m: np.ndarray,
+                      other: np.ndarray | None = None, temp: np.ndarray | None = None,
+                      iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """(single-axis inputs (N, n), body vector (N, 3)) of a redundant unit's outputs m
+    (N, n), through the one forward model (``ImuModel.predict``) as ``correct`` does for
+    a triad: Gauss-Newton on the body vector x, x <- x + H^+ diag(1 + ks)^-1 (m -
+    predict(x)) (exact in one step for bias + installation, where it is the
+    least-squares body estimate of ``methods.rimu.body_estimate``), then each
+    sensor's own input S_i . x + (m_i - predict_i(x)) / (1 + ks_i), which keeps each
+    sensor's own noise and faults (for the fault detection) and is (m_i - b_i) /
+    (1 + ks_i) for the base model. ``other``: the corrected body specific force for
+    the gyros' g-sensitivity (zero if None); rate-dependent terms (lever arms) are
+    not inverted (the contract's correction point), as for a triad."""
+    from calib_cli.methods.rimu import measurement_matrix
+    from calib_cli.model.kinematics import Kinematics
+
+    m = np.asarray(m, dtype=float)
+    n = len(m)
+    H = measurement_matrix(params, layout, sensor)
+    gain = 1.0 + np.asarray(params[f"{sensor}_scale_error"], float)
+    Hp = np.linalg.pinv(H)  # (3, n)
+    zeros = np.zeros((n, 3))
+    f_other = zeros if other is None else np.asarray(other, float)
+
+    def pred(x):
+        kin = (Kinematics(np.zeros(n), x, zeros, zeros, temp=temp) if sensor == "accel"
+               else Kinematics(np.zeros(n), f_other, x, zeros, temp=temp))
+        return model.predict(params, kin, sensors=(sensor,))[sensor]
+
+    x = zeros.copy()
+    for _ in range(iterations + (4 if temp is not None else 0)):
+        step = ((m - pred(x)) / gain) @ Hp.T
+        x = x + step
+        if np.max(np.abs(step)) <= 1e-13 * (np.max(np.abs(x)) + 1e-300):
+            break
+    single = x @ H.T + (m - pred(x)) / gain
+    return single, x
+
+
+def apply_redundant(cal: CalibrationResult, accel: np.ndarray, gyro: np.ndarray | None,
+                    temp: np.ndarray | None = None) -> dict:
+    """A redundant unit's corrected chunk, {"accel": (N, n), "accel_body": (N, 3),
+    "gyro": ..., "gyro_body": ...}, with any catalogue model (``correct_redundant``;
+    the bias + installation model is ``methods.rimu.apply_rimu``'s closed form, which
+    this reproduces). Channels the calibration does not cover pass through."""
+    model = model_of(cal)
+    params = {k: np.asarray(v, dtype=float) for k, v in cal.params.items()}
+    out = {"accel": accel, "gyro": gyro}
+    f_body = None
+    for sensor, m in (("accel", accel), ("gyro", gyro)):
+        if m is None or f"{sensor}_bias" not in params:
+            continue
+        c, x = correct_redundant(model, params, cal.layout, sensor, m,
+                                 other=f_body if sensor == "gyro" else None, temp=temp)
+        out[sensor], out[f"{sensor}_body"] = c, x
+        if sensor == "accel":
+            f_body = x
+    return out

@@ -101,12 +101,16 @@ class Diagnosis:
 
     def calibration(self, rec=None):
         """The final model as an ordinary calibration (``methods.fit_with``)."""
+        from calib_cli.methods.diagnose_fit import settle_noise
         from calib_cli.methods.fit_with import WANDERS, calibration_of
 
         wander = {dc.effect_key(s.effect, s.sensor): (s.params, s.sigma) for s in self.steps
                   if s.effect in WANDERS}
-        return calibration_of(self.problem, self.fits[-1], self.method, rec, self.base_model,
-                              wander, self.with_list, self.base, initial=self.fits[0])
+        # the noise level settled for the final model, as fit --with does
+        with one_blas_thread():
+            pb, fit, first = settle_noise(self.problem, self.fits[-1], self.fits[0])
+        return calibration_of(pb, fit, self.method, rec, self.base_model,
+                              wander, self.with_list, self.base, initial=first)
 
     def by_segment(self) -> list:
         """Residual RMS (noise units) per segment, base model and final model."""

@@ -278,3 +278,47 @@ def fit_model(pb: Problem, spec: ModelSpec, start: dict | None = None,
 def columns(fit: Fit) -> dict:
     """{label: Jacobian column} of a fit, to reuse in a nested fit."""
     return {lab: fit.J[:, j] for j, lab in enumerate(fit.labels)}
+
+
+def settle_noise(pb: Problem, fit: Fit, initial: Fit | None = None):
+    """(problem, fit, initial) with each channel's white sigma settled for the final model.
+
+    With ``--noise-floor auto`` the working sigma of a channel is raised to the bins'
+    scatter within the positions where that is significantly above the
+    high-frequency estimate (``diagnose_problem.apply_noise``). The scatter is
+    measured on the data, before any model: a drift the final model explains (a
+    temperature drift inside long positions) raises it as much as coloured noise
+    does, and the raised sigma then stays in the final fit's covariance (sigma
+    conservative: the alignment's thermal drift gave RMS z 0.77). Here each raised
+    channel's level is re-estimated from the final model's residuals, at its most
+    likely value between the high-frequency estimate and the raised one (the rule of
+    ``diagnose.neg2ll``), and the model is refitted under it. Channels under a
+    wandering-bias whitening keep theirs. ``initial``'s residual is rescaled to the
+    settled units. Nothing changes where no channel was raised."""
+    from dataclasses import replace
+
+    if not pb.raised:
+        return pb, fit, initial
+    blocks = fit.residual_blocks(pb)
+    sigma, scale, changed = dict(pb.sigma), [], False
+    for s in pb.sensors:
+        n = pb.y[s].shape[1]
+        f = np.ones(n)
+        if s not in fit.spec.stochastic and s in (pb.sigma_hf or {}):
+            z = blocks[s]
+            lo = (np.asarray(pb.sigma_hf[s], float) / np.asarray(pb.sigma[s], float)) ** 2
+            a = np.clip((z ** 2).mean(axis=0), np.minimum(lo, 1.0), 1.0)
+            f = np.sqrt(a)
+            changed = changed or bool(np.any(f < 1.0))
+            sigma[s] = np.asarray(pb.sigma[s], float) * f
+        scale.append(np.tile(1.0 / f, pb.n_bins))
+    if not changed:
+        return pb, fit, initial
+    pb2 = replace(pb, sigma=sigma)
+    fit2 = fit_model(pb2, fit.spec, start=fit.params, start_mount=fit.mount, refresh=True)
+    if initial is not None:
+        k = np.concatenate(scale)
+        r = np.asarray(initial.r, float).copy()
+        r[:len(k)] *= k
+        initial = replace(initial, r=r)
+    return pb2, fit2, initial

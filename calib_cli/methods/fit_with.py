@@ -28,7 +28,7 @@ from calib_cli.errors import EstimationError
 from calib_cli.methods import diagnose_candidates as dc
 from calib_cli.methods import result as _result
 from calib_cli.methods.blas_threads import one_blas_thread
-from calib_cli.methods.diagnose_fit import MOUNT_KEY, Fit, ModelSpec, columns, fit_model
+from calib_cli.methods.diagnose_fit import MOUNT_KEY, Fit, ModelSpec, columns, fit_model, settle_noise
 from calib_cli.methods.diagnose_problem import Problem, build_problem
 from calib_cli.model.correction import correct
 from calib_cli.model.effects import TEMP_REF_C, make_effect
@@ -223,6 +223,7 @@ def fit_with(rec: Recording, method: str, effects, base: str = "full", noise: st
                 wander[c.key] = (got[2], got[3])
                 continue
             cur = add_effect(pb, cur, c)
+        pb, cur, r0 = settle_noise(pb, cur, r0)
         res = calibration_of(pb, cur, method, rec, names, wander,
                              [with_arg(n, s) for n, s in effects], base, initial=r0)
     return res, pb, cur
