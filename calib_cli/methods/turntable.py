@@ -989,7 +989,7 @@ _AXIS_START = 1e-3
 # is not a state: in the axis measurement it repeats the cycle's mounting error u and a gyro
 # bias across the axis, and it took up 0.2-0.5 mrad of them on records without runout.
 _RUNOUT_HARMONICS = np.array([2.0])
-_AXIS_FLOOR = 1e-6
+_AXIS_FLOOR = 1e-5
 _AXIS_CAP = 2e-2
 
 
