@@ -45,13 +45,18 @@ def test_earth_rate_enu():
     assert Site(g=9.81).gravity == 9.81
 
 
-def test_table_kinematics_match_numerical_derivatives():
-    site = Site(latitude=0.7)
+def _table_motion():
+    """A table angle with its rate and angular acceleration over 4 s at 1 kHz, a site and
+    a start attitude (the kinematics tests' common motion)."""
     t = np.arange(0, 4, 1e-3)
     theta = 2.0 * t**2 + 0.5 * np.sin(3 * t)
     rate = 4.0 * t + 1.5 * np.cos(3 * t)
     acc = 4.0 - 4.5 * np.sin(3 * t)
-    rot0 = attitude_to_rotation(np.array([10, 20, 30]) * D2R)
+    return Site(latitude=0.7), t, theta, rate, acc, attitude_to_rotation(np.array([10, 20, 30]) * D2R)
+
+
+def test_table_kinematics_match_numerical_derivatives():
+    site, t, theta, rate, acc, rot0 = _table_motion()
     axis = np.array([1.0, 0.0, 0.2])
     kin = kn.table_kinematics(t, axis, theta, rate, acc, rot0, site)
     rot = kn.table_attitude(axis, theta, rot0)
@@ -69,12 +74,7 @@ def test_wobbling_table_axis_matches_numerical_derivatives():
     the gyros' rate integrates to the attitude; dw/dt matches to first order in the cone."""
     from scipy.spatial.transform import Rotation
 
-    site = Site(latitude=0.7)
-    t = np.arange(0, 4, 1e-3)
-    theta = 2.0 * t**2 + 0.5 * np.sin(3 * t)
-    rate = 4.0 * t + 1.5 * np.cos(3 * t)
-    acc = 4.0 - 4.5 * np.sin(3 * t)
-    rot0 = attitude_to_rotation(np.array([10, 20, 30]) * D2R)
+    site, t, theta, rate, acc, rot0 = _table_motion()
     axis = np.array([0.0, 1.0, 0.0])
     amp, phase = 2e-3, 0.4
     kin = kn.table_kinematics(t, axis, theta, rate, acc, rot0, site, axis_wobble=(amp, phase))

@@ -21,13 +21,16 @@ phi random-walks with the gyro white noise. Measurements, on blocks of
   rates at the block edges (the tangential term; ``tangential=False``
   drops it);
 - the direction of the table axis: mean(R) a_b = a_enu, a_b the table axis in
-  body axes, estimated per cycle (two small angles: the mounting error).
+  body axes, estimated per cycle (two small angles: the mounting error), up to
+  the table's tilt, the bearing's runout (2nd harmonic of the table angle,
+  cycle-local states) and a white noise per block estimated between passes;
+- where the log has them and they pass their checks, the table's angle
+  (encoder) and rate channels, each with its own error states.
 
-The table angle and rate recorded by the table are not used. The filter
-runs twice: the first pass linearises about a neutral unit, the second
-about the first pass's estimate (the prior then keeps its original mean, as
-an offset of the error state), so the result is the Gauss-Newton solution
-of the linearised problem. For constant parameters the forward filter's
+The passes are Gauss-Newton steps: the first an extended filter from a neutral
+unit, the later ones linearised about the previous pass's estimate (the prior
+then keeps its original mean, as an offset of the error state), until the last
+move is below ``converge_sigma``. For constant parameters the forward filter's
 final estimate and covariance are the smoothed ones; the filter's covariance
 over time gives the sigma history (when each lever arm and proof-mass offset
 became observable).
@@ -45,6 +48,8 @@ from calib_cli.errors import EstimationError, InputError
 from calib_cli.model.effects import Layout
 from calib_cli.model.frames import attitude_to_rotation, skew
 from calib_cli.model.kinematics import rigid_body_accel
+from calib_cli.model.strapdown import exp_matrix as _rot
+from calib_cli.model.strapdown import log_matrix as _rotvec
 from calib_cli.model.strapdown import mean_rotation, step_rotvec
 
 K_LOWER = [(0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2)]
@@ -62,8 +67,9 @@ class TurntableOptions:
     passes: the most filter passes; from the third on they stop once the last pass moved
     no parameter by more than ``converge_sigma`` of its sigma, or the next would not
     (Gauss-Newton on the whole record: three are typical). axis_sigma: how well the table
-    axis stays fixed (rad, 1-sigma per block). history_every: sigma history
-    sample interval (s)."""
+    axis stays fixed (rad, 1-sigma per block; None: estimated from the data).
+    runout_sigma: prior of the bearing's runout (rad; 0: not modelled).
+    history_every: sigma history sample interval (s)."""
 
     lever_arm: str = "estimate"
     proof_mass: str = "auto"
@@ -441,25 +447,6 @@ def _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, T, tangential):
 
 _I3 = np.eye(3)
 _LOW_RATE = float(np.radians(0.5))  # rad/s: blocks slower than this give the low-rate |g| figures
-
-
-def _rotvec(M: np.ndarray) -> np.ndarray:
-    """Rotation vector of one rotation matrix of angle below 180 deg (SciPy's per-call
-    overhead doubled the fit's time at one call per block)."""
-    v = 0.5 * np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
-    sn = float(np.sqrt(v @ v))
-    th = np.arctan2(sn, 0.5 * (M[0, 0] + M[1, 1] + M[2, 2] - 1.0))
-    return v * (th / sn) if sn > 1e-12 else v
-
-
-def _rot(phi):
-    """Rotation matrix of one small rotation vector (Rodrigues; SciPy's per-call overhead
-    is most of the filter's time at one call per block)."""
-    a = float(np.sqrt(phi @ phi))
-    K = skew(phi)
-    if a < 1e-8:
-        return _I3 + K + 0.5 * (K @ K)
-    return _I3 + (np.sin(a) / a) * K + ((1.0 - np.cos(a)) / a**2) * (K @ K)
 
 
 def _select(rec: Recording) -> list[_Cycle]:
@@ -1127,6 +1114,8 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
 
     if opt.axis_sigma is not None and not (np.isfinite(opt.axis_sigma) and opt.axis_sigma > 0):
         raise InputError(f"axis_sigma must be > 0 rad, got {opt.axis_sigma!r}")
+    if not (np.isfinite(opt.runout_sigma) and opt.runout_sigma >= 0):
+        raise InputError(f"runout_sigma must be >= 0 rad, got {opt.runout_sigma!r}")
     for _attempt in range(6):
         theta = start.copy()
         info_start = None

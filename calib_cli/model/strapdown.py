@@ -122,6 +122,25 @@ def integrate_relative(t: np.ndarray, w: np.ndarray, C0: Rotation, site: Site,
     return RelativeRotation(Rotation.from_quat(q[[1, 2, 3, 0]]), float(t[-1] - t[0]), S_bias, S_K, noise)
 
 
+def exp_matrix(phi) -> np.ndarray:
+    """Rotation matrix Exp([phi x]) (3, 3) of one rotation vector phi (3,), rad (Rodrigues;
+    for one vector at a time, where SciPy's per-call overhead dominates a filter's time)."""
+    a = float(np.sqrt(phi @ phi))
+    K = skew(phi)
+    if a < 1e-8:
+        return np.eye(3) + K + 0.5 * (K @ K)
+    return np.eye(3) + (np.sin(a) / a) * K + ((1.0 - np.cos(a)) / a**2) * (K @ K)
+
+
+def log_matrix(M: np.ndarray) -> np.ndarray:
+    """Rotation vector (3,) of one rotation matrix M (3, 3) of angle below 180 deg, rad
+    (the inverse of ``exp_matrix``)."""
+    v = 0.5 * np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+    sn = float(np.sqrt(v @ v))
+    th = np.arctan2(sn, 0.5 * (M[0, 0] + M[1, 1] + M[2, 2] - 1.0))
+    return v * (th / sn) if sn > 1e-12 else v
+
+
 def step_rotvec(w: np.ndarray, dt: np.ndarray, sample_kind: str = "instant") -> np.ndarray:
     """Rotation vectors (N, 3) of the steps between samples, body axes, rad. w (N, 3)
     rad/s, dt (N,) s the step after each sample. ``instant`` samples (values at the
