@@ -522,10 +522,12 @@ def _encoder_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
             notes.append(f"{rec.segments[cy.seg_index].label}: no table angle")
             continue
         th = np.unwrap(th)
-        dt = np.diff(rec.time[cy.sl], prepend=rec.time[cy.sl][0])
-        gyro_angle = np.cumsum(rec.gyro[cy.sl] @ cy.a_nom * dt)
-        x_, y_ = gyro_angle - gyro_angle[0], th - th[0]
-        slope = float(x_ @ y_ / max(x_ @ x_, 1e-30))
+        gyro_angle = _gyro_angle(rec, cy)
+        # the raw gyros' bias (up to 1 deg/s on a MEMS part) drifts their angle by radians
+        # over a cycle: it is fitted alongside the slope
+        tt = rec.time[cy.sl] - rec.time[cy.sl][0]
+        A = np.column_stack([gyro_angle, tt])
+        slope = float(np.linalg.lstsq(A, th - th[0], rcond=None)[0][0])
         if not 0.95 < abs(slope) < 1.05:
             out.append(None)
             notes.append(f"{rec.segments[cy.seg_index].label}: encoder angle / gyro angle "
@@ -567,6 +569,21 @@ def _encoder_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
 
 
 ENCODER_MODES = ("auto", "angle", "rate", "both", "off")
+
+
+def _gyro_angle(rec: Recording, cy: _Cycle) -> np.ndarray:
+    """The raw gyros' angle about the plan's table axis at each stamp of a cycle since its
+    first (rad), integrated as the sample kind says (model/strapdown.py step_rotvec):
+    instant samples with the mid-interval rate, interval means as their own period's
+    rate. A rectangle rule would lead the angle by half a sample: 35 mrad across a ramp
+    from +200 to -200 deg/s at 100 Hz, far above an encoder's resolution."""
+    t = rec.time[cy.sl]
+    w = rec.gyro[cy.sl] @ cy.a_nom
+    if rec.sample_kind == "interval-mean":  # step k spans [t_k - dt, t_k]
+        steps = step_rotvec(w[1:, None], np.diff(t), rec.sample_kind)
+    else:  # step k spans [t_k, t_k+1]
+        steps = step_rotvec(w[:, None], np.diff(t, append=t[-1]), rec.sample_kind)[:-1]
+    return np.concatenate([[0.0], np.cumsum(steps[:, 0])])
 
 
 @dataclass(frozen=True)
@@ -814,14 +831,15 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 H[p_rows, col_p] = KCw[p_rows, p_cols]
             # table axis fixed in ENU: Rbar a_b = a_enu (two components)
             ra = Rbar @ a_b
-            Hg = -Nperp @ skew(ra) @ Rh @ b.qbar[j]
+            Nra = -Nperp @ skew(ra)
+            Hg = Nra @ Rh @ b.qbar[j]
             h[3:] = Nperp @ ra + Hg @ x[iG]
             if L.n_axes:  # the true axis: the plan's tilted by t (the table is not level)
                 ti = 3 + L.idx["t"][2 * cy.axis_group:2 * cy.axis_group + 2]
                 h[3:] -= cur["t"][cy.axis_group]
                 H[3:, ti] = -np.eye(2)
             H[3:, iG] = Hg
-            H[3:, sA] = -Nperp @ skew(ra)
+            H[3:, sA] = Nra
             H[3:, 3 + L.idx["u"][2 * c:2 * c + 2]] = Nperp @ Rbar @ cy.basis
             if n_run:  # the bearing's rocking of the axis (runout), harmonics of the angle
                 hp = np.multiply.outer(_RUNOUT_HARMONICS, psi_mid[j])
@@ -841,25 +859,11 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                                          np.full(2, axis_var)]))
             if skip[j]:  # the table accelerates and the tangential term is off: axis only
                 H, h, z, Rm = H[3:], h[3:], z[3:], Rm[3:, 3:]
-            # the state x holds phi = 0 after each reset; theta part is x[3:]
-            v = z - h
-            PH = P @ H.T
-            S = H @ PH + Rm
-            Si = np.linalg.inv(S)
-            Kg = PH @ Si
-            x += Kg @ v
-            P -= Kg @ PH.T
-            if j % 16 == 0:  # rounding makes P drift from symmetric; cheap enough every 16
-                P = 0.5 * (P + P.T)
-            if not skip[j] and j >= nb // 2:  # the second half of each cycle: converged state
-                innov.append(v[:3] * innov_scale)
-            if j >= nb // 2:
-                ax_v2.append(float(v[-2:] @ v[-2:]) / 2)
-                ax_hph.append((float(S[-2, -2] + S[-1, -1]) / 2) - axis_var)
-            nis.append(float(v @ Si @ v))
-            if b.wabs[j] < _LOW_RATE:
-                fcorr = np.linalg.solve(Kc, b.a_mean[j] - cur["ab"])
-                lowrate.append((np.linalg.norm(b.a_mean[j]), np.linalg.norm(fcorr)))
+            n_imu = len(h)  # accelerometer (3, unless skipped) and axis (2) rows
+            # the table's channels join the same update as extra rows (their noise is
+            # independent of the accelerometers': one joint update is the sequential one,
+            # at a third of the cost of three)
+            rows = []
             if ec is not None and j >= 1 and ec.ok[j]:
                 # the table's encoder: its angle since the cycle start against the filter's
                 # (the attitude about the table axis since the start attitude), with the
@@ -875,18 +879,10 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 He[ieo] = [np.cos(th_abs), np.sin(th_abs)]
                 He[iec] = omega
                 He[ies] = psi_ref
-                he = (psi_ref * (1.0 + cur_e[ies - 3]) + cy.a_enu @ x[:3] + cur_e[iez - 3]
+                he = (psi_ref * (1.0 + cur_e[ies - 3]) + cur_e[iez - 3]
                       + cur_e[ieo[0] - 3] * np.cos(th_abs) + cur_e[ieo[1] - 3] * np.sin(th_abs)
                       + omega * cur_e[iec - 3])
-                ve = ec.z[j] - he
-                PHe = P @ He
-                Se = He @ PHe + sig_enc**2
-                Ke = PHe / Se
-                x = x + Ke * ve
-                P = P - np.outer(Ke, PHe)
-                P = 0.5 * (P + P.T)
-                if j >= nb // 2:
-                    enc_innov.append(ve / np.sqrt(Se))
+                rows.append(("enc", He, he, ec.z[j], sig_enc**2))
             if rc is not None and j < len(rc.z):
                 # the table's rate channel (the rate at each stamp, about table_axis_enu)
                 # against the corrected gyros about the table axis, earth rate removed, with
@@ -906,14 +902,35 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                     hr = (1.0 + kr) * (base + gs @ x[iG]) + br
                 else:
                     hr = (1.0 + kr) * base + br + Hr[th] @ x[th]
-                vr = rc.z[j] - hr
-                PHr = P @ Hr
-                Sr = Hr @ PHr + var_rate
-                Kr = PHr / Sr
-                x += Kr * vr
-                P -= np.outer(Kr, PHr)
-                if j >= nb // 2:
-                    rate_innov.append(vr / np.sqrt(Sr))
+                rows.append(("rate", Hr, hr, rc.z[j], var_rate))
+            if rows:
+                H = np.vstack([H] + [r[1] for r in rows])
+                h = np.concatenate([h, [r[2] for r in rows]])
+                z = np.concatenate([z, [r[3] for r in rows]])
+                Rm = np.diag(np.concatenate([np.diag(Rm), [r[4] for r in rows]]))
+            # the state x holds phi = 0 after each reset; theta part is x[3:]
+            v = z - h
+            PH = P @ H.T
+            S = H @ PH + Rm
+            Si = np.linalg.inv(S)
+            Kg = PH @ Si
+            x += Kg @ v
+            P -= Kg @ PH.T
+            if j % 16 == 0:  # rounding makes P drift from symmetric; cheap enough every 16
+                P = 0.5 * (P + P.T)
+            if not skip[j] and j >= nb // 2:  # the second half of each cycle: converged state
+                innov.append(v[:3] * innov_scale)
+            if j >= nb // 2:
+                ax_v2.append(float(v[n_imu - 2:n_imu] @ v[n_imu - 2:n_imu]) / 2)
+                ax_hph.append((float(S[n_imu - 2, n_imu - 2] + S[n_imu - 1, n_imu - 1]) / 2)
+                              - axis_var)
+                for q, r in enumerate(rows):  # each channel's normalized innovation
+                    (enc_innov if r[0] == "enc" else rate_innov).append(
+                        v[n_imu + q] / np.sqrt(S[n_imu + q, n_imu + q]))
+            nis.append(float(v @ Si @ v))
+            if b.wabs[j] < _LOW_RATE:
+                fcorr = np.linalg.solve(Kc, b.a_mean[j] - cur["ab"])
+                lowrate.append((np.linalg.norm(b.a_mean[j]), np.linalg.norm(fcorr)))
             # reset: absorb phi into the attitude
             Rh = _rot(x[:3]) @ Rh
             x[:3] = 0.0
@@ -1156,7 +1173,7 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
             if k >= 2 and not axis_moved and (moved < opt.converge_sigma
                                               or moved**2 / prev_move < opt.converge_sigma):
                 break
-            if opt.axis_sigma is None and k >= 1:
+            if opt.axis_sigma is None and k >= 0:
                 axis_var, axis_moved = _axis_noise(out, axis_var)
             # the next pass starts from the prior plus this pass's data information
             lam = _scaled_inv(out.P / np.outer(sd, sd))

@@ -37,6 +37,9 @@ def axis_angle(axis, angle_rad) -> Rotation:
 def skew(v) -> np.ndarray:
     """Cross-product matrices [v x] (..., 3, 3) of 3-vectors v (..., 3)."""
     v = np.asarray(v, dtype=float)
+    if v.ndim == 1:  # one vector: a filter's per-step call, where the general path's overhead shows
+        x, y, z = v
+        return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
     S = np.zeros(v.shape[:-1] + (3, 3))
     S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
     S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]

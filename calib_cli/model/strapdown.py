@@ -125,11 +125,20 @@ def integrate_relative(t: np.ndarray, w: np.ndarray, C0: Rotation, site: Site,
 def exp_matrix(phi) -> np.ndarray:
     """Rotation matrix Exp([phi x]) (3, 3) of one rotation vector phi (3,), rad (Rodrigues;
     for one vector at a time, where SciPy's per-call overhead dominates a filter's time)."""
-    a = float(np.sqrt(phi @ phi))
+    phi = np.asarray(phi, dtype=float)
+    a2 = float(phi @ phi)
     K = skew(phi)
-    if a < 1e-8:
-        return np.eye(3) + K + 0.5 * (K @ K)
-    return np.eye(3) + (np.sin(a) / a) * K + ((1.0 - np.cos(a)) / a**2) * (K @ K)
+    # [phi x]^2 = phi phi^T - |phi|^2 I
+    if a2 < 1e-16:
+        c0, c1, c2 = 1.0 - 0.5 * a2, 1.0, 0.5
+    else:
+        a = np.sqrt(a2)
+        c0, c1, c2 = np.cos(a), np.sin(a) / a, (1.0 - np.cos(a)) / a2
+    out = c1 * K + (c2 * phi)[:, None] * phi
+    out[0, 0] += c0
+    out[1, 1] += c0
+    out[2, 2] += c0
+    return out
 
 
 def log_matrix(M: np.ndarray) -> np.ndarray:
