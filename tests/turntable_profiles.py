@@ -76,13 +76,22 @@ def lever_arm_lines(text: str, seed: int) -> str:
     return "\n".join(lines) + "\n"
 
 
+ENCODER_KEYS = ("sim_table_encoder_counts = 65536\nsim_table_encoder_opr_deg = 0.05\n"
+                "sim_table_rate_scale_error = 2e-3\n")
+
+
 def profile_record(seed: int, family: str, kind: str = "instant", duration_s: float = 600.0,
-                   tilted: bool = False, wobble: bool | None = None, wide: bool | None = None):
+                   tilted: bool = False, wobble: bool | None = None, wide: bool | None = None,
+                   encoder: bool = False):
     """(Recording, truth params) for one validation case. ``wobble`` defaults to every
-    other seed, ``wide`` (truths at 3x) to every third."""
+    other seed, ``wide`` (truths at 3x) to every third. ``encoder``: the log's table
+    channels are a 2^16-count angle encoder with a 0.05 deg once-per-revolution error and
+    a rate channel with a 2e-3 scale error (else the nominal profile, not an encoder)."""
     wobble = (seed % 2 == 1) if wobble is None else wobble
     wide = (seed % 3 == 2) if wide is None else wide
     text = profile_plan_text(seed, family, kind, duration_s, 0.5 if wobble else 0.0, tilted)
+    if encoder:
+        text = ENCODER_KEYS + text
     text = lever_arm_lines(text, seed)
     plan = parse_plan(text)
     rng = np.random.default_rng(seed)
