@@ -175,11 +175,6 @@ def short_turntable():
     return plan, simulate(plan, None, 7)
 
 
-@pytest.mark.xfail(reason="since the fit estimates the table axis's noise (issue 14: 10 urad "
-                          "floor on a steady axis), plan check at the nominal unit gives "
-                          "0.49 and 0.69 of the fit's sigma on one accel_K and one gyro_K "
-                          "cross-axis entry of this record (the others 0.87-1.14); open in "
-                          "issue 20", strict=False)
 def test_turntable_predicted_sigma_matches_fit_sigma(short_turntable):
     """The turntable plan check (the fit's own set-up and one linearised filter pass at
     the unit) over the fit's sigma on the same record: [0.87, 1.15] for every entry."""

@@ -153,7 +153,8 @@ def test_turntable_encoder_channels():
              "other seed, lever arms 0-0.5 m, proof-mass offsets +-1 cm, a third of the seeds "
              "with truths at 3x; the log's table channels: a 2^16-count encoder with a 0.05 deg "
              "once-per-revolution error and a rate channel with a 2e-3 scale error. Each cell: "
-             "pooled RMS of (estimate - truth) / sigma and, in brackets, the largest |z|. "
+             "pooled RMS of (estimate - truth) / sigma and, in brackets, the largest |z|; the "
+             "rule: RMS in [0.8, 1.25] and the 99th percentile of |z| below 3.3. "
              f"Wall time on 2 workers: {wall / 60:.1f} min.", "",
              "| table channels | channels used | " + " | ".join(keys) + " | CPU s per fit |",
              "|---" * (len(keys) + 3) + "|"]
@@ -168,9 +169,10 @@ def test_turntable_encoder_channels():
                 row.append("-")
                 continue
             rms, mx = float(np.sqrt(np.mean(v**2))), float(np.abs(v).max())
+            q99 = float(np.quantile(np.abs(v), 0.99))
             row.append(f"{rms:.2f} ({mx:.1f})")
-            if not (0.8 <= rms <= 1.25) or float(np.mean(np.abs(v) < 3.3)) < 0.99:
-                bad.append((mode, k, round(rms, 2), round(mx, 1)))
+            if not (0.8 <= rms <= 1.25) or q99 >= 3.3:
+                bad.append((mode, k, round(rms, 2), round(q99, 2)))
         row.append(f"{np.mean([o[mode]['cpu'] for o in ok]):.1f}")
         lines.append("| " + " | ".join(row) + " |")
     # every entry's sigma with a channel against the IMU-only sigma of the same record
@@ -206,7 +208,7 @@ def test_turntable_encoder_channels():
     if failures:
         lines += ["Failed fits:", ""] + [f"- seed {s}: {e}" for s, e in failures] + [""]
     lines += [f"Groups outside the within-sigma rule: {len(bad)}."]
-    lines += [f"- {m}: {k} RMS {r}, max {x}" for m, k, r, x in bad]
+    lines += [f"- {m}: {k} RMS {r}, 99th percentile {x}" for m, k, r, x in bad]
     lines += [f"Entries whose sigma grew with the channels: {len(worse)}."]
     lines += [f"- {m}: {k} x{r:.4f}" for m, k, r in worse[:10]]
     ENC_DOC.write_text("\n".join(lines) + "\n")

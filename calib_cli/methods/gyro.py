@@ -42,6 +42,7 @@ from calib_cli.model.effects import Bias, GSensitivity, Layout, ScaleMisalignmen
 from calib_cli.model.frames import attitude_to_rotation
 from calib_cli.model.imu_model import ImuModel, Packing
 from calib_cli.model.kinematics import Kinematics
+from calib_cli.model.strapdown import exp_matrix
 from calib_cli.model.strapdown import quat_exp as _qexp
 from calib_cli.model.strapdown import quat_matrix as _qmat
 from calib_cli.model.strapdown import quat_mul as _qmul
@@ -82,12 +83,6 @@ def _rodrigues(axis, angle, v):
     """Rotate v (3,) about unit axis (3,) by angles (n,) -> (n, 3)."""
     c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
     return v * c + np.cross(axis, v) * s + np.outer(1 - np.cos(angle), axis) * (axis @ v)
-
-
-def _rotvec_matrix(v):
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(v).as_matrix()
 
 
 # ---------------------------------------------------------------------------
@@ -162,7 +157,7 @@ class _Problem:
         for k, a, b in self.transitions:
             T = t[b] - t[a]
             if self.known_att[k]:
-                self.tr_earth.append(_rotvec_matrix(self.we_static[k] * T))
+                self.tr_earth.append(exp_matrix(self.we_static[k] * T))
             else:
                 self.tr_earth.append(np.eye(3))
         self.tr_earth = np.array(self.tr_earth).reshape(-1, 3, 3)

@@ -45,15 +45,58 @@ from scipy.spatial.transform import Rotation
 
 from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError, InputError
-from calib_cli.model.effects import Layout
+from calib_cli.methods.lsq import LsqFit
+from calib_cli.methods.result import build_result
+from calib_cli.model.correction import correct
+from calib_cli.model.effects import Layout, make_effect
 from calib_cli.model.frames import attitude_to_rotation, skew
-from calib_cli.model.kinematics import rigid_body_accel
+from calib_cli.model.imu_model import ImuModel, Packing, base_model
+from calib_cli.model.kinematics import Kinematics, rigid_accel
 from calib_cli.model.strapdown import exp_matrix as _rot
 from calib_cli.model.strapdown import log_matrix as _rotvec
 from calib_cli.model.strapdown import mean_rotation, step_rotvec
 
-K_LOWER = [(0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2)]
-P_OFF = [(i, j) for i in range(3) for j in range(3) if i != j]
+# The fit's model is the effect catalogue's (CONTRACT.md section 2): the unit's core
+# (accelerometer bias and lower-triangular K, gyro bias, full G and D) plus, per the
+# options, the lever arms and the proof-mass offsets
+_CORE = base_model("triad", accel_structure="lower", g_sensitivity=True)
+IMU_KEYS = ("accel_bias", "accel_K", "gyro_bias", "gyro_K", "gyro_D")
+# the free entries of K and of the proof-mass offsets, row-major: those their ParamSpec
+# does not fix by convention (K's upper triangle: the accelerometers define the frame;
+# p_ii: an accelerometer's own axis does not see its offset)
+K_LOWER = [tuple(int(v) for v in ix) for ix in np.argwhere(~_CORE.spec("accel_K").fixed_mask())]
+P_OFF = [tuple(int(v) for v in ix) for ix in
+         np.argwhere(~make_effect("proof_mass_offsets").specs(Layout())[0].fixed_mask())]
+
+
+def turntable_model(n_cycles: int, lever_arm: bool, proof_mass: bool,
+                    tangential: bool) -> ImuModel:
+    """The model the fit estimates, from the catalogue: the core plus the lever arms (one
+    row per rotating cycle) and the proof-mass offsets where the options include them."""
+    model = ImuModel(_CORE.effects, Layout(n_cycles=n_cycles))
+    if lever_arm:
+        model = model.with_effect(make_effect("lever_arm", tangential=tangential))
+    if proof_mass:
+        model = model.with_effect(make_effect("proof_mass_offsets", tangential=tangential))
+    return model
+
+
+def _contract_params(par: dict, lever_arm=None) -> dict:
+    """The filter's parameters (``_unpack``) under their contract keys."""
+    return {"accel_bias": par["ab"], "accel_K": par["K"], "gyro_bias": par["gb"],
+            "gyro_K": par["G"], "gyro_D": par["D"],
+            "lever_arm": par["s"] if lever_arm is None else lever_arm,
+            "proof_mass_offsets": par["P"]}
+
+
+def _block_accel(K: np.ndarray, ab: np.ndarray, f: np.ndarray, C: np.ndarray,
+                 r: np.ndarray) -> np.ndarray:
+    """The model's accelerometer block mean (3,) in closed form, for the extended first
+    pass, whose parameters change at every block (``ImuModel.predict`` costs ~0.4 ms a
+    call there; tests/test_turntable.py checks the two agree): accelerometer i reads
+    b_i + K_i . (f + C r_i), f the gravity part of the specific force, C the block's
+    mean centripetal (+ tangential) operator, r_i = s + p_i its proof mass (m)."""
+    return ab + np.einsum("ij,ij->i", K, f[None, :] + r @ C.T)
 
 
 @dataclass(frozen=True)
@@ -303,17 +346,18 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
     if nb < 10:
         raise EstimationError(f"rotating segment {cy.seg_index + 1} is too short "
                               f"({len(t)} samples) for the turntable fit")
-    Kinv = np.linalg.inv(par["K"])
     Ginv = np.linalg.inv(par["G"])
-    f = (A - par["ab"]) @ Kinv.T  # specific force at the proof masses
-    w0 = (W - par["gb"] - f @ par["D"].T) @ Ginv.T
+    # the core model inverted (model/correction.py): the specific force at each proof mass
+    # (row i: accelerometer i's), then the rates
+    core = _contract_params(par)
+    f = correct(_CORE, core, "accel", A)
+    w0 = correct(_CORE, core, "gyro", W, other=f)
     # the gyros' D sees the force at the reference point: remove the proof-mass terms
     if np.any(par["P"]):
-        dw0 = np.gradient(w0, t, axis=0)
+        kin0 = Kinematics(t, f, w0, np.gradient(w0, t, axis=0))
         for i in range(3):
-            pi = par["P"][i]
-            f[:, i] -= rigid_body_accel(w0, dw0, pi)[:, i]
-    w = (W - par["gb"] - f @ par["D"].T) @ Ginv.T
+            f[:, i] -= rigid_accel(kin0, par["P"][i])[:, i]
+    w = correct(_CORE, core, "gyro", W, other=f)
     dt = np.diff(t, append=t[-1] + (t[-1] - t[-2]))
     # per-block scans over the samples of all blocks at once. Instant samples: the
     # attitude steps with the mid-interval rate from one stamp to the next, and a block's
@@ -687,6 +731,8 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
     par_lin = _unpack(theta_lin, L, cycles)
     if s_known is not None:
         par["s"] = s_known
+    s_all = par["s"]  # (n_cycles, 3) the lever arms at the linearisation point
+    model = turntable_model(len(cycles), opt.lever_arm != "off", L.est_p, opt.tangential)
     n = L.size
     # state: phi (3), theta (n), then the cycle's axis runout (cycle-local, like phi)
     th = slice(3, 3 + n)
@@ -762,6 +808,12 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             ab_lin /= np.linalg.norm(ab_lin)
             KJ_all = np.einsum("ia,ic,ncap->nip", par_lin["K"], s_lin[None, :] + par_lin["P"],
                                b.cg)
+            # the accelerometers' block means at the linearisation point, less gravity: the
+            # catalogue's forward model on the blocks' mean kinematics
+            kin_c = Kinematics(b.t, np.zeros((nb, 3)), b.wbar, b.dw, cycle=np.full(nb, c),
+                               cen=b.cen)
+            h_rig = model.predict(_contract_params(par_lin, s_all), kin_c,
+                                  sensors=("accel",))["accel"]
         Nperp = _perp_basis(cy.a_enu).T  # (2, 3)
         skip = np.zeros(nb, bool)
         if not opt.tangential:
@@ -820,7 +872,11 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             KW = KW + (np.einsum("ia,ic,cap->ip", Kc, s_c[None, :] + cur["P"], b.cg[j])
                        if first else KJ_all[j])
             KCw = Kc @ Cw
-            h[:3] = cur["ab"] + np.einsum("ij,ij->i", Kc, U) + KW @ x[iG]
+            if first:
+                h[:3] = _block_accel(Kc, cur["ab"], gb_, Cw, s_c[None, :] + cur["P"]) + KW @ x[iG]
+            else:  # the model's rigid-body part, plus gravity through K (the model is
+                # linear in the specific force; gravity in body axes follows the attitude)
+                h[:3] = h_rig[j] + Kc @ gb_ + KW @ x[iG]
             H[:3, iG] = KW
             H[:3, sA] = Kc @ dfdphi
             H[rows3, col_ab] = 1.0
@@ -916,8 +972,11 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             Kg = PH @ Si
             x += Kg @ v
             P -= Kg @ PH.T
-            if j % 16 == 0:  # rounding makes P drift from symmetric; cheap enough every 16
-                P = 0.5 * (P + P.T)
+            # rounding makes P drift from symmetric, and with the axis rows at 10 urad against
+            # wide priors (a plan check's pass from the prior) the drift grew into negative
+            # variances within 16 blocks, which had put two cross-axis entries of the plan
+            # check at half the fit's sigma (issue 20): symmetric at every block
+            P = 0.5 * (P + P.T)
             if not skip[j] and j >= nb // 2:  # the second half of each cycle: converged state
                 innov.append(v[:3] * innov_scale)
             if j >= nb // 2:
@@ -1337,55 +1396,47 @@ def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, 
     theta, P = out.theta, out.P
     par = _unpack(theta, L, cycles)
     nc = len(cycles)
-    rows, order = [], []
-
-    def emit(key, shape, entries):
-        for flat, coeffs in entries:
-            row = np.zeros(L.size)
-            for i, v in coeffs:
-                row[i] += v
-            rows.append(row)
-            order.append((key, flat))
-
-    emit("accel_bias", (3,), [(i, [(L.idx["ab"][i], 1.0)]) for i in range(3)])
-    emit("accel_K", (3, 3), [(3 * i + j, [(L.idx["K"][q], 1.0)]) for q, (i, j) in enumerate(K_LOWER)])
-    emit("gyro_bias", (3,), [(i, [(L.idx["gb"][i], 1.0)]) for i in range(3)])
-    emit("gyro_K", (3, 3), [(q, [(L.idx["G"][q], 1.0)]) for q in range(9)])
-    emit("gyro_D", (3, 3), [(q, [(L.idx["D"][q], 1.0)]) for q in range(9)])
-    if L.est_s:
-        ent = []
-        for c, cy in enumerate(cycles):
-            for e in range(3):
-                co = [(L.idx["s"][2 * c + m], cy.basis[e, m]) for m in range(2)
-                      if abs(cy.basis[e, m]) > 0]
-                if co:
-                    ent.append((3 * c + e, co))
-        emit("lever_arm", (nc, 3), ent)
-    if L.est_p:
-        emit("proof_mass_offsets", (3, 3), [(3 * i + j, [(L.idx["p"][q], 1.0)])
-                                            for q, (i, j) in enumerate(P_OFF)])
-    T = np.array(rows)
+    model = turntable_model(nc, opt.lever_arm != "off", L.est_p, opt.tangential)
+    # the reported entries: the catalogue's free entries of each estimated key (a lever
+    # arm's component along its cycle's table axis is not estimated: fixed at 0)
+    keys = list(IMU_KEYS) + (["lever_arm"] if L.est_s else []) + (
+        ["proof_mass_offsets"] if L.est_p else [])
+    masks = []
+    for k in keys:
+        if k == "lever_arm":
+            masks.append(np.array([np.abs(cy.basis).sum(axis=1) > 0 for cy in cycles]))
+        else:
+            masks.append(~model.spec(k).fixed_mask())
+    packing = Packing(tuple(model.spec(k) for k in keys), tuple(masks))
+    # each reported entry as a row over the filter's parameter vector
+    T = np.zeros((packing.size, L.size))
+    for q, (key, flat) in enumerate(packing.labels()):
+        if key == "lever_arm":
+            c, e = divmod(flat, 3)
+            T[q, L.idx["s"][2 * c:2 * c + 2]] = cycles[c].basis[e]
+        else:
+            src = {"accel_bias": ("ab", list(range(3))),
+                   "accel_K": ("K", [3 * i + j for i, j in K_LOWER]),
+                   "gyro_bias": ("gb", list(range(3))), "gyro_K": ("G", list(range(9))),
+                   "gyro_D": ("D", list(range(9))),
+                   "proof_mass_offsets": ("p", [3 * i + j for i, j in P_OFF])}[key]
+            T[q, L.idx[src[0]][src[1].index(flat)]] = 1.0
     cov = T @ P @ T.T
-    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     # an entry the data did not determine (sigma still above half its prior): sigma null
     prior_sd = np.sqrt(np.diag(T @ np.diag(prior_sd_vec**2) @ T.T))
-    unobs = sd > 0.5 * prior_sd
-    sd = np.where(unobs, np.nan, sd)
-    params = {"accel_bias": par["ab"], "accel_K": par["K"], "gyro_bias": par["gb"],
-              "gyro_K": par["G"], "gyro_D": par["D"]}
-    if opt.lever_arm != "off":
-        params["lever_arm"] = par["s"] if L.est_s else s_known
-    # the key is always present (CONTRACT.md section 7); not estimated: 0 with sigma null
-    params["proof_mass_offsets"] = par["P"]
-    sigma = {k: np.zeros(np.shape(v)) for k, v in params.items()}
-    for (key, flat), s in zip(order, sd):
-        sigma[key].reshape(-1)[flat] = s
+    unobs = np.sqrt(np.clip(np.diag(cov), 0, None)) > 0.5 * prior_sd
+    cov[unobs, :] = np.nan
+    cov[:, unobs] = np.nan
+    fit = LsqFit(theta=T @ theta, cov=cov, unobservable=unobs, residuals=np.zeros(0),
+                 chi2=float("nan"), dof=0, nfev=0)
+    base = model.neutral_params()
     pm_fixed = []
-    if not L.est_p:
-        sigma["proof_mass_offsets"] = np.where(np.eye(3) > 0, 0.0, np.nan)
+    extra = {}
+    if opt.lever_arm == "known":
+        extra["lever_arm"] = s_known
+    if not L.est_p:  # the key is always present (CONTRACT.md section 7): 0, sigma null
+        extra["proof_mass_offsets"] = np.zeros((3, 3))
         pm_fixed = [f"proof_mass_offsets[{i},{j}]" for i, j in P_OFF]
-    units = {"accel_bias": "m/s^2", "accel_K": "-", "gyro_bias": "rad/s", "gyro_K": "-",
-             "gyro_D": "(rad/s)/(m/s^2)", "lever_arm": "m", "proof_mass_offsets": "m"}
     innov = np.array(out.innov)
     lowrate = np.array(out.lowrate) if out.lowrate else np.zeros((0, 2))
     g = rec.site.gravity
@@ -1403,8 +1454,6 @@ def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, 
         else None,
         "g_error_rms_after": float(np.sqrt(np.mean((lowrate[:, 1] - g) ** 2))) if len(lowrate)
         else None,
-        "unobservable": [f"{k}[{','.join(str(int(i)) for i in np.unravel_index(f, np.shape(params[k])))}]"
-                         for (k, f), u in zip(order, unobs) if u] + pm_fixed,
         "n_cycles": len(cycles),
         "cycles": [rec.segments[cy.seg_index].label for cy in cycles],
         "lever_arm_mode": opt.lever_arm, "proof_mass_mode": opt.proof_mass,
@@ -1436,18 +1485,15 @@ def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, 
         tables["sigma_history_labels"] = labels
         if out.hist_x:  # the running estimate alongside (same entries, same units)
             tables["estimate_history"] = np.array(out.hist_x)
-    layout = Layout(n_cycles=len(cycles))
-    model = [{"name": "bias", "sensor": "accel"},
-             {"name": "scale_misalignment", "sensor": "accel", "structure": "lower"},
-             {"name": "bias", "sensor": "gyro"},
-             {"name": "scale_misalignment", "sensor": "gyro", "structure": "full"},
-             {"name": "g_sensitivity", "sensor": "gyro"}]
-    if opt.lever_arm != "off":
-        model.append({"name": "lever_arm", "sensor": "accel", "tangential": bool(opt.tangential)})
-    if L.est_p:
-        model.append({"name": "proof_mass_offsets", "sensor": "accel",
-                      "tangential": bool(opt.tangential)})
-    return CalibrationResult(method="turntable", params={k: np.asarray(v) for k, v in params.items()},
-                             sigma=sigma, units={k: units[k] for k in params}, covariance=cov,
-                             cov_order=order, stats=stats, tables=tables, model=model,
-                             raw_units=dict(rec.units), layout=layout, serial=rec.serial)
+    res = build_result("turntable", model, packing, fit, base, rec.units, stats,
+                       serial=rec.serial, tables=tables, extra_unobservable=pm_fixed)
+    for k, v in extra.items():  # reported, not estimated
+        res.params[k] = np.asarray(v, float)
+        res.sigma[k] = (np.zeros((nc, 3)) if k == "lever_arm"
+                        else np.where(np.eye(3) > 0, 0.0, np.nan))
+        res.units[k] = "m"
+    order = [k for k in (*IMU_KEYS, "lever_arm", "proof_mass_offsets") if k in res.params]
+    for d in (res.params, res.sigma, res.units):
+        items = {k: d.pop(k) for k in order}
+        d.update(items)
+    return res

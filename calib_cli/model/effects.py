@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calib_cli.geometry import Layout  # noqa: F401  (defined in the base layer; re-exported)
-from calib_cli.model.kinematics import Kinematics, force_at, rigid_body_accel
+from calib_cli.model.kinematics import Kinematics, rigid_accel
 
 SHIFT, INPUT, TRANSFER, CORRECTION, ADDITIVE, STOCHASTIC = range(6)
 
@@ -576,8 +576,7 @@ class LeverArm(Effect):
 
     def apply(self, p, ctx):
         s = lever_arm_per_sample(p, ctx.kin)
-        kin = ctx.kin if self.tangential else ctx.kin.with_(dw=np.zeros_like(ctx.kin.dw))
-        df = force_at(kin, s) - kin.f
+        df = rigid_accel(ctx.kin, s, self.tangential)
         ctx.F = ctx.F + df[:, None, :]
         ctx.f_ref = ctx.f_ref + df
 
@@ -612,9 +611,8 @@ class ProofMassOffsets(Effect):
 
     def apply(self, p, ctx):
         P = p["proof_mass_offsets"]
-        kin = ctx.kin if self.tangential else ctx.kin.with_(dw=np.zeros_like(ctx.kin.dw))
         for i in range(3):
-            ctx.F[:, i, :] += rigid_body_accel(kin.w, kin.dw, P[i])
+            ctx.F[:, i, :] += rigid_accel(ctx.kin, P[i], self.tangential)
 
 
 def shift_kinematics(kin: Kinematics, tau: float) -> Kinematics:
