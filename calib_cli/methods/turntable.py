@@ -1199,6 +1199,8 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
         n_passes, moved = 0, np.inf
         axis_var = (opt.axis_sigma if opt.axis_sigma is not None else _AXIS_START) ** 2
         axis_moved = False
+        diverged = False
+        bad_channels = []
         for k in range(max(1, opt.passes)):
             coarse = k < min(2, opt.passes - 1)
             bn = coarse_n if coarse else block_n
@@ -1212,9 +1214,23 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
                                    start_info=info_start, **kw)
             except _StartInfoError:  # fall back to a pass started from the prior alone
                 kw["record_history"] = False
-                out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation,
-                                   sig_g, bn, s_known, first=False, **kw)
-            if not np.all(np.isfinite(out.theta)):
+                try:
+                    out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a * inflation,
+                                       sig_g, bn, s_known, first=False, **kw)
+                except np.linalg.LinAlgError:
+                    out = None
+            except np.linalg.LinAlgError:  # NaN in the state: the filter diverged
+                out = None
+            if out is None or not np.all(np.isfinite(out.theta)):
+                diverged = True
+                break
+            # a table channel far from its model already in this pass (normalized innovation
+            # RMS above 5, against about 1 for a real encoder even in the first pass): a
+            # logged setpoint that passed the checks, which would drag the passes off
+            bad_channels = [(name, r_) for name, v in (("encoder", out.enc_innov),
+                                                       ("rate channel", out.rate_innov))
+                            if v and (r_ := float(np.sqrt(np.mean(np.square(v))))) > 5.0]
+            if bad_channels:
                 break
             if hist is None:  # the sigma history is the first pass's (it starts from the prior)
                 hist = (out.hist_t, out.hist_s, out.hist_x)
@@ -1237,6 +1253,24 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
             # the next pass starts from the prior plus this pass's data information
             lam = _scaled_inv(out.P / np.outer(sd, sd))
             info_start = np.eye(L.size) + _START_DATA_FRACTION * (lam - np.eye(L.size))
+        if bad_channels and not diverged:
+            for name, r_ in bad_channels:
+                enc_notes.append(f"{name} not used: normalized innovation RMS {r_:.3g} in "
+                                 f"pass {k + 1}")
+                if name == "encoder":
+                    enc = enc_coarse = None
+                else:
+                    rate = rate_coarse = None
+            continue
+        if diverged and (enc is not None or rate is not None):
+            # e.g. a logged setpoint that passed the checks: its readings miss the table's
+            # wobble, which at navigation-grade gyro noise drags the first pass off
+            enc_notes.append("table channels not used: the filter diverged with them")
+            enc = enc_coarse = rate = rate_coarse = None
+            continue
+        if diverged:
+            inflation *= 10.0
+            continue
         r = float(np.sqrt(np.mean(np.square(out.innov)))) if out.innov else 1.0
         r_enc = float(np.sqrt(np.mean(np.square(out.enc_innov)))) if out.enc_innov else 1.0
         if enc is not None and not (r_enc < 1.5 and r < 1.3):
@@ -1258,7 +1292,7 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
             break
         # widen step by step (a diverged attempt's residuals overstate the mismatch)
         inflation *= min(max(r, 2.0), 10.0) if np.isfinite(r) else 10.0
-    if not np.all(np.isfinite(out.theta)):
+    if diverged or not np.all(np.isfinite(out.theta)):
         raise EstimationError("the turntable filter diverged")
     res = _result(rec, cycles, L, out, opt, s_known, sig_a * inflation, sig_g, block_n,
                   inflation, sd, width)
