@@ -3,7 +3,8 @@ docs/diagnose-validation.md.
 
 - each hidden effect (every observable entry U(5, 10) x its own sigma) is named
   first in >= 95 % of the cases and the final residual RMS is within 1.2x the
-  noise floor;
+  noise floor; per seed the final residual RMS / floor is within 1.05x (issue 18)
+  in every case of every row (RATIO_EXCEPT: measured, reported, not asserted);
 - with no hidden effect nothing is added in >= 95 % of the cases;
 - effects in forms the catalogue lacks: the nearest effect is named (or none)
   and the gap left is reported, not claimed to be the noise floor;
@@ -43,17 +44,29 @@ def rates():
     return _RESULTS["rows"]
 
 
+# rows where the per-seed 1.05x of issue 18 does not hold: {case: why} (reported)
+RATIO_EXCEPT: dict = {}
+
+
+def _ratio_ok(r) -> None:
+    """issue 18: the final residual within 1.05x the noise floor in every seed."""
+    if "within_105" in r and r["case"] not in RATIO_EXCEPT:
+        assert r["within_105"] == 1.0, {k: v for k, v in r.items() if k != "ratios"}
+
+
 @pytest.mark.parametrize("case", [c for c in C.MAIN_CASES if c not in C.REPORTED_ONLY])
 def test_named_first_and_gap_closed(rates, case):
     r = next(r for r in rates if r["case"] == case)
     assert r["named_first"] >= 0.95, r
     assert r["gap_ok"] >= 0.95, r
+    _ratio_ok(r)
 
 
 @pytest.mark.parametrize("method", ["accel", "turntable", "rimu", "align"])
 def test_no_effect_adds_nothing(rates, method):
     r = next(r for r in rates if r["case"] == f"none ({method})")
     assert r["nothing_added"] >= 0.95, r
+    _ratio_ok(r)
 
 
 def _ooc_rows(n=10):

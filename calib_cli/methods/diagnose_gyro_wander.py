@@ -17,8 +17,12 @@ of its parameters), the generalised least-squares -2 log L
 
     -2 log L(x) = min_d (r + A d)^T V^-1 (r + A d) + log det V
 
-is profiled over x per axis. The candidate's score is the drop of -2 log L
-from the current model, as every other candidate's (with no wander V = I and
+is evaluated at the figures x (per axis) that maximise the restricted
+likelihood (-2 log L + log det A^T V^-1 A: the plain maximum shrinks the
+figures by the parameters fitted beside them, 0.6-0.9x the truth on a
+hidden walk, and leaves the whitened residual ~8 % above the floor). The
+candidate's score is the drop of -2 log L from the current model, as every
+other candidate's (with no wander V = I and
 -2 log L is the white chi^2). The process is a noise-model term: the
 deterministic parameters stay those of the white fit (``fit gyro`` gives
 them), their covariance becomes the sandwich (A^T A)^-1 A^T V A (A^T A)^-1
@@ -123,8 +127,10 @@ class WanderLikelihood:
                       "bias_instability": white}
 
     # -- the likelihood ------------------------------------------------------
-    def m2ll(self, r, A, kind=None, x=None):
-        """(-2 log L, whitened residuals at the GLS optimum, V) with figures x (3,)."""
+    def m2ll(self, r, A, kind=None, x=None, reml: bool = False):
+        """(-2 log L, whitened residuals at the GLS optimum, V) with figures x (3,);
+        reml: the restricted likelihood (+ log det A^T V^-1 A), whose maximum does not
+        shrink the figures by the deterministic parameters fitted beside them."""
         n = len(r)
         V = np.eye(n)
         if kind is not None:
@@ -134,37 +140,48 @@ class WanderLikelihood:
         Aw = np.linalg.solve(L, A)
         d, *_ = np.linalg.lstsq(Aw, rw, rcond=None)
         e = rw - Aw @ d
-        return float(e @ e + 2.0 * np.log(np.diag(L)).sum()), e, V
+        m2 = float(e @ e + 2.0 * np.log(np.diag(L)).sum())
+        if reml:
+            m2 += float(np.linalg.slogdet(Aw.T @ Aw)[1])
+        return m2, e, V
 
     def profile(self, r, A, kind):
-        """Figures x (3,) maximising the likelihood, their rough sigma (curvature of
-        -2 log L), -2 log L and the whitened residuals there."""
+        """Figures x (3,) maximising the restricted likelihood, their rough sigma
+        (curvature of -2 log L), -2 log L (not restricted: comparable between models
+        of different deterministic parameters) and the whitened residuals there."""
+        from scipy.optimize import minimize_scalar
+
+        def f(y):
+            return self.m2ll(r, A, kind, y, reml=True)[0]
+
         s0 = self.scale[kind]
         grid = s0 * np.logspace(-3, 1, 33)
-        vals = [self.m2ll(r, A, kind, [g, g, g])[0] for g in grid]
+        vals = [f([g, g, g]) for g in grid]
         x = np.full(3, grid[int(np.argmin(vals))])
-        best = min(vals)
         for _ in range(2):
             for ax in range(3):
-                cand = np.concatenate([[0.0], x[ax] * np.logspace(-1.5, 1.5, 19)])
-                vv = []
-                for c in cand:
+                def g(u, ax=ax):
                     y = x.copy()
-                    y[ax] = c
-                    vv.append(self.m2ll(r, A, kind, y)[0])
-                x[ax] = cand[int(np.argmin(vv))]
-                best = min(best, min(vv))
+                    y[ax] = np.exp(u)
+                    return f(y)
+
+                lo = np.log(max(x[ax], 1e-3 * s0))
+                o = minimize_scalar(g, bounds=(lo - 2.5, lo + 2.5), method="bounded",
+                                    options={"xatol": 0.01})
+                y = x.copy()
+                y[ax] = 0.0
+                x[ax] = 0.0 if f(y) <= o.fun else float(np.exp(o.x))
         sig = np.full(3, np.nan)
         for ax in range(3):
             if x[ax] <= 0:
                 continue
             h = 0.1 * x[ax]
-            f = []
+            v = []
             for dx in (-h, 0.0, h):
                 y = x.copy()
                 y[ax] += dx
-                f.append(self.m2ll(r, A, kind, y)[0])
-            c2 = (f[0] - 2 * f[1] + f[2]) / h ** 2
+                v.append(f(y))
+            c2 = (v[0] - 2 * v[1] + v[2]) / h ** 2
             if c2 > 0:
                 sig[ax] = float(np.sqrt(2.0 / c2))
         m2, e, V = self.m2ll(r, A, kind, x)
