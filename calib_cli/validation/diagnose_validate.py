@@ -107,7 +107,8 @@ def table(rows: list[dict]) -> str:
         if gyro:
             wb = (f"{100 * r['within_bound']:.1f} % ({min(r['bounds']):.2f}-"
                   f"{max(r['bounds']):.2f}) | " if r.get("bounds") else "- | ")
-        lines.append(f"| {r['case']} | {r['n']} | {nf} | {100 * r['gap_ok']:.1f} % | "
+        label = r["case"] + (" (previous update's run)" if r.get("previous") else "")
+        lines.append(f"| {label} | {r['n']} | {nf} | {100 * r['gap_ok']:.1f} % | "
                      f"{100 * r['nothing_added']:.1f} % | {r['mean_steps']:.2f} | {wrong} | "
                      f"{mx} | {w5} | {wb}{r['seconds']:.0f} |")
     return "\n".join(lines)
