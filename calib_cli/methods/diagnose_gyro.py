@@ -144,7 +144,8 @@ def diagnose_gyro(rec: Recording, base: str = "full", alpha: float = ALPHA,
             untested[effect_key(n, "gyro")] = why
     # the wandering biases: scored by the generalised likelihood of the same equations
     # (methods/diagnose_gyro_wander.py); one wander, then the deterministic candidates
-    # are scored under it
+    # are scored under it: generalised chi^2 with its figures held (re-estimated after
+    # each step)
     W = WanderLikelihood(rec, acc, structure) if wanders else None
     wander = None  # (kind, figures in data units, sigma)
     lin = {}
@@ -159,9 +160,9 @@ def diagnose_gyro(rec: Recording, base: str = "full", alpha: float = ALPHA,
         cands = [n for n in GYRO_EFFECTS if n not in added
                  and effect_key(n, "gyro") not in untested]
         tried = []
-        if wander is not None:
+        if wander is not None:  # scored under the current wander (its figures fixed)
             r, A, _ = linear(added, cur)
-            cur_m2 = W.profile(r, A, wander[0])[2]
+            cur_m2 = W.m2ll(r, A, wander[0], wander[1])[0]
         for n in cands:
             try:
                 f = fit(added + [n])
@@ -179,7 +180,7 @@ def diagnose_gyro(rec: Recording, base: str = "full", alpha: float = ALPHA,
                 d = float(cur.stats["chi2"] - f.stats["chi2"])
             else:
                 r, A, _ = linear(added + [n], f)
-                d = float(cur_m2 - W.profile(r, A, wander[0])[2])
+                d = float(cur_m2 - W.m2ll(r, A, wander[0], wander[1])[0])
             tried.append((n, f, keys, k, d))
         if W is not None and wander is None:
             r, A, _ = linear(added, cur)
