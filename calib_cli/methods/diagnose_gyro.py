@@ -12,8 +12,11 @@ three axes; misalignment from a diagonal base) and scores it by the
 likelihood ratio Delta chi^2 of the whitened equations, chi^2 with k degrees
 of freedom (k = the effect's observable entries) when the effect is absent;
 threshold the chi^2_k quantile at alpha / m (Bonferroni over the m
-candidates of the round), as ``methods.diagnose``. The best passing candidate
-is added; stop when none passes. The user's quantity: the angle each turn
+candidates of the round), as ``methods.diagnose``. The wandering gyro biases
+(random walk, flicker) are candidates too, scored on the same equations'
+generalised likelihood (``methods.diagnose_gyro_wander``; a noise-model term:
+it widens sigma, never applied, not in ``fit gyro --with``). The best passing
+candidate is added; stop when none passes. The user's quantity: the angle each turn
 integrates to against the plan's, and the transition residual, base model
 against final model.
 """
