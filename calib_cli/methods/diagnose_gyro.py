@@ -189,7 +189,8 @@ def diagnose_gyro(rec: Recording, base: str = "full", alpha: float = ALPHA,
             r, A, _ = linear(added, cur)
             m2_white = W.m2ll(r, A)[0]
             for kind in KEYS:
-                x, sig, m2, _, _ = W.profile(r, A, kind)
+                m2 = W.profile(r, A, kind, reml=False)[2]  # the likelihood ratio
+                x, sig = W.profile(r, A, kind)[:2]  # the figures: restricted likelihood
                 k = int((x > 0).sum())
                 d = float(m2_white - m2) if k else 0.0
                 tried.append((kind, (x, sig), [KEYS[kind]], max(k, 1), d))

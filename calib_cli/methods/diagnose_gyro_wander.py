@@ -17,13 +17,13 @@ of its parameters), the generalised least-squares -2 log L
 
     -2 log L(x) = min_d (r + A d)^T V^-1 (r + A d) + log det V
 
-is evaluated at the figures x (per axis) that maximise the restricted
-likelihood (-2 log L + log det A^T V^-1 A: the plain maximum shrinks the
-figures by the parameters fitted beside them, 0.6-0.9x the truth on a
-hidden walk, and leaves the whitened residual ~8 % above the floor). The
-candidate's score is the drop of -2 log L from the current model, as every
-other candidate's (with no wander V = I and
--2 log L is the white chi^2). The process is a noise-model term: the
+is profiled over the figures x (per axis). The candidate's score is the
+drop of the profiled -2 log L from the current model (the likelihood ratio,
+as every other candidate's; with no wander V = I and -2 log L is the white
+chi^2). The figures reported and used afterwards maximise the restricted
+likelihood (-2 log L + log det A^T V^-1 A): the plain maximum shrinks them
+by the parameters fitted beside them (0.6-0.9x the truth on a hidden walk)
+and leaves the whitened residual ~8 % above the floor. The process is a noise-model term: the
 deterministic parameters stay those of the white fit (``fit gyro`` gives
 them), their covariance becomes the sandwich (A^T A)^-1 A^T V A (A^T A)^-1
 (the wander widens sigma) and the figures go to ``stats.noise_model``; the
@@ -145,14 +145,14 @@ class WanderLikelihood:
             m2 += float(np.linalg.slogdet(Aw.T @ Aw)[1])
         return m2, e, V
 
-    def profile(self, r, A, kind):
-        """Figures x (3,) maximising the restricted likelihood, their rough sigma
-        (curvature of -2 log L), -2 log L (not restricted: comparable between models
-        of different deterministic parameters) and the whitened residuals there."""
+    def profile(self, r, A, kind, reml: bool = True):
+        """Figures x (3,) maximising the restricted likelihood (reml=False: the
+        likelihood), their rough sigma (curvature of that -2 log L), -2 log L (not
+        restricted) and the whitened residuals there."""
         from scipy.optimize import minimize_scalar
 
         def f(y):
-            return self.m2ll(r, A, kind, y, reml=True)[0]
+            return self.m2ll(r, A, kind, y, reml=reml)[0]
 
         s0 = self.scale[kind]
         grid = s0 * np.logspace(-3, 1, 33)
