@@ -146,7 +146,12 @@ def test_write_table(rates):
              "`make validate K=diagnose_slow` (tests/test_diagnose_slow.py): "
              f"{N} random cases per hidden effect (random MEMS unit, each observable entry of "
              "the hidden effect U(5, 10) times its own 1-sigma, random sign); plans in "
-             "calib_cli/validation/diagnose_cases.py.", "", _RESULTS["md"], ""]
+             "calib_cli/validation/diagnose_cases.py. CPU s: process CPU time of the row's "
+             f"{N} diagnoses. Per seed: the final residual RMS / noise floor, its largest "
+             "value and the share within 1.05x (issue 18)."
+             + (" Rows marked \"previous update's run\" come from a cache of that run "
+                "(CALIB_DIAG_CACHE), without the per-seed figures."
+                if any(r.get("previous") for r in rates) else ""), "", _RESULTS["md"], ""]
     if "ooc" in _RESULTS:
         lines += ["Effects in a form the catalogue lacks (10 cases each):", "",
                   "| form | named first | gap reported or < 1.05x | median gap | max gap |",
