@@ -86,6 +86,14 @@ def test_diagnose_gyro_write_table(gyro_rates):
              "99 % point of the fit's degrees of freedom, the bound in brackets).", "",
              _RESULTS["md"], ""]
     for r in rows:
+        if r["case"] in EITHER_WANDER:
+            other = r["wrong"].get(EITHER_WANDER[r["case"]], 0) / r["n"]
+            lines.append(f"- {r['case']}: a wander named first in "
+                         f"{100 * (r['named_first'] + other):.1f} % ({C.expected(r['case'])} "
+                         f"{100 * r['named_first']:.1f} %, {EITHER_WANDER[r['case']]} "
+                         f"{100 * other:.1f} %): on this ~200 s plan flicker and random walk "
+                         "differ by a small likelihood margin (docs/diagnose.md, \"The gyro "
+                         "method\").")
         if r["case"] in C.REPORTED_ONLY:
             lines.append(f"- {r['case']}: {C.REPORTED_ONLY[r['case']]}; gap reported (final "
                          f"RMS within 1.2x the floor, or p < 0.01 and a note saying what is "
