@@ -271,3 +271,32 @@ def test_report_of_a_wander_step(tmp_path):
     files = write_report(d, tmp_path)
     png = [f for f in files if str(f).endswith("step1_accel_bias_instability.png")]
     assert png and (tmp_path / "step1_accel_bias_instability.png").stat().st_size > 1000
+
+
+def test_gyro_method_names_a_random_walk_as_a_noise_term(tmp_path, capsys):
+    """issue 18: on the gyro plan a hidden gyro random walk is named first (scored on
+    the gyro equations' generalised likelihood, methods/diagnose_gyro_wander.py) and
+    leaves the floor; it is a noise-model term: not in `fit gyro --with`, its figure
+    in the calibration's stats.noise_model, the gyro sigma widened (sandwich)."""
+    from calib_cli.cli.main import cli
+    from calib_cli.io.h5 import read_calibration, write_raw
+
+    case, seed = "gyro: gyro bias_random_walk", 1000
+    truth = C.hidden_effect_truth(case, np.random.default_rng(seed))
+    raw, out, cal = tmp_path / "raw.h5", tmp_path / "diag.h5", tmp_path / "cal.h5"
+    write_raw(raw, simulate(C.plan_of("gyro"), truth, seed=seed + 1))
+    cli.main(["diagnose", str(raw), "--method", "gyro", "--out", str(out), "--json",
+              "--calibration", str(cal), "--report", str(tmp_path / "rep")],
+             standalone_mode=False)
+    j = json.loads(capsys.readouterr().out)
+    assert [s["effect"] for s in j["steps"]] == ["bias_random_walk"]
+    assert j["steps"][0]["runner_up"] == "gyro bias_instability"
+    assert j["fit_command"] is None and any("noise-model term" in n for n in j["notes"])
+    assert j["residual_rms_final"] <= 1.2 * j["noise_rms"] < 0.1 * j["residual_rms_initial"]
+    q = np.asarray(j["steps"][0]["params"]["gyro_bias_rw"])
+    true = np.asarray(truth.params["gyro_bias_rw"])
+    assert np.all((q > 0.5 * true) & (q < 2.0 * true)), (q, true)
+    c = read_calibration(cal)
+    assert "gyro bias_random_walk" in c.stats["noise_model"]
+    assert not any(d["name"] == "bias_random_walk" for d in c.model)
+    assert (tmp_path / "rep" / "summary.md").is_file()

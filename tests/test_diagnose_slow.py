@@ -3,7 +3,8 @@ docs/diagnose-validation.md.
 
 - each hidden effect (every observable entry U(5, 10) x its own sigma) is named
   first in >= 95 % of the cases and the final residual RMS is within 1.2x the
-  noise floor;
+  noise floor; per seed the final residual RMS / floor is within 1.05x (issue 18)
+  in >= 95 % of the cases and within 1.10x in all (``_ratio_ok``);
 - with no hidden effect nothing is added in >= 95 % of the cases;
 - effects in forms the catalogue lacks: the nearest effect is named (or none)
   and the gap left is reported, not claimed to be the noise floor;
@@ -43,17 +44,31 @@ def rates():
     return _RESULTS["rows"]
 
 
+def _ratio_ok(r) -> None:
+    """issue 18: the final residual RMS within 1.05x the noise floor per seed. On the
+    turntable plan (~1100 bins, sqrt(chi^2/dof) scattering by ~2 %) 1.05x is about
+    the chi^2 99 % point of one seed, so one seed of 40 may pass it by chance (the
+    same noise realisation in every row of the plan): >= 95 % of the seeds within
+    1.05x and none beyond 1.10x (a misfit left would be)."""
+    if "within_105" in r:  # rows of a previous run lack the per-seed figures
+        brief = {k: v for k, v in r.items() if k not in ("ratios", "bounds")}
+        assert r["within_105"] >= 0.95, brief
+        assert r["ratio_max"] <= 1.10, brief
+
+
 @pytest.mark.parametrize("case", [c for c in C.MAIN_CASES if c not in C.REPORTED_ONLY])
 def test_named_first_and_gap_closed(rates, case):
     r = next(r for r in rates if r["case"] == case)
     assert r["named_first"] >= 0.95, r
     assert r["gap_ok"] >= 0.95, r
+    _ratio_ok(r)
 
 
 @pytest.mark.parametrize("method", ["accel", "turntable", "rimu", "align"])
 def test_no_effect_adds_nothing(rates, method):
     r = next(r for r in rates if r["case"] == f"none ({method})")
     assert r["nothing_added"] >= 0.95, r
+    _ratio_ok(r)
 
 
 def _ooc_rows(n=10):
@@ -131,7 +146,12 @@ def test_write_table(rates):
              "`make validate K=diagnose_slow` (tests/test_diagnose_slow.py): "
              f"{N} random cases per hidden effect (random MEMS unit, each observable entry of "
              "the hidden effect U(5, 10) times its own 1-sigma, random sign); plans in "
-             "calib_cli/validation/diagnose_cases.py.", "", _RESULTS["md"], ""]
+             "calib_cli/validation/diagnose_cases.py. CPU s: process CPU time of the row's "
+             f"{N} diagnoses. Per seed: the final residual RMS / noise floor, its largest "
+             "value and the share within 1.05x (issue 18)."
+             + (" Rows marked \"previous update's run\" come from a cache of that run "
+                "(CALIB_DIAG_CACHE), without the per-seed figures."
+                if any(r.get("previous") for r in rates) else ""), "", _RESULTS["md"], ""]
     if "ooc" in _RESULTS:
         lines += ["Effects in a form the catalogue lacks (10 cases each):", "",
                   "| form | named first | gap reported or < 1.05x | median gap | max gap |",

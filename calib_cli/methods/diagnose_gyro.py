@@ -12,8 +12,11 @@ three axes; misalignment from a diagonal base) and scores it by the
 likelihood ratio Delta chi^2 of the whitened equations, chi^2 with k degrees
 of freedom (k = the effect's observable entries) when the effect is absent;
 threshold the chi^2_k quantile at alpha / m (Bonferroni over the m
-candidates of the round), as ``methods.diagnose``. The best passing candidate
-is added; stop when none passes. The user's quantity: the angle each turn
+candidates of the round), as ``methods.diagnose``. The wandering gyro biases
+(random walk, flicker) are candidates too, scored on the same equations'
+generalised likelihood (``methods.diagnose_gyro_wander``; a noise-model term:
+it widens sigma, never applied, not in ``fit gyro --with``). The best passing
+candidate is added; stop when none passes. The user's quantity: the angle each turn
 integrates to against the plan's, and the transition residual, base model
 against final model.
 """
@@ -29,6 +32,7 @@ from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError
 from calib_cli.methods.diagnose import ALPHA, MAX_STEPS, Step, _zscore
 from calib_cli.methods.diagnose_candidates import Candidate, describe, effect_key
+from calib_cli.methods.diagnose_gyro_wander import KEYS, WanderLikelihood
 from calib_cli.methods.fit_with import GYRO_EFFECTS, fit_command, gyro_effect
 
 R2D = 180.0 / np.pi
@@ -69,7 +73,9 @@ class GyroDiagnosis:
 
     @property
     def with_list(self) -> list:
-        return [s.with_arg for s in self.steps]
+        # the wandering biases are noise-model terms of the diagnosis (fit gyro has no
+        # --with for them)
+        return [s.with_arg for s in self.steps if s.effect not in KEYS]
 
     def fit_command(self, raw: str = "RAW.h5", out: str = "CAL.h5") -> str | None:
         return fit_command("gyro", self.with_list, self.base, "auto", raw, out)
@@ -112,8 +118,8 @@ class GyroDiagnosis:
 
 
 def diagnose_gyro(rec: Recording, base: str = "full", alpha: float = ALPHA,
-                  max_steps: int = MAX_STEPS, accel: CalibrationResult | None = None
-                  ) -> GyroDiagnosis:
+                  max_steps: int = MAX_STEPS, accel: CalibrationResult | None = None,
+                  wanders: bool = True) -> GyroDiagnosis:
     """The workflow on a gyro record (module docstring)."""
     from calib_cli.methods.accel_lsq import fit_accel
     from calib_cli.methods.gyro import excitation, fit_gyro
@@ -139,10 +145,27 @@ def diagnose_gyro(rec: Recording, base: str = "full", alpha: float = ALPHA,
         why = gyro_effect(n).not_excited(ex)
         if why:
             untested[effect_key(n, "gyro")] = why
+    # the wandering biases: scored by the generalised likelihood of the same equations
+    # (methods/diagnose_gyro_wander.py); one wander, then the deterministic candidates
+    # are scored under it: generalised chi^2 with its figures held (re-estimated after
+    # each step)
+    W = WanderLikelihood(rec, acc, structure) if wanders else None
+    wander = None  # (kind, figures in data units, sigma)
+    lin = {}
+
+    def linear(names, res):
+        key = tuple(names)
+        if key not in lin:
+            lin[key] = W.linear(names, res)
+        return lin[key]
+
     for _ in range(max_steps):
         cands = [n for n in GYRO_EFFECTS if n not in added
                  and effect_key(n, "gyro") not in untested]
         tried = []
+        if wander is not None:  # scored under the current wander (its figures fixed)
+            r, A, _ = linear(added, cur)
+            cur_m2 = W.m2ll(r, A, wander[0], wander[1])[0]
         for n in cands:
             try:
                 f = fit(added + [n])
@@ -156,8 +179,21 @@ def diagnose_gyro(rec: Recording, base: str = "full", alpha: float = ALPHA,
             if k == 0:
                 untested.setdefault(effect_key(n, "gyro"), "not observable from this experiment")
                 continue
-            d = float(cur.stats["chi2"] - f.stats["chi2"])
+            if wander is None:
+                d = float(cur.stats["chi2"] - f.stats["chi2"])
+            else:
+                r, A, _ = linear(added + [n], f)
+                d = float(cur_m2 - W.m2ll(r, A, wander[0], wander[1])[0])
             tried.append((n, f, keys, k, d))
+        if W is not None and wander is None:
+            r, A, _ = linear(added, cur)
+            m2_white = W.m2ll(r, A)[0]
+            for kind in KEYS:
+                m2 = W.profile(r, A, kind, reml=False)[2]  # the likelihood ratio
+                x, sig = W.profile(r, A, kind)[:2]  # the figures: restricted likelihood
+                k = int((x > 0).sum())
+                d = float(m2_white - m2) if k else 0.0
+                tried.append((kind, (x, sig), [KEYS[kind]], max(k, 1), d))
         if not tried:
             break
         m = len(tried)
@@ -174,28 +210,52 @@ def diagnose_gyro(rec: Recording, base: str = "full", alpha: float = ALPHA,
         if best is None:
             break
         _, n, f, keys, k, d, thr, p = best
-        params = {key: np.asarray(f.params[key]) for key in keys}
-        sigma = {key: np.asarray(f.sigma[key]) for key in keys}
-        before, after = GyroDiagnosis._rms(cur), GyroDiagnosis._rms(f)
+        before = GyroDiagnosis._rms(results[-1])
+        if n in KEYS:  # a wander: a noise-model term of the current model
+            x, sig = f
+            wander = (n, x, sig)
+            unit = _unit(cur)
+            params, sigma = {KEYS[n]: x / unit}, {KEYS[n]: sig / unit}
+        else:
+            params = {key: np.asarray(f.params[key]) for key in keys}
+            sigma = {key: np.asarray(f.sigma[key]) for key in keys}
+            added.append(n)
+            cur = f
+        res = cur
+        if wander is not None:
+            r, A, labels = linear(added, cur)
+            x, sig, _, e, V = W.profile(r, A, wander[0])
+            wander = (wander[0], x, sig)
+            res = W.result(cur, labels, A, e, V, wander[0], x / _unit(cur), sig / _unit(cur))
+        after = GyroDiagnosis._rms(res)
         runner = next((r["candidate"] for r in table if r["candidate"] != effect_key(n, "gyro")
                        and r["score"] > r["threshold"]), None)
-        words = describe(Candidate(n, "gyro", gyro_effect(n)), params, sigma)
+        words = describe(Candidate(n, "gyro", gyro_effect(n) if n not in KEYS else None),
+                         params, sigma)
         ev = (f"{words}. Likelihood ratio {d:.1f} against threshold {thr:.1f} ({k} parameters, "
               f"{m} candidates tried); residual RMS {before:.2f} -> {after:.2f} noise units")
         if runner:
             ev += f"; also above threshold but weaker: {runner}"
         steps.append(Step(n, "gyro", params, sigma, d, thr, k, p, None, before, after, ev,
                               runner))  # no signature correlation in the gyro fit
-        added.append(n)
-        cur = f
-        results.append(cur)
+        results.append(res)
     names = ["gyro_bias", f"gyro_K ({structure})",
              "accelerometers: fit accel --method auto on the same record (gravity directions)"]
     out = GyroDiagnosis(names, steps, results, untested, rounds, base)
+    if wander is not None:
+        out.notes.append(f"gyro {wander[0]} is a noise-model term: it widens sigma and is "
+                         "reported in the calibration's stats.noise_model, never applied; "
+                         "`calib fit gyro` has no --with for it (the diagnosis's own "
+                         "calibration, DIAG.h5 or --calibration, carries it)")
     if out.final_p_value < alpha:
         out.notes.append(f"the final model leaves {out.residual_rms_final / out.noise_rms:.2f}x "
                          "the noise floor: part of the gap is not explained by any candidate")
     return out
+
+
+def _unit(res: CalibrationResult) -> float:
+    """Data units per rad/s (the mean of diag gyro_K): the wander's figures in SI."""
+    return abs(float(np.mean(np.diag(np.asarray(res.params["gyro_K"], float))))) or 1.0
 
 
 def _entry(key: str, value, flat: int) -> str:
