@@ -1321,8 +1321,8 @@ def covariance_at(rec: Recording, options: TurntableOptions, at: dict) -> Calibr
     fit's final pass: a linearised filter pass about ``at`` (contract keys: accel_bias,
     accel_K, gyro_bias, gyro_K, gyro_D, lever_arm (n_cycles, 3), proof_mass_offsets;
     missing: the prior mean) started, as the fit's later passes are, from the prior plus
-    the data information of a cheaper pass (blocks ``pre_factor`` times longer), which is
-    removed again exactly at the end. The pass is linear in the parameter error, so its
+    the data information of a cheap pass (the first tenth of each cycle, blocks 4 times
+    longer), which is removed again exactly at the end. The pass is linear in the parameter error, so its
     covariance is the one the fit's Gauss-Newton passes end with on a record of that unit;
     on a noise-free record of it nothing else is needed. ``options.noise`` must be given.
     The result's params are ``at``'s; its sigma, covariance and stats.unobservable the
@@ -1334,7 +1334,8 @@ def covariance_at(rec: Recording, options: TurntableOptions, at: dict) -> Calibr
 
 
 def _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc, sig_enc,
-             rate, sig_rate, width, at: dict, pre_factor: int = 8) -> CalibrationResult:
+             rate, sig_rate, width, at: dict, pre_factor: int = 4,
+             pre_span: float = 0.1) -> CalibrationResult:
     theta = mean.copy()
     if "accel_bias" in at:
         theta[L.idx["ab"]] = np.asarray(at["accel_bias"], float)
@@ -1359,20 +1360,29 @@ def _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc,
     kw = dict(record_history=False, first=False, axis_var=axis_var)
     # Started from the prior alone, the pass's covariance depended on the record's noise
     # draw (issue 20: at the 0.01 mrad axis floor one gyro_K cross-axis entry came out 0.03
-    # to 1.0 of the fit's sigma, record by record): the table axis and rate channel then
-    # shrink some directions of a prior-wide covariance by many orders of magnitude in
-    # one update, and the rounding left in it takes up information. The fit's final pass
-    # starts from the prior plus the previous pass's data information (_START_DATA_FRACTION)
-    # and removes it exactly at the end; so does this one, the start information from a
-    # pass over blocks up to ``pre_factor`` times longer with the same table channels (any
-    # start gives the same covariance while the pass is linear: factors 1-16 agree to
-    # 1e-9). Fallbacks: the start from a pass over the fit's blocks, then the prior alone.
+    # to 1.0 of the fit's sigma, record by record): the table axis and the rate channel
+    # shrink some directions of the prior-wide covariance by many orders of magnitude, and
+    # its rounding left it with negative eigenvalues (-2e-6 in units of the prior). The
+    # fit's final pass starts from the prior plus the previous pass's data information
+    # (_START_DATA_FRACTION), removes it exactly at the end and checks the result is
+    # positive definite; so does this one. Its start information comes from a cheap pass
+    # over the first ``pre_span`` of each cycle (at least 20 blocks) on blocks up to
+    # ``pre_factor`` times longer, with the same table channels: while the pass is linear
+    # any start gives the same covariance (measured: within 1e-6 of a start from a pass
+    # over the whole record at the fit's blocks). Fallbacks: that start, then the prior.
+    from dataclasses import replace
+
     shortest = min(cy.sl.stop - cy.sl.start for cy in cycles)
-    f = max(1, int(pre_factor))
-    while f > 1 and shortest < 50 * f * block_n:  # at least 50 blocks per cycle
-        f //= 2
+    f0 = max(1, int(pre_factor))
+    while f0 > 1 and shortest * pre_span < 20 * f0 * block_n:
+        f0 //= 2
     out = None
-    for f in dict.fromkeys((f, 1)):
+    for f, span in dict.fromkeys(((f0, pre_span), (1, 1.0))):
+        pre_cycles = []
+        for cy in cycles:
+            n = cy.sl.stop - cy.sl.start
+            k = max(20 * f * block_n, int(span * n))
+            pre_cycles.append(cy if k >= n else replace(cy, sl=slice(cy.sl.start, cy.sl.start + k)))
         # the same channels over the longer blocks: every f-th encoder reading, the means of
         # f rate-channel block means
         e_pre = enc if enc is None or f == 1 else [
@@ -1382,8 +1392,8 @@ def _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc,
             None if r is None else _RateChannel(
                 r.z[:len(r.z) // f * f].reshape(-1, f).mean(axis=1), r.sign) for r in rate]
         with np.errstate(invalid="ignore"):  # its innovation statistics are not used
-            pre = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a, sig_g, f * block_n,
-                               s_known, enc=e_pre, sig_enc=sig_enc, rate=r_pre,
+            pre = _filter_pass(rec, pre_cycles, L, theta, mean, sd, opt, sig_a, sig_g,
+                               f * block_n, s_known, enc=e_pre, sig_enc=sig_enc, rate=r_pre,
                                sig_rate=sig_rate, **kw)
         lam = _scaled_inv(pre.P / np.outer(sd, sd))
         info = np.eye(L.size) + _START_DATA_FRACTION * (lam - np.eye(L.size))
