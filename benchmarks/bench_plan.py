@@ -6,8 +6,9 @@ For each generated plan (static 12 vector and scalar, Ferraris, two-position
 alignment, RIMU six-position, turntable 3 and 9 cycles): the CPU time
 (time.process_time) of `plan check` without suggestions (the prediction: the plan
 simulated without noise, then the fit's own code at the truth with the stated noise;
-for the turntable one linearised filter pass instead of the fit's passes) and of the
-fit on a simulated record of the same plan, measured in the same run.
+for the turntable the fit's final linearised filter pass, started from a cheap pass over
+the first tenth of each cycle, instead of the fit's passes) and of the fit on a simulated
+record of the same plan, measured in the same run. docs/plan.md (Speed) has the figures.
 """
 
 from __future__ import annotations

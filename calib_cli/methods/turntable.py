@@ -1317,13 +1317,16 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
 
 def covariance_at(rec: Recording, options: TurntableOptions, at: dict) -> CalibrationResult:
     """The fit's covariance at a known unit (``calib plan check``, docs/plan.md): the same
-    set-up as ``fit_turntable`` (prior, noise, table channels, nuisance states), then ONE
-    linearised filter pass about ``at`` (contract keys: accel_bias, accel_K, gyro_bias,
-    gyro_K, gyro_D, lever_arm (n_cycles, 3), proof_mass_offsets; missing: the prior mean),
-    started from the prior. The pass is linear in the parameter error, so its covariance
-    is the one the fit's Gauss-Newton passes end with on a record of that unit; on a
-    noise-free record of it nothing else is needed. ``options.noise`` must be given. The
-    result's params are ``at``'s; its sigma, covariance and stats.unobservable the fit's."""
+    set-up as ``fit_turntable`` (prior, noise, table channels, nuisance states), then the
+    fit's final pass: a linearised filter pass about ``at`` (contract keys: accel_bias,
+    accel_K, gyro_bias, gyro_K, gyro_D, lever_arm (n_cycles, 3), proof_mass_offsets;
+    missing: the prior mean) started, as the fit's later passes are, from the prior plus
+    the data information of a cheap pass (the first tenth of each cycle, blocks 4 times
+    longer), which is removed again exactly at the end. The pass is linear in the parameter error, so its
+    covariance is the one the fit's Gauss-Newton passes end with on a record of that unit;
+    on a noise-free record of it nothing else is needed. ``options.noise`` must be given.
+    The result's params are ``at``'s; its sigma, covariance and stats.unobservable the
+    fit's."""
     from dataclasses import replace
 
     # coarse_factor 1: the coarse passes' table channels are not needed
@@ -1331,7 +1334,8 @@ def covariance_at(rec: Recording, options: TurntableOptions, at: dict) -> Calibr
 
 
 def _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc, sig_enc,
-             rate, sig_rate, width, at: dict) -> CalibrationResult:
+             rate, sig_rate, width, at: dict, pre_factor: int = 4,
+             pre_span: float = 0.1) -> CalibrationResult:
     theta = mean.copy()
     if "accel_bias" in at:
         theta[L.idx["ab"]] = np.asarray(at["accel_bias"], float)
@@ -1353,9 +1357,56 @@ def _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc,
         theta[L.idx["p"]] = [P[i, j] for i, j in P_OFF]
     # the axis noise a fit estimates on a steady axis (its floor), unless given
     axis_var = (opt.axis_sigma if opt.axis_sigma is not None else _AXIS_FLOOR) ** 2
-    out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a, sig_g, block_n, s_known,
-                       record_history=False, first=False, enc=enc, sig_enc=sig_enc, rate=rate,
-                       sig_rate=sig_rate, axis_var=axis_var)
+    kw = dict(record_history=False, first=False, axis_var=axis_var)
+    # Started from the prior alone, the pass's covariance depended on the record's noise
+    # draw (issue 20: at the 0.01 mrad axis floor one gyro_K cross-axis entry came out 0.03
+    # to 1.0 of the fit's sigma, record by record): the table axis and the rate channel
+    # shrink some directions of the prior-wide covariance by many orders of magnitude, and
+    # its rounding left it with negative eigenvalues (-2e-6 in units of the prior). The
+    # fit's final pass starts from the prior plus the previous pass's data information
+    # (_START_DATA_FRACTION), removes it exactly at the end and checks the result is
+    # positive definite; so does this one. Its start information comes from a cheap pass
+    # over the first ``pre_span`` of each cycle (at least 20 blocks) on blocks up to
+    # ``pre_factor`` times longer, with the same table channels: while the pass is linear
+    # any start gives the same covariance (measured: within 1e-6 of a start from a pass
+    # over the whole record at the fit's blocks). Fallbacks: that start, then the prior.
+    from dataclasses import replace
+
+    shortest = min(cy.sl.stop - cy.sl.start for cy in cycles)
+    f0 = max(1, int(pre_factor))
+    while f0 > 1 and shortest * pre_span < 20 * f0 * block_n:
+        f0 //= 2
+    out = None
+    for f, span in dict.fromkeys(((f0, pre_span), (1, 1.0))):
+        pre_cycles = []
+        for cy in cycles:
+            n = cy.sl.stop - cy.sl.start
+            k = max(20 * f * block_n, int(span * n))
+            pre_cycles.append(cy if k >= n else replace(cy, sl=slice(cy.sl.start, cy.sl.start + k)))
+        # the same channels over the longer blocks: every f-th encoder reading, the means of
+        # f rate-channel block means
+        e_pre = enc if enc is None or f == 1 else [
+            None if e is None else _Encoder(e.z[::f], e.theta[::f], e.ok[::f], e.sign)
+            for e in enc]
+        r_pre = rate if rate is None or f == 1 else [
+            None if r is None else _RateChannel(
+                r.z[:len(r.z) // f * f].reshape(-1, f).mean(axis=1), r.sign) for r in rate]
+        with np.errstate(invalid="ignore"):  # its innovation statistics are not used
+            pre = _filter_pass(rec, pre_cycles, L, theta, mean, sd, opt, sig_a, sig_g,
+                               f * block_n, s_known, enc=e_pre, sig_enc=sig_enc, rate=r_pre,
+                               sig_rate=sig_rate, **kw)
+        lam = _scaled_inv(pre.P / np.outer(sd, sd))
+        info = np.eye(L.size) + _START_DATA_FRACTION * (lam - np.eye(L.size))
+        try:
+            out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a, sig_g, block_n,
+                               s_known, enc=enc, sig_enc=sig_enc, rate=rate, sig_rate=sig_rate,
+                               start_info=info, **kw)
+            break
+        except _StartInfoError:
+            continue
+    if out is None:
+        out = _filter_pass(rec, cycles, L, theta, mean, sd, opt, sig_a, sig_g, block_n, s_known,
+                           enc=enc, sig_enc=sig_enc, rate=rate, sig_rate=sig_rate, **kw)
     out.theta = theta
     res = _result(rec, cycles, L, out, opt, s_known, sig_a, sig_g, block_n, 1.0, sd, width)
     res.stats["table_encoder"] = _encoder_stats(enc, L, out, sig_enc, 1.0, [], rate, sig_rate)
