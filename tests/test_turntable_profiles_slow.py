@@ -204,7 +204,7 @@ def test_turntable_encoder_channels():
               "The issue's 1e-6 for the diagonal is below what the gyro noise allows: with "
               "white rate noise of 0.05 deg/s per sample at 100 Hz, even an exact table angle "
               "and a constant 200 deg/s for all 600 s give sigma = 8.7e-4 rad/s / (3.49 rad/s "
-              "x sqrt(60000)) = 1.02e-6 (docs/turntable.md, \"The table's channels\").", ""]
+              "x sqrt(60000)) = 1.02e-6 (docs/turntable.md, \"The table's encoder\").", ""]
     if failures:
         lines += ["Failed fits:", ""] + [f"- seed {s}: {e}" for s, e in failures] + [""]
     lines += [f"Groups outside the within-sigma rule: {len(bad)}."]
