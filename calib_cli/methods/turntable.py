@@ -81,6 +81,22 @@ def turntable_model(n_cycles: int, lever_arm: bool, proof_mass: bool,
     return model
 
 
+# the filter's short names of the contract keys it holds one-to-one (the lever arms are
+# held as two components per cycle perpendicular to its table axis)
+_SHORT = {"accel_bias": "ab", "accel_K": "K", "gyro_bias": "gb", "gyro_K": "G",
+          "gyro_D": "D", "proof_mass_offsets": "p"}
+# the row-major flat indices of the free entries of the keys with fixed ones
+_FREE = {"accel_K": [3 * i + j for i, j in K_LOWER],
+         "proof_mass_offsets": [3 * i + j for i, j in P_OFF]}
+
+
+def _column(L: "_Layout", key: str, flat: int) -> int:
+    """Index in the filter's parameter vector of entry ``flat`` (row-major) of a contract
+    key: each key's free entries (ParamSpec.fixed) are held in row-major order."""
+    free = _FREE.get(key)
+    return int(L.idx[_SHORT[key]][flat if free is None else free.index(flat)])
+
+
 def _contract_params(par: dict, lever_arm=None) -> dict:
     """The filter's parameters (``_unpack``) under their contract keys."""
     return {"accel_bias": par["ab"], "accel_K": par["K"], "gyro_bias": par["gb"],
@@ -1227,9 +1243,10 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
             # a table channel far from its model already in this pass (normalized innovation
             # RMS above 5, against about 1 for a real encoder even in the first pass): a
             # logged setpoint that passed the checks, which would drag the passes off
-            bad_channels = [(name, r_) for name, v in (("encoder", out.enc_innov),
-                                                       ("rate channel", out.rate_innov))
-                            if v and (r_ := float(np.sqrt(np.mean(np.square(v))))) > 5.0]
+            for name, v in (("encoder", out.enc_innov), ("rate channel", out.rate_innov)):
+                r_ = float(np.sqrt(np.mean(np.square(v)))) if v else 0.0
+                if r_ > 5.0:
+                    bad_channels.append((name, r_))
             if bad_channels:
                 break
             if hist is None:  # the sigma history is the first pass's (it starts from the prior)
@@ -1337,24 +1354,17 @@ def _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc,
              rate, sig_rate, width, at: dict, pre_factor: int = 4,
              pre_span: float = 0.1) -> CalibrationResult:
     theta = mean.copy()
-    if "accel_bias" in at:
-        theta[L.idx["ab"]] = np.asarray(at["accel_bias"], float)
-    if "accel_K" in at:
-        K = np.asarray(at["accel_K"], float)
-        theta[L.idx["K"]] = [K[i, j] for i, j in K_LOWER]
-    if "gyro_bias" in at:
-        theta[L.idx["gb"]] = np.asarray(at["gyro_bias"], float)
-    if "gyro_K" in at:
-        theta[L.idx["G"]] = np.asarray(at["gyro_K"], float).ravel()
-    if "gyro_D" in at:
-        theta[L.idx["D"]] = np.asarray(at["gyro_D"], float).ravel()
+    keys = list(IMU_KEYS) + (["proof_mass_offsets"] if L.est_p else [])
+    for key in keys:
+        if at.get(key) is None:
+            continue
+        v = np.asarray(at[key], float).ravel()
+        for flat in _FREE.get(key, range(len(v))):
+            theta[_column(L, key, flat)] = v[flat]
     if L.est_s and at.get("lever_arm") is not None:
         s = np.asarray(at["lever_arm"], float).reshape(-1, 3)
         for c, cy in enumerate(cycles):
             theta[L.idx["s"][2 * c:2 * c + 2]] = cy.basis.T @ s[c]
-    if L.est_p and at.get("proof_mass_offsets") is not None:
-        P = np.asarray(at["proof_mass_offsets"], float)
-        theta[L.idx["p"]] = [P[i, j] for i, j in P_OFF]
     # the axis noise a fit estimates on a steady axis (its floor), unless given
     axis_var = (opt.axis_sigma if opt.axis_sigma is not None else _AXIS_FLOOR) ** 2
     kw = dict(record_history=False, first=False, axis_var=axis_var)
@@ -1500,12 +1510,7 @@ def _result(rec, cycles, L, out: _PassOut, opt, s_known, sig_a, sig_g, block_n, 
             c, e = divmod(flat, 3)
             T[q, L.idx["s"][2 * c:2 * c + 2]] = cycles[c].basis[e]
         else:
-            src = {"accel_bias": ("ab", list(range(3))),
-                   "accel_K": ("K", [3 * i + j for i, j in K_LOWER]),
-                   "gyro_bias": ("gb", list(range(3))), "gyro_K": ("G", list(range(9))),
-                   "gyro_D": ("D", list(range(9))),
-                   "proof_mass_offsets": ("p", [3 * i + j for i, j in P_OFF])}[key]
-            T[q, L.idx[src[0]][src[1].index(flat)]] = 1.0
+            T[q, _column(L, key, flat)] = 1.0
     cov = T @ P @ T.T
     # an entry the data did not determine (sigma still above half its prior): sigma null
     prior_sd = np.sqrt(np.diag(T @ np.diag(prior_sd_vec**2) @ T.T))
