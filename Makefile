@@ -32,9 +32,10 @@ screenshots: $(STAMP)
 	  { $$(command -v sudo) apt-get update && $$(command -v sudo) apt-get install -y --no-install-recommends chromium; }
 	PATH=$(CURDIR)/$(BIN):$$PATH MPLBACKEND=Agg bash sample_data/screenshots.sh
 
-# make validate K=turntable: one method's part alone (pytest -k)
+# make validate K=turntable: one named part alone (tests marked part("turntable")), or
+# K=EXPR: the slow tests whose names match EXPR (pytest -k)
 validate: $(STAMP)
-	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m slow tests $(if $(K),-k $(K))
+	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m slow tests $(if $(K),--part "$(K)")
 
 lint: $(STAMP)
 	$(BIN)/ruff check calib_cli tests

@@ -48,3 +48,25 @@ def run_cli(capsys):
         return code, out.out, out.err
 
     return run
+
+
+def pytest_addoption(parser):
+    parser.addoption("--part", default=None,
+                     help="make validate K=NAME: the tests marked part(NAME); where none is, "
+                          "those whose names match NAME (as -k NAME)")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """`make validate K=NAME`: a named part (an issue's acceptance run, e.g. K=turntable is
+    the profile families alone) selects its marked tests; any other NAME is a -k expression
+    (runs before pytest's own keyword selection, which then applies it)."""
+    part = config.getoption("--part")
+    if not part:
+        return
+    marked = [i for i in items if any(m.args and m.args[0] == part for m in i.iter_markers("part"))]
+    if marked:
+        config.hook.pytest_deselected(items=[i for i in items if i not in marked])
+        items[:] = marked
+    else:
+        config.option.keyword = part

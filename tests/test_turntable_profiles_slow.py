@@ -55,6 +55,7 @@ def _run_all():
 
 
 @pytest.mark.slow
+@pytest.mark.part("turntable")
 def test_turntable_profile_families():
     t0 = time.perf_counter()
     results = _run_all()

@@ -815,7 +815,8 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         psi_mid = np.cumsum(b.wbar @ a_b) * T - 0.5 * (b.wbar @ a_b) * T
         sg2 = float((sig_g**2).mean())
         innov_scale = np.sqrt(b.m) / sig_a
-        q_phi = block_n * sg2 * (1.0 / rec.sample_rate) ** 2
+        dt_s = 1.0 / rec.sample_rate  # (a property: the median sample interval)
+        q_phi = block_n * sg2 * dt_s**2
         Q_phi = _I3 * q_phi
         Cw_all = b.cen + (skew(b.dw) if opt.tangential else 0.0)
         if not first:  # linearised pass: the parameter-dependent parts are fixed per cycle
@@ -841,9 +842,17 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         if rc is not None:
             irk, irb = 3 + L.idx["rk"][0], 3 + L.idx["rb"][0]
             we_axis = float(cy.a_enu @ w_e)
-            # per block: the gyro noise of the projected block mean plus the channel's own
-            var_rate = (float((sig_g**2).mean()) + sig_rate**2) / block_n
             half_dt = 0.5 / rec.sample_rate if interval else 0.0
+            # the share of the block's attitude noise its rate mean sees. Instant samples
+            # step with the mid-interval rate, so the block's first stamp and the next
+            # block's first count half: 1 - 1/2m, and about a sample's worth of attitude
+            # noise (dt^2 sigma^2) stays in Q_phi. Interval means are integrated over their
+            # own periods, which would make the share 1 and the attitude about the axis
+            # exact between blocks; but the channel is read at the stamps and the gyros
+            # half a sample earlier, which the lag term matches only to first order (ramp
+            # corners), so the same sample's worth is left to the process noise: with an
+            # exact channel and no residual, gyro_K's cross-axis entries went 25 sigma off
+            share = 1.0 - 0.5 / block_n
         if ec is not None:
             iez = 3 + L.idx["ez"][c]
             ieo = 3 + L.idx["eo"]
@@ -974,7 +983,10 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                     hr = (1.0 + kr) * (base + gs @ x[iG]) + br
                 else:
                     hr = (1.0 + kr) * base + br + Hr[th] @ x[th]
-                rows.append(("rate", Hr, hr, rc.z[j], var_rate))
+                # the gyro noise reaches the row through (1 + k_r), as in the covariance
+                # with the attitude's process noise below
+                rows.append(("rate", Hr, hr, rc.z[j],
+                             ((1.0 + kr) ** 2 * sg2 + sig_rate**2) / block_n))
             if rows:
                 H = np.vstack([H] + [r[1] for r in rows])
                 h = np.concatenate([h, [r[2] for r in rows]])
@@ -988,6 +1000,22 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             Kg = PH @ Si
             x += Kg @ v
             P -= Kg @ PH.T
+            w_hat = None
+            # (the linearised passes only: in the first, an extended filter from the neutral
+            # unit, the rate innovations hold the start's second-order mounting terms, 15
+            # sigma at 200 deg/s, which taken for gyro noise turned the attitude 5 mrad off
+            # the encoder and dropped both channels; independent rows are safe there)
+            if rows and rows[-1][0] == "rate" and not first:
+                # The rate row's noise is mostly the block's gyro noise about the axis,
+                # the same noise that turns the attitude about the axis from this block to
+                # the next (Q_phi): E[w_phi v_rate] = (1 + k_r) sigma_g^2 dt a_enu. Treated
+                # as independent, the pair counted that noise twice (gyro_D RMS z 1.25 on
+                # the 9-cycle plan). Joint Gaussian update of (x, w_phi): w_phi's mean and
+                # covariance given the innovation, and its covariance with the state
+                ir = len(v) - 1
+                mw = (1.0 + kr) * sg2 * dt_s * share * (Rbar @ a_b)
+                w_hat = mw * float(Si[ir] @ v)
+                c_xw = PH @ Si[:, ir]  # cov(x, w_phi) = -c_xw mw^T after the update
             # rounding makes P drift from symmetric, and with the axis rows at 10 urad against
             # wide priors (a plan check's pass from the prior) the drift grew into negative
             # variances within 16 blocks, which had put two cross-axis entries of the plan
@@ -1017,6 +1045,13 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             P[:3, :] += BP
             P[:, :3] += BP.T
             P[:3, :3] += BP[:, iG] @ B.T + Q_phi
+            if w_hat is not None:  # the rate row's share of the process noise (above)
+                x[:3] += w_hat
+                D = -np.outer(c_xw, mw)  # (ns, 3): cov(x, w_phi), carried through F
+                D[:3] += B @ D[iG]
+                P[:, :3] += D
+                P[:3, :] += D.T
+                P[:3, :3] -= np.outer(mw, mw) * Si[ir, ir]
             Rh = E @ Rh @ b.r_end[j]
             Rh = _rot(x[:3]) @ Rh
             x[:3] = 0.0
