@@ -6,7 +6,8 @@ the gyro bias error, sigma and z per axis (and gyro_D, check earth rate RMS z).
 
 keys: TurntableOptions fields (axis_sigma=1e-6, runout_sigma=0, block_s=0.1, ...),
 plus sim keys: gnoise=<factor on the simulated gyro noise>, anoise=<factor on accel noise>,
-fgnoise=<factor on the fit's gyro noise>, floor=<axis-noise floor rad>, wobble=<table rate wobble dps>.
+fgnoise=<factor on the fit's gyro noise>, floor=<axis-noise floor rad>, walk=<floor's fraction of the
+attitude walk per block (1e9: the fixed floor alone)>, wobble=<table rate wobble dps>.
 Writes one JSON line per seed to stdout."""
 
 from __future__ import annotations
@@ -50,6 +51,9 @@ def run(seed: int, kv: dict) -> dict:
     if "floor" in kv:  # the estimated axis noise's floor (rad), default 1e-5
         import calib_cli.methods.turntable as tt
         tt._AXIS_FLOOR = float(kv.pop("floor"))
+    if "walk" in kv:  # the floor's fraction of the attitude walk per block, default 0.5
+        import calib_cli.methods.turntable as tt
+        tt._AXIS_FLOOR_WALK = float(kv.pop("walk"))
     conv = {}
     for k, v in kv.items():
         conv[k] = None if v == "None" else (int(v) if k in ("passes", "coarse_factor") else float(v))
