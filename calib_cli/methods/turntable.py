@@ -1380,8 +1380,10 @@ def _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc,
         for c, cy in enumerate(cycles):
             theta[L.idx["s"][2 * c:2 * c + 2]] = cy.basis.T @ s[c]
     # the axis noise a fit estimates on a steady axis (its floor), unless given. Not the
-    # fit's gyro-walk floor (_axis_floor): below 10 urad this pass loses its precision (at
-    # navigation grade, 0.11 urad, gyro_K came out at 0.1 of the fit's sigma; issue 22)
+    # fit's gyro-walk floor (_axis_floor): that stiff an axis does not bear this pass's
+    # linearisation at zero mounting error (at navigation grade, 0.11 urad, a 0.3 deg
+    # mounting error put gyro_K at 0.05-0.2 of the fit's sigma, equal within 0.2 % without
+    # one; issue 22)
     axis_var = (opt.axis_sigma if opt.axis_sigma is not None else _AXIS_FLOOR) ** 2
     kw = dict(record_history=False, first=False, axis_var=axis_var)
     # Started from the prior alone, the pass's covariance depended on the record's noise
