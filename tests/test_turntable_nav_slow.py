@@ -131,11 +131,6 @@ def table(rows: list[dict]) -> tuple[str, dict]:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="measured 2026-11-24 (docs/papers.md): every group passes but "
-                          "gyro_bias, conservative (RMS z 0.73, max |z| 1.63); not the 10 urad "
-                          "axis-noise floor (at 1 urad sigma and errors both halve, RMS z "
-                          "0.76); the cause is open (issue 22)",
-                   strict=False)
 def test_nav_grade_within_sigma():
     seeds = range(N_SEEDS)
     workers = int(os.environ.get("TT_WORKERS", "1"))

@@ -144,7 +144,7 @@ class TurntableOptions:
     # (runout; cos and sin in each perpendicular direction, per cycle); 0: none
     runout_sigma: float = 5e-4
     # None: estimated from the axis innovations between passes (from _AXIS_START, at least
-    # _AXIS_FLOOR); a number: fixed
+    # _axis_floor); a number: fixed
     axis_sigma: float | None = None
     # prior 1-sigma (rad) of each table axis's tilt from the plan's direction (estimated);
     # 0: the plan's axis is exact. The tilt out of the horizontal is pinned by the data
@@ -1105,15 +1105,28 @@ _AXIS_START = 1e-3
 _RUNOUT_HARMONICS = np.array([2.0])
 _AXIS_FLOOR = 1e-5
 _AXIS_CAP = 2e-2
+# The floor is at most this fraction of the attitude's random walk over one block (the gyro
+# noise). An axis noise assumed far above that walk while the true one is below it makes
+# every sigma the axis carries ~1.4x the errors, whatever the level (the axis noise and
+# the walk then share the attitude's error about equally, and the first is absent): at
+# navigation grade (walk 0.22 urad a block) the 10 urad floor gave gyro bias RMS z 0.74,
+# 1 urad 0.76, 0.1 urad 1.04 (issue 22). A MEMS gyro's walk (39 urad) keeps 10 urad.
+_AXIS_FLOOR_WALK = 0.5
 
 
-def _axis_noise(out: "_PassOut", axis_var: float) -> tuple[float, bool]:
+def _axis_floor(sig_g: np.ndarray, block_n: int, fs: float) -> float:
+    """The floor (rad per block) of the estimated axis noise."""
+    walk = float(np.sqrt(block_n * np.mean(np.square(sig_g)))) / fs
+    return min(_AXIS_FLOOR, _AXIS_FLOOR_WALK * walk) if walk > 0 else _AXIS_FLOOR
+
+
+def _axis_noise(out: "_PassOut", axis_var: float, floor: float = _AXIS_FLOOR) -> tuple[float, bool]:
     """The next pass's axis noise variance (rad^2) and whether it moved by more than
     20 % in sigma (the passes then go on)."""
     est = out.axis_v2 - out.axis_hph
     if not np.isfinite(est):
         return axis_var, False
-    new = float(np.clip(est, _AXIS_FLOOR**2, _AXIS_CAP**2))
+    new = float(np.clip(est, floor**2, _AXIS_CAP**2))
     return new, abs(np.log(new / axis_var)) > 2 * np.log(1.2)
 
 
@@ -1301,7 +1314,8 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
                                               or moved**2 / prev_move < opt.converge_sigma):
                 break
             if opt.axis_sigma is None and k >= 0:
-                axis_var, axis_moved = _axis_noise(out, axis_var)
+                axis_var, axis_moved = _axis_noise(out, axis_var,
+                                                   _axis_floor(sig_g, block_n, fs))
             # the next pass starts from the prior plus this pass's data information
             lam = _scaled_inv(out.P / np.outer(sd, sd))
             info_start = np.eye(L.size) + _START_DATA_FRACTION * (lam - np.eye(L.size))
@@ -1400,7 +1414,11 @@ def _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc,
         s = np.asarray(at["lever_arm"], float).reshape(-1, 3)
         for c, cy in enumerate(cycles):
             theta[L.idx["s"][2 * c:2 * c + 2]] = cy.basis.T @ s[c]
-    # the axis noise a fit estimates on a steady axis (its floor), unless given
+    # the axis noise a fit estimates on a steady axis (its floor), unless given. Not the
+    # fit's gyro-walk floor (_axis_floor): that stiff an axis does not bear this pass's
+    # linearisation at zero mounting error (at navigation grade, 0.11 urad, a 0.3 deg
+    # mounting error put gyro_K at 0.05-0.2 of the fit's sigma, equal within 0.2 % without
+    # one; issue 22)
     axis_var = (opt.axis_sigma if opt.axis_sigma is not None else _AXIS_FLOOR) ** 2
     kw = dict(record_history=False, first=False, axis_var=axis_var)
     # Started from the prior alone, the pass's covariance depended on the record's noise
