@@ -845,14 +845,15 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             half_dt = 0.5 / rec.sample_rate if interval else 0.0
             # the share of the block's attitude noise its rate mean sees. Instant samples
             # step with the mid-interval rate, so the block's first stamp and the next
-            # block's first count half: 1 - 1/2m, and about a sample's worth of attitude
-            # noise (dt^2 sigma^2) stays in Q_phi. Interval means are integrated over their
-            # own periods, which would make the share 1 and the attitude about the axis
-            # exact between blocks; but the channel is read at the stamps and the gyros
-            # half a sample earlier, which the lag term matches only to first order (ramp
-            # corners), so the same sample's worth is left to the process noise: with an
-            # exact channel and no residual, gyro_K's cross-axis entries went 25 sigma off
-            share = 1.0 - 0.5 / block_n
+            # block's first count half: 1 - 1/2m; interval means are integrated over their
+            # own periods, but the channel is read at the stamps, half a sample later, which
+            # the lag term matches only to first order. So close to 1 the channel pins the
+            # attitude about the axis so tightly that the passes' leftover nonlinearity
+            # (mounting x cross-axis terms, a weak frame direction) slowed them to 6-8
+            # passes (1 - 1/m: 6), or at a share of exactly 1 put gyro_K's cross-axis
+            # entries 25 sigma off; at 1 - 2/m (about four samples' worth of attitude noise
+            # left in Q_phi) they converge in 3 like the IMU-only fit
+            share = 1.0 - 2.0 / block_n
         if ec is not None:
             iez = 3 + L.idx["ez"][c]
             ieo = 3 + L.idx["eo"]
