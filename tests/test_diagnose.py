@@ -276,8 +276,10 @@ def test_report_of_a_wander_step(tmp_path):
 def test_gyro_method_names_a_random_walk_as_a_noise_term(tmp_path, capsys):
     """issue 18: on the gyro plan a hidden gyro random walk is named first (scored on
     the gyro equations' generalised likelihood, methods/diagnose_gyro_wander.py) and
-    leaves the floor; it is a noise-model term: not in `fit gyro --with`, its figure
-    in the calibration's stats.noise_model, the gyro sigma widened (sandwich)."""
+    leaves the floor; it is a noise-model term: its figure in the calibration's
+    stats.noise_model, the gyro sigma widened (sandwich), never in the model applied;
+    `fit gyro --with gyro.bias_random_walk` (the diagnosis's fit_command) gives the same
+    calibration, and `--list-effects` shows both wanders."""
     from calib_cli.cli.main import cli
     from calib_cli.io.h5 import read_calibration, write_raw
 
@@ -291,7 +293,8 @@ def test_gyro_method_names_a_random_walk_as_a_noise_term(tmp_path, capsys):
     j = json.loads(capsys.readouterr().out)
     assert [s["effect"] for s in j["steps"]] == ["bias_random_walk"]
     assert j["steps"][0]["runner_up"] == "gyro bias_instability"
-    assert j["fit_command"] is None and any("noise-model term" in n for n in j["notes"])
+    assert j["fit_command"].endswith("--with gyro.bias_random_walk")
+    assert any("noise-model term" in n for n in j["notes"])
     assert j["residual_rms_final"] <= 1.2 * j["noise_rms"] < 0.1 * j["residual_rms_initial"]
     q = np.asarray(j["steps"][0]["params"]["gyro_bias_rw"])
     true = np.asarray(truth.params["gyro_bias_rw"])
@@ -300,3 +303,27 @@ def test_gyro_method_names_a_random_walk_as_a_noise_term(tmp_path, capsys):
     assert "gyro bias_random_walk" in c.stats["noise_model"]
     assert not any(d["name"] == "bias_random_walk" for d in c.model)
     assert (tmp_path / "rep" / "summary.md").is_file()
+    # the fit command of the diagnosis: the same model, parameters and sigma
+    w = tmp_path / "with.h5"
+    assert cli.main(["fit", "gyro", str(raw), "--out", str(w), "--with", "gyro.bias_random_walk",
+                     "-q"], standalone_mode=False) in (0, None)
+    f = read_calibration(w)
+    assert f.stats["with"] == ["gyro.bias_random_walk"]
+    assert np.allclose(f.stats["noise_model"]["gyro bias_random_walk"]["params"]["gyro_bias_rw"],
+                       q, rtol=1e-9)
+    for k in c.params:
+        s = np.asarray(c.sigma[k], float)
+        ok = np.isfinite(s) & (s > 0)
+        assert np.all(np.abs(np.asarray(f.params[k]) - c.params[k])[ok] < 0.1 * s[ok]), k
+        assert np.allclose(np.asarray(f.sigma[k])[ok], s[ok], rtol=1e-6), k
+    capsys.readouterr()
+    cli.main(["fit", "gyro", "--list-effects"], standalone_mode=False)
+    out = capsys.readouterr().out
+    assert "gyro.bias_random_walk:" in out and "gyro.bias_instability:" in out
+    cli.main(["fit", "gyro", str(raw), "--list-effects"], standalone_mode=False)
+    assert "gyro.bias_instability: excited by this record" in capsys.readouterr().out
+    from calib_cli.errors import EstimationError
+
+    with pytest.raises(EstimationError, match="one wandering bias"):
+        cli.main(["fit", "gyro", str(raw), "--out", str(tmp_path / "two.h5"), "--with",
+                  "gyro.bias_random_walk,gyro.bias_instability"], standalone_mode=False)

@@ -15,7 +15,9 @@ threshold the chi^2_k quantile at alpha / m (Bonferroni over the m
 candidates of the round), as ``methods.diagnose``. The wandering gyro biases
 (random walk, flicker) are candidates too, scored on the same equations'
 generalised likelihood (``methods.diagnose_gyro_wander``; a noise-model term:
-it widens sigma, never applied, not in ``fit gyro --with``). The best passing
+it widens sigma, never applied; ``fit gyro --with gyro.bias_instability`` gives the
+same model). When the two wanders' likelihood ratios differ by less than
+``WANDER_MARGIN``, the note says they are not separable on this plan. The best passing
 candidate is added; stop when none passes. The user's quantity: the angle each turn
 integrates to against the plan's, and the transition residual, base model
 against final model.
@@ -32,7 +34,7 @@ from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError
 from calib_cli.methods.diagnose import ALPHA, MAX_STEPS, Step, _zscore
 from calib_cli.methods.diagnose_candidates import Candidate, describe, effect_key
-from calib_cli.methods.diagnose_gyro_wander import KEYS, WanderLikelihood
+from calib_cli.methods.diagnose_gyro_wander import KEYS, WanderLikelihood, unit_of, with_wander
 from calib_cli.methods.fit_with import GYRO_EFFECTS, fit_command, gyro_effect
 
 R2D = 180.0 / np.pi
@@ -73,9 +75,7 @@ class GyroDiagnosis:
 
     @property
     def with_list(self) -> list:
-        # the wandering biases are noise-model terms of the diagnosis (fit gyro has no
-        # --with for them)
-        return [s.with_arg for s in self.steps if s.effect not in KEYS]
+        return [s.with_arg for s in self.steps]
 
     def fit_command(self, raw: str = "RAW.h5", out: str = "CAL.h5") -> str | None:
         return fit_command("gyro", self.with_list, self.base, "auto", raw, out)
@@ -223,10 +223,8 @@ def diagnose_gyro(rec: Recording, base: str = "full", alpha: float = ALPHA,
             cur = f
         res = cur
         if wander is not None:
-            r, A, labels = linear(added, cur)
-            x, sig, _, e, V = W.profile(r, A, wander[0])
+            res, x, sig = with_wander(W, linear(added, cur), cur, wander[0])
             wander = (wander[0], x, sig)
-            res = W.result(cur, labels, A, e, V, wander[0], x / _unit(cur), sig / _unit(cur))
         after = GyroDiagnosis._rms(res)
         runner = next((r["candidate"] for r in table if r["candidate"] != effect_key(n, "gyro")
                        and r["score"] > r["threshold"]), None)
@@ -244,18 +242,15 @@ def diagnose_gyro(rec: Recording, base: str = "full", alpha: float = ALPHA,
     out = GyroDiagnosis(names, steps, results, untested, rounds, base)
     if wander is not None:
         out.notes.append(f"gyro {wander[0]} is a noise-model term: it widens sigma and is "
-                         "reported in the calibration's stats.noise_model, never applied; "
-                         "`calib fit gyro` has no --with for it (the diagnosis's own "
-                         "calibration, DIAG.h5 or --calibration, carries it)")
+                         "reported in the calibration's stats.noise_model, never applied or "
+                         "exported")
     if out.final_p_value < alpha:
         out.notes.append(f"the final model leaves {out.residual_rms_final / out.noise_rms:.2f}x "
                          "the noise floor: part of the gap is not explained by any candidate")
     return out
 
 
-def _unit(res: CalibrationResult) -> float:
-    """Data units per rad/s (the mean of diag gyro_K): the wander's figures in SI."""
-    return abs(float(np.mean(np.diag(np.asarray(res.params["gyro_K"], float))))) or 1.0
+_unit = unit_of
 
 
 def _entry(key: str, value, flat: int) -> str:
