@@ -40,13 +40,14 @@ REPORTED_ONLY: dict = {}
 _RW_WHY = ("a random walk's information is at the longest averaging times, which the "
            "record's positions (and their own means in the fit) share with the deterministic "
            "model; an Allan reading of a continuous static record has it all")
+_GYRO_WHY = ("the gyro method sees the wander only through its ~78 equations (static means, "
+             "transitions, turns), not the samples: its figure scatters more than a reading of "
+             "the continuous record")
 ALLAN_REPORTED = {
     "accel bias_random_walk": _RW_WHY,
     "gyro bias_random_walk": _RW_WHY,
-    "gyro: gyro bias_instability": ("the gyro method sees the wander only through its ~78 "
-                                    "equations (static means, transitions, turns), not the "
-                                    "samples: its flicker figure scatters more than a reading "
-                                    "of the continuous record"),
+    "gyro: gyro bias_random_walk": _GYRO_WHY,
+    "gyro: gyro bias_instability": _GYRO_WHY,
 }
 ALLAN_FLOOR = 0.75
 _ROWS: dict = {}
