@@ -343,3 +343,20 @@ def test_gyro_method_reports_flicker_and_walk_not_separable():
     assert any("not separable" in n and "calib allan" in n for n in d.notes), d.notes
     assert "not separable" in d.steps[0].evidence
     assert d.fit_command().endswith("--with " + d.steps[0].with_arg)
+
+
+def test_wander_piece_covariance_is_that_of_the_piece_means():
+    """The gyro wander's covariance over the 1 s pieces (diagnose_gyro_wander.piece_cov)
+    is the covariance of the process's means over the pieces: against the process's
+    covariance averaged on a fine grid."""
+    from calib_cli.methods.diagnose_gyro_wander import piece_cov
+    from calib_cli.model.effects import FLICKER_SCALE, FLICKER_TAUS
+
+    n, m = 4, 300
+    t = (np.arange(n * m) + 0.5) / m
+    K = {"bias_instability": FLICKER_SCALE ** 2 * sum(
+            np.exp(-np.abs(np.subtract.outer(t, t)) / T) for T in FLICKER_TAUS),
+         "bias_random_walk": np.minimum.outer(t, t)}
+    for kind, k in K.items():
+        want = k.reshape(n, m, n, m).mean(axis=(1, 3))
+        assert np.allclose(piece_cov(kind, n, 1.0), want, rtol=2e-4, atol=1e-6), kind

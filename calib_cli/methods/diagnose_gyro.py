@@ -220,7 +220,7 @@ def diagnose_gyro(rec: Recording, base: str = "full", alpha: float = ALPHA,
         if n in KEYS:  # a wander: a noise-model term of the current model
             x, sig = f
             wander = (n, x, sig)
-            unit = _unit(cur)
+            unit = unit_of(cur)
             params, sigma = {KEYS[n]: x / unit}, {KEYS[n]: sig / unit}
         else:
             params = {key: np.asarray(f.params[key]) for key in keys}
@@ -267,8 +267,6 @@ def diagnose_gyro(rec: Recording, base: str = "full", alpha: float = ALPHA,
                          "the noise floor: part of the gap is not explained by any candidate")
     return out
 
-
-_unit = unit_of
 
 
 def _entry(key: str, value, flat: int) -> str:

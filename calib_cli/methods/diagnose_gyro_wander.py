@@ -8,7 +8,8 @@ the (whitened) response of the equations to a bias held over each
 PIECE_S-second piece of the record (finite differences on the data). A bias
 process of figure x per axis (random walk: density q, covariance q^2 min(t, t');
 flicker: the catalogue's Gauss-Markov sum, covariance FLICKER_SCALE^2 B^2
-sum_k exp(-|t - t'| / T_k)) makes the equations' covariance
+sum_k exp(-|t - t'| / T_k); both taken as the covariance of the process's means over
+the pieces, ``piece_cov``) makes the equations' covariance
 
     V = I + sum_axis x_axis^2 M_axis,   M_axis = J_axis C_unit J_axis^T,
 
