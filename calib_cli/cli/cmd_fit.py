@@ -88,10 +88,10 @@ def run_with(method, raw, out, with_text, list_effects, base, noise, as_json,
     try:
         effects = fw.parse_with(with_text, method)
         bad = [fw.with_arg(n, s) for n, s in effects
-               if method == "gyro" and (s != "gyro" or n not in fw.GYRO_EFFECTS)]
+               if method == "gyro" and (s != "gyro" or n not in fw.GYRO_WITH)]
         if bad:
             raise ValueError(f"{', '.join(bad)}: the gyro method takes "
-                             f"{', '.join(fw.GYRO_EFFECTS)} (docs/diagnose.md)")
+                             f"{', '.join(fw.GYRO_WITH)} (docs/diagnose.md)")
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--with") from None
     if any(n == "misalignment" for n, _ in effects) and method in ("align", "rimu"):

@@ -8,7 +8,8 @@ the (whitened) response of the equations to a bias held over each
 PIECE_S-second piece of the record (finite differences on the data). A bias
 process of figure x per axis (random walk: density q, covariance q^2 min(t, t');
 flicker: the catalogue's Gauss-Markov sum, covariance FLICKER_SCALE^2 B^2
-sum_k exp(-|t - t'| / T_k)) makes the equations' covariance
+sum_k exp(-|t - t'| / T_k); both taken as the covariance of the process's means over
+the pieces, ``piece_cov``) makes the equations' covariance
 
     V = I + sum_axis x_axis^2 M_axis,   M_axis = J_axis C_unit J_axis^T,
 
@@ -41,6 +42,28 @@ from calib_cli.model.effects import FLICKER_SCALE, FLICKER_TAUS
 PIECE_S = 1.0  # s, the pieces over which the bias is held in J
 KEYS = {"bias_random_walk": "gyro_bias_rw", "bias_instability": "gyro_bias_instability"}
 NOTE = "a noise-model term: it widens sigma; never applied or exported"
+
+
+def piece_cov(kind: str, npc: int, P: float = PIECE_S, exact: bool = True) -> np.ndarray:
+    """Covariance of the bias process's means over the npc pieces of P seconds, per
+    unit figure. exact=False: the process's covariance at the pieces' centres."""
+    tc = (np.arange(npc) + 0.5) * P
+    if kind == "bias_random_walk":  # q^2 min(t, t'); a piece's own mean: c - P/6
+        C = np.minimum.outer(tc, tc)
+        if exact:
+            C[np.diag_indices(npc)] -= P / 6.0
+        return C
+    D = np.abs(np.subtract.outer(tc, tc))
+    C = np.zeros((npc, npc))
+    for T in FLICKER_TAUS:  # sum of exp(-|t - t'| / T), FLICKER_SCALE^2 B^2 each
+        if not exact:
+            C += np.exp(-D / T)
+            continue
+        a = T / P
+        off = a * a * (np.exp(-(D - P) / T) + np.exp(-(D + P) / T) - 2.0 * np.exp(-D / T))
+        own = 2.0 * a * (1.0 - a * (-np.expm1(-P / T)))
+        C += np.where(D > 0, off, own)
+    return FLICKER_SCALE ** 2 * C
 
 
 class WanderLikelihood:
@@ -114,17 +137,17 @@ class WanderLikelihood:
                             J[i, j, ax] = dr[i]
         finally:
             prob.rec, prob.W_static = rec, w0
-        tc = (np.arange(npc) + 0.5) * PIECE_S
-        C = {"bias_random_walk": np.minimum.outer(tc, tc),
-             "bias_instability": FLICKER_SCALE ** 2 * sum(
-                 np.exp(-np.abs(np.subtract.outer(tc, tc)) / T) for T in FLICKER_TAUS)}
-        self.M = {k: np.stack([J[:, :, ax] @ c @ J[:, :, ax].T for ax in range(3)])
-                  for k, c in C.items()}
+        self.J = J
+        self.M = {k: self.response(piece_cov(k, npc, PIECE_S)) for k in KEYS}
         # a figure scale per kind for the profile's grid (data units)
         span = max(float(t[-1]), PIECE_S)
         white = float(np.mean(prob.sig_gyro))
         self.scale = {"bias_random_walk": white / np.sqrt(span),
                       "bias_instability": white}
+
+    def response(self, C):
+        """M per axis (3, n_eq, n_eq) of a bias process with piece covariance C."""
+        return np.stack([self.J[:, :, ax] @ C @ self.J[:, :, ax].T for ax in range(3)])
 
     # -- the likelihood ------------------------------------------------------
     def m2ll(self, r, A, kind=None, x=None, reml: bool = False):
@@ -218,3 +241,19 @@ class WanderLikelihood:
                               "sigma": {key: np.asarray(sig, float).tolist()}, "note": NOTE}
         st["noise_model"] = nm
         return replace(res, covariance=cov, sigma=sigma, stats=st)
+
+
+def unit_of(res) -> float:
+    """Data units per rad/s (the mean of diag gyro_K): the wander's figures in SI."""
+    return abs(float(np.mean(np.diag(np.asarray(res.params["gyro_K"], float))))) or 1.0
+
+
+def with_wander(W: WanderLikelihood, lin, res, kind: str):
+    """The white fit ``res`` (linearised as ``lin`` = W.linear(names, res)) with the
+    wander ``kind`` as its noise-model term: (result, figures, sigma), the figures in data
+    units (the restricted-likelihood maximum). ``fit gyro --with`` and the diagnosis's
+    final model are both this computation."""
+    r, A, labels = lin
+    x, sig, _, e, V = W.profile(r, A, kind)
+    u = unit_of(res)
+    return W.result(res, labels, A, e, V, kind, x / u, sig / u), x, sig

@@ -46,6 +46,9 @@ WANDERS = ("bias_random_walk", "bias_instability")
 
 
 GYRO_EFFECTS = ("misalignment", "scale_asymmetry", "temperature_drift", "g_sensitivity")
+# what ``fit gyro --with`` takes: the deterministic effects and the wandering biases (noise-
+# model terms on the gyro equations' generalised likelihood, methods/diagnose_gyro_wander.py)
+GYRO_WITH = GYRO_EFFECTS + WANDERS
 
 
 def method_sensors(method: str) -> tuple:
@@ -119,7 +122,7 @@ def effect_lines(pb: Problem | None, method: str, base: str = "full") -> list[di
             if method == "align" and name in ("misalignment", "lever_arm", "proof_mass_offsets",
                                               "time_offset"):
                 continue
-            if method == "gyro" and name not in GYRO_EFFECTS:
+            if method == "gyro" and name not in GYRO_WITH:
                 continue
             sens = [fixed] if fixed is not None else list(method_sensors(method))
             for s in sens:
@@ -154,7 +157,7 @@ def gyro_lines(rec: Recording, accel=None, base: str = "full") -> list[dict]:
 
     ex = excitation(rec, accel if accel is not None else _accel_of(rec), base)
     out = []
-    for name in GYRO_EFFECTS:
+    for name in GYRO_WITH:
         e = gyro_effect(name)
         why = e.not_excited(ex)
         out.append({"with": with_arg(name, "gyro"), "excites": e.excites, "record": e.record,
@@ -171,25 +174,42 @@ def _accel_of(rec: Recording):
 def fit_with_gyro(rec: Recording, effects, base: str = "full", accel=None,
                   accel_independent: bool = False) -> CalibrationResult:
     """``fit gyro --with``: bias + G (gyro_D only with g_sensitivity) plus the effects,
-    through the gyro fit's own equations (methods/gyro.py)."""
+    through the gyro fit's own equations (methods/gyro.py). A wandering bias
+    (``bias_random_walk`` or ``bias_instability``, one) is a noise-model term: its figure
+    is fitted on the same equations' generalised likelihood, the parameters' covariance
+    becomes the sandwich under it (sigma widens), and the figure goes to
+    ``stats.noise_model`` (``diagnose_gyro_wander.with_wander``, as the diagnosis's
+    final model)."""
+    from calib_cli.methods.diagnose_gyro_wander import WanderLikelihood, with_wander
     from calib_cli.methods.gyro import excitation, fit_gyro
 
-    bad = [with_arg(n, s) for n, s in effects if s != "gyro" or n not in GYRO_EFFECTS]
+    bad = [with_arg(n, s) for n, s in effects if s != "gyro" or n not in GYRO_WITH]
     if bad:
         raise EstimationError(f"--with {', '.join(bad)}: the gyro method takes "
-                              f"{', '.join(GYRO_EFFECTS)} (gyro)")
+                              f"{', '.join(GYRO_WITH)} (gyro)")
+    wanders = [n for n, _ in effects if n in WANDERS]
+    if len(wanders) > 1:
+        raise EstimationError(f"--with {', '.join('gyro.' + n for n in wanders)}: one "
+                              "wandering bias per sensor")
     acc = accel if accel is not None else _accel_of(rec)
     ex = excitation(rec, acc, base)
-    extra = []
+    extra, names = [], []
     for name, _ in effects:
         e = gyro_effect(name)
         why = e.not_excited(ex)
         if why:
             raise EstimationError(f"--with {with_arg(name, 'gyro')}: this record cannot "
                                   f"determine it ({why}); record {e.record}")
-        extra.append(e)
-    res = fit_gyro(rec, acc, "off", accel_independent, extra=extra,
-                   structure="diagonal" if base == "diagonal" else "full")
+        if name not in WANDERS:
+            extra.append(e)
+            names.append(name)
+    structure = "diagonal" if base == "diagonal" else "full"
+    res = fit_gyro(rec, acc, "off", accel_independent, extra=extra, structure=structure)
+    if wanders:
+        W = WanderLikelihood(rec, acc, structure)
+        if names:  # the equations' response to the wander at the base model, as diagnose
+            W.linear([], fit_gyro(rec, acc, "off", accel_independent, structure=structure))
+        res = with_wander(W, W.linear(names, res), res, wanders[0])[0]
     res.stats["with"] = [with_arg(n, s) for n, s in effects]
     res.stats["base"] = base
     res.stats["base_model"] = ["gyro_bias", f"gyro_K ({'diagonal' if base == 'diagonal' else 'full'})"]

@@ -353,7 +353,9 @@ def excitation(rec: Recording, accel: CalibrationResult, base: str = "full"):
     span = None
     if rec.temp is not None and np.all(np.isfinite(rec.temp)):
         span = float(np.ptp(rec.temp))
-    return Excitation("gyro", ("gyro",), base, 0, both, span, 0, False, False,
+    # 0.5 s bins over the record, as the wandering biases' rule reads them
+    n_bins = int((rec.time[-1] - rec.time[0]) / 0.5) if len(rec.time) > 1 else 0
+    return Excitation("gyro", ("gyro",), base, 0, both, span, n_bins, False, False,
                       _observable_D(prob))
 
 
