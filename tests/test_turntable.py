@@ -227,3 +227,122 @@ def test_block_prediction_is_the_catalogue_model():
     one = Kinematics(np.zeros(6), np.zeros((6, 3)), w, dw,
                      cen=np.array([skew(v) @ skew(v) for v in w]))
     assert np.allclose(rigid_accel(one, r), rigid_body_accel(w, dw, r), atol=1e-14)
+
+
+
+def test_accel_jacobian_is_the_catalogue_models_derivative(short_rec):
+    """The filter's hand-written accelerometer rows of H (``_accel_rows``, which
+    ``_filter_pass`` updates with) are the derivatives of the one forward model: central
+    differences of ``ImuModel.predict`` on a block's mean kinematics, gravity in body axes
+    from the block's mean attitude, at a linearisation point far from a neutral unit (the
+    record's truth: K and G not identity, lever arms of 0.26-0.29 m, proof masses up to
+    14 mm). Columns: accelerometer bias, K's free entries, the cycle's two lever-arm
+    components (in its basis), the proof-mass offsets and the attitude error phi: to 1e-6
+    of each column's norm (plus the differences' own rounding, eps |h| / step, which
+    dominates for columns of 1e-3 m/s^2 per unit). The 21 gyro parameters, through the
+    block's corrected gyros (its mean attitude from the block start, which the filter's
+    phi carries, and its centripetal and tangential terms), to 1e-3 of the block's gyro
+    rows (norm): the filter's within-block attitude sensitivity truncates the left
+    Jacobian of each step at I + [step x]/2 (_blocks), 1.4e-4 of the gravity part at
+    200 deg/s and 100 Hz, and holds the specific force's proof-mass correction, which
+    moves with the rates, in the gyros' D f; measured 8e-5."""
+    from dataclasses import replace
+
+    from calib_cli.methods import turntable as tt
+    from calib_cli.model.frames import skew
+    from calib_cli.model.kinematics import Kinematics
+    from calib_cli.model.strapdown import exp_matrix
+
+    rec = short_rec
+    truth = rec.truth["params"]
+    cycles = tt._select(rec)
+    L = tt._Layout(len(cycles), True, True, 1)
+    theta = np.zeros(L.size)  # the contract parameters mapped as _pass_at does
+    for key in tt.IMU_KEYS + ("proof_mass_offsets",):
+        v = np.asarray(truth[key], float).ravel()
+        for flat in tt._FREE.get(key, range(len(v))):
+            theta[tt._column(L, key, flat)] = v[flat]
+    for c, cy in enumerate(cycles):
+        theta[L.idx["s"][2 * c:2 * c + 2]] = cy.basis.T @ truth["lever_arm"][c]
+    par = tt._unpack(theta, L, cycles)
+    for key in tt.IMU_KEYS + ("proof_mass_offsets", "lever_arm"):  # the mapping round trip
+        assert np.abs(tt._contract_params(par)[key] - truth[key]).max() < 1e-15, key
+    assert np.abs(par["K"] - np.eye(3)).max() > 5e-3 and np.abs(par["P"]).max() > 0.01
+    model = tt.turntable_model(len(cycles), True, True, True)
+    g_n = rec.site.specific_force_enu
+    block_n = int(round(0.2 * rec.sample_rate))
+    ns = 3 + L.size
+    # the steps: 1e-6 of each group's scale (the "mems" prior widths), 1e-6 rad for phi
+    width = tt.GRADES["mems"]
+    step = np.full(ns, 1e-6)
+    for key, short in tt._SHORT.items():
+        step[3 + L.idx[short]] = 1e-6 * width[key]
+    step[3 + L.idx["s"]] = 1e-6 * width["lever_arm"]
+    groups = {"phi": np.arange(3), "ab": 3 + L.idx["ab"], "K": 3 + L.idx["K"],
+              "p": 3 + L.idx["p"], "gyro": 3 + L.gyro}
+    worst = dict.fromkeys(list(groups) + ["s"], 0.0)  # largest |H - fd| / |H| per group
+    ratio = dict.fromkeys(worst, 0.0)  # largest |H - fd| / tolerance per group
+    for c in (0, 1):
+        # a window of 16 blocks about the cycle's fastest table acceleration (the ramp
+        # from +200 to -200 deg/s): blocks at the steady rates and on the ramp
+        w_ax = rec.gyro[cycles[c].sl] @ cycles[c].a_nom
+        nbk = len(w_ax) // block_n
+        wm = w_ax[:nbk * block_n].reshape(nbk, block_n).mean(axis=1)
+        k = int(np.argmax(np.abs(np.diff(wm))))
+        start = cycles[c].sl.start + (k - 8) * block_n
+        cy = replace(cycles[c], sl=slice(start, start + 16 * block_n))
+        # the attitude at the block start: the mounting turned about the table axis
+        Rh = exp_matrix(cy.a_enu * 1.1) @ cy.rot_nom.as_matrix()
+        b = tt._blocks(rec, cy, par, block_n, True, None)
+        cols = {**groups, "s": 3 + L.idx["s"][2 * c:2 * c + 2]}
+
+        def h(x, j, c=c, cy=cy, b=b, Rh=Rh, gyro=False):
+            """The catalogue's block mean at state x = (phi, theta): predict on the
+            block's mean kinematics (recomputed from the gyros if ``gyro``), gravity
+            from the mean attitude exp(phi) Rh r_mean."""
+            p = tt._unpack(theta + x[3:], L, cycles)
+            bb = tt._blocks(rec, cy, p, block_n, True, None) if gyro else b
+            gb = (exp_matrix(x[:3]) @ Rh @ bb.r_mean[j]).T @ g_n
+            kin = Kinematics(bb.t[j:j + 1], gb[None], bb.wbar[j:j + 1], bb.dw[j:j + 1],
+                             cycle=np.array([c]), cen=bb.cen[j:j + 1])
+            return model.predict(tt._contract_params(p), kin, sensors=("accel",))["accel"][0]
+
+        for j in (4, 8, 9, 12):  # 200 deg/s, on the ramp (3, -110 deg/s), -200 deg/s
+            r = par["s"][c][None, :] + par["P"]
+            Cw = b.cen[j] + skew(b.dw[j])
+            H, Rbar, gb, KW = tt._accel_rows(
+                L, c, cy.basis, ns, par["K"], r, Cw, Rh, b.r_mean[j], b.wg[:, j],
+                tt._rigid_gyro_rows(par["K"], r, b.cg[j]), g_n, skew(g_n))
+            # the linearised passes take the rigid-body gyro rows of all blocks at once
+            assert np.array_equal(tt._rigid_gyro_rows(par["K"], r, b.cg)[j],
+                                  tt._rigid_gyro_rows(par["K"], r, b.cg[j]))
+            h0 = h(np.zeros(ns), j)
+            # the linearised passes' prediction: the model without gravity, plus K gravity
+            kin0 = Kinematics(b.t[j:j + 1], np.zeros((1, 3)), b.wbar[j:j + 1],
+                              b.dw[j:j + 1], cycle=np.array([c]), cen=b.cen[j:j + 1])
+            h_rig = model.predict(tt._contract_params(par, par["s"]), kin0,
+                                  sensors=("accel",))["accel"][0]
+            assert np.allclose(h_rig + par["K"] @ gb, h0, rtol=0, atol=1e-12)
+            # nothing else in the accelerometer rows
+            rest = np.ones(ns, bool)
+            for cc in cols.values():
+                rest[cc] = False
+            assert not np.any(H[:, rest])
+            kw_norm = float(np.linalg.norm(H[:, groups["gyro"]]))
+            for name, cc in cols.items():
+                for col in cc:
+                    d = np.zeros(ns)
+                    d[col] = step[col]
+                    fd = (h(d, j, gyro=name == "gyro")
+                          - h(-d, j, gyro=name == "gyro")) / (2 * step[col])
+                    err = float(np.linalg.norm(H[:, col] - fd))
+                    norm = float(np.linalg.norm(H[:, col]))
+                    rnd = 4 * np.finfo(float).eps * np.abs(h0).max() / step[col]
+                    tol = (1e-3 * kw_norm if name == "gyro" else 1e-6 * norm) + rnd
+                    ratio[name] = max(ratio[name], err / tol)
+                    if rnd < 1e-7 * norm:  # the differences' rounding below 1e-7 of it
+                        worst[name] = max(worst[name], err / norm)
+    print("\nlargest |analytic - fd| / |column| (columns > 1e7 rounding):",
+          {k: f"{v:.1e}" for k, v in worst.items()},
+          "\nlargest |analytic - fd| / tolerance:", {k: f"{v:.3f}" for k, v in ratio.items()})
+    assert max(ratio.values()) < 1.0, ratio

@@ -737,6 +737,54 @@ class _PassOut:
     runout: list = field(default_factory=list)  # per cycle: runout amplitudes (rad)
 
 
+# the free entries of K and of the proof-mass offsets as (row, column) index arrays
+_K_ROWS, _K_COLS = (np.array(v) for v in zip(*K_LOWER))
+_P_ROWS, _P_COLS = (np.array(v) for v in zip(*P_OFF))
+
+
+def _rigid_gyro_rows(K: np.ndarray, r: np.ndarray, cg: np.ndarray) -> np.ndarray:
+    """d(K_i . C r_i)/dtheta_gyro, the rigid-body terms of the accelerometer rows through
+    the corrected gyros (row i at its proof mass r_i, r (3, 3)): (3, 21) from one block's
+    ``_Blocks.cg`` (3, 3, 21), (nb, 3, 21) from a cycle's (nb, 3, 3, 21)."""
+    if cg.ndim == 4:
+        return np.einsum("ia,ic,ncap->nip", K, r, cg)
+    return np.einsum("ia,ic,cap->ip", K, r, cg)
+
+
+def _accel_rows(L: "_Layout", c: int, basis: np.ndarray, ns: int, K: np.ndarray,
+                r: np.ndarray, Cw: np.ndarray, Rh: np.ndarray, r_mean: np.ndarray,
+                wg: np.ndarray, KJ: np.ndarray, g_n: np.ndarray, g_sk: np.ndarray):
+    """The accelerometer rows (3, ns) of one block's measurement Jacobian (state: the
+    attitude error phi, then theta at 3 + its index) for the model b_i + K_i . (gb + C r_i)
+    (``_block_accel``, ``ImuModel.predict``): K (3, 3) accelerometer K, r (3, 3) row i the
+    proof mass s + p_i of accelerometer i (cycle c, lever-arm basis ``basis``), Cw the
+    block's mean centripetal (+ tangential) operator, Rh the attitude at the block start,
+    r_mean and wg (3, 3, 21) the block's ``_Blocks`` entries, KJ (3, 21)
+    ``_rigid_gyro_rows``. Also returns the mean attitude Rbar, gravity in body axes
+    gb = Rbar^T g_n and the gyro-parameter block KW."""
+    Rbar = Rh @ r_mean
+    gb = Rbar.T @ g_n
+    dfdphi = Rbar.T @ g_sk
+    # force at each proof mass, row i: gravity + (centripetal + tangential) at s + p_i
+    U = gb[None, :] + r @ Cw.T
+    gam = Rh.T @ g_n
+    Wg = gam[0] * wg[0] + gam[1] * wg[1] + gam[2] * wg[2]  # (3, 21)
+    KW = K @ Wg
+    # the rigid-body terms through the corrected gyros: row i at s + p_i
+    KW = KW + KJ
+    KCw = K @ Cw
+    H = np.zeros((3, ns))
+    H[:, 3 + L.gyro] = KW
+    H[:, 0:3] = K @ dfdphi
+    H[np.arange(3), 3 + L.idx["ab"]] = 1.0
+    H[_K_ROWS, 3 + L.idx["K"]] = U[_K_ROWS, _K_COLS]
+    if L.est_s:
+        H[:, 3 + L.idx["s"][2 * c:2 * c + 2]] = KCw @ basis
+    if L.est_p:
+        H[_P_ROWS, 3 + L.idx["p"]] = KCw[_P_ROWS, _P_COLS]
+    return H, Rbar, gb, KW
+
+
 def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: TurntableOptions,
                  sig_a, sig_g, block_n, s_known, record_history: bool, first: bool,
                  enc: list | None = None, sig_enc: float = 0.0,
@@ -823,8 +871,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             s_lin = s_known[c] if s_known is not None else par_lin["s"][c]
             ab_lin = cy.a_nom + cy.basis @ par_lin["u"][c]
             ab_lin /= np.linalg.norm(ab_lin)
-            KJ_all = np.einsum("ia,ic,ncap->nip", par_lin["K"], s_lin[None, :] + par_lin["P"],
-                               b.cg)
+            KJ_all = _rigid_gyro_rows(par_lin["K"], s_lin[None, :] + par_lin["P"], b.cg)
             # the accelerometers' block means at the linearisation point, less gravity: the
             # catalogue's forward model on the blocks' mean kinematics
             kin_c = Kinematics(b.t, np.zeros((nb, 3)), b.wbar, b.dw, cycle=np.full(nb, c),
@@ -860,14 +907,6 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             iec = 3 + L.idx["ec"][0]
             ies = 3 + L.idx["es"][0]
             R_ref, psi_ref = Rh.copy(), 0.0
-        # fixed index maps of the accelerometer rows of H
-        rows3, col_ab = np.arange(3), 3 + L.idx["ab"]
-        k_rows = np.array([i for i, _j in K_LOWER])
-        k_cols = np.array([j for _i, j in K_LOWER])
-        col_K = 3 + L.idx["K"]
-        p_rows = np.array([i for i, _j in P_OFF])
-        p_cols = np.array([j for _i, j in P_OFF])
-        col_p = 3 + L.idx["p"] if L.est_p else None
         for j in range(nb):
             # the first pass is an extended filter (Jacobians at the running estimate: the
             # neutral start can be far off); later passes linearise every block about the
@@ -882,35 +921,21 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                 a_b /= np.linalg.norm(a_b)
             else:
                 cur, s_c, a_b = par_lin, s_lin, ab_lin
-            Rbar = Rh @ b.r_mean[j]
-            gb_ = Rbar.T @ g_n
             Cw = Cw_all[j]
             H = np.zeros((5, ns))
             h = np.zeros(5)
-            dfdphi = Rbar.T @ g_sk
             Kc = cur["K"]
-            # force at each proof mass, row i: gravity + (centripetal + tangential) at s + p_i
-            U = gb_[None, :] + (s_c[None, :] + cur["P"]) @ Cw.T
-            gam = Rh.T @ g_n
-            Wg = gam[0] * b.wg[0, j] + gam[1] * b.wg[1, j] + gam[2] * b.wg[2, j]  # (3, 21)
-            KW = Kc @ Wg
-            # the rigid-body terms through the corrected gyros: row i at s + p_i
-            KW = KW + (np.einsum("ia,ic,cap->ip", Kc, s_c[None, :] + cur["P"], b.cg[j])
-                       if first else KJ_all[j])
-            KCw = Kc @ Cw
+            r_c = s_c[None, :] + cur["P"]  # row i: accelerometer i's proof mass, s + p_i
+            # the accelerometer rows of H (tests/test_turntable.py checks them against
+            # finite differences of the catalogue model)
+            H[:3], Rbar, gb_, KW = _accel_rows(
+                L, c, cy.basis, ns, Kc, r_c, Cw, Rh, b.r_mean[j], b.wg[:, j],
+                _rigid_gyro_rows(Kc, r_c, b.cg[j]) if first else KJ_all[j], g_n, g_sk)
             if first:
                 h[:3] = _block_accel(Kc, cur["ab"], gb_, Cw, s_c[None, :] + cur["P"]) + KW @ x[iG]
             else:  # the model's rigid-body part, plus gravity through K (the model is
                 # linear in the specific force; gravity in body axes follows the attitude)
                 h[:3] = h_rig[j] + Kc @ gb_ + KW @ x[iG]
-            H[:3, iG] = KW
-            H[:3, sA] = Kc @ dfdphi
-            H[rows3, col_ab] = 1.0
-            H[k_rows, col_K] = U[k_rows, k_cols]
-            if L.est_s:
-                H[:3, 3 + L.idx["s"][2 * c:2 * c + 2]] = KCw @ cy.basis
-            if L.est_p:
-                H[p_rows, col_p] = KCw[p_rows, p_cols]
             # table axis fixed in ENU: Rbar a_b = a_enu (two components)
             ra = Rbar @ a_b
             Nra = -Nperp @ skew(ra)
