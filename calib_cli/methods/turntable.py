@@ -351,6 +351,22 @@ class _Blocks:
     m: int  # samples per block
 
 
+def _left_jacobian(phi: np.ndarray) -> np.ndarray:
+    """SO(3)'s left Jacobian J_l(phi) = I + a [phi x] + b [phi x]^2 for rotation vectors
+    phi (n, 3) (rad), a = (1 - cos t) / t^2, b = (t - sin t) / t^3: how a change of a step's
+    rate moves the attitude at the step's end. Its first-order form I + [phi x]/2 put the
+    gyro columns of the Jacobian 1.4e-4 off at 200 deg/s and 100 Hz (the prediction
+    itself is exact either way)."""
+    t2 = np.einsum("ni,ni->n", phi, phi)
+    t = np.sqrt(t2)
+    small = t < 1e-4
+    ts = np.where(small, 1.0, t)
+    a = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
+    b = np.where(small, 1.0 / 6.0 - t2 / 120.0, (ts - np.sin(ts)) / ts**3)
+    S = skew(phi)
+    return np.eye(3) + a[:, None, None] * S + b[:, None, None] * (S @ S)
+
+
 def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: bool,
             s_known: np.ndarray | None) -> _Blocks:
     sl = cy.sl
@@ -401,7 +417,7 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
         step = wmb[:, m] * dtb[:, m, None]
         # a rate change during the step moves the attitude at its end by R J_l(step) dw dt,
         # J_l = I + [step x]/2 + ... (the left Jacobian of SO(3)); R alone lags half a step
-        RG = ((R @ (np.eye(3) + 0.5 * skew(step))) * dtb[:, m, None, None]) @ Ginv
+        RG = ((R @ _left_jacobian(step)) * dtb[:, m, None, None]) @ Ginv
         dq = np.zeros((nb, 3, 21))
         dq[:, :, 0:3] = -RG
         dq[:, :, 3:12] = -(RG[:, :, :, None] * wmb[:, m, None, None, :]).reshape(nb, 3, 9)
@@ -863,8 +879,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         psi_mid = np.cumsum(b.wbar @ a_b) * T - 0.5 * (b.wbar @ a_b) * T
         sg2 = float((sig_g**2).mean())
         innov_scale = np.sqrt(b.m) / sig_a
-        dt_s = 1.0 / rec.sample_rate  # (a property: the median sample interval)
-        q_phi = block_n * sg2 * dt_s**2
+        q_phi = block_n * sg2 * (1.0 / rec.sample_rate) ** 2
         Q_phi = _I3 * q_phi
         Cw_all = b.cen + (skew(b.dw) if opt.tangential else 0.0)
         if not first:  # linearised pass: the parameter-dependent parts are fixed per cycle
@@ -890,17 +905,10 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             irk, irb = 3 + L.idx["rk"][0], 3 + L.idx["rb"][0]
             we_axis = float(cy.a_enu @ w_e)
             half_dt = 0.5 / rec.sample_rate if interval else 0.0
-            # the share of the block's attitude noise its rate mean sees. Instant samples
-            # step with the mid-interval rate, so the block's first stamp and the next
-            # block's first count half: 1 - 1/2m; interval means are integrated over their
-            # own periods, but the channel is read at the stamps, half a sample later, which
-            # the lag term matches only to first order. So close to 1 the channel pins the
-            # attitude about the axis so tightly that the passes' leftover nonlinearity
-            # (mounting x cross-axis terms, a weak frame direction) slowed them to 6-8
-            # passes (1 - 1/m: 6), or at a share of exactly 1 put gyro_K's cross-axis
-            # entries 25 sigma off; at 1 - 2/m (about four samples' worth of attitude noise
-            # left in Q_phi) they converge in 3 like the IMU-only fit
-            share = 1.0 - 2.0 / block_n
+            # per block: the gyro noise of the projected block mean plus the channel's own
+            # (treated as independent of the attitude's process noise, which it is not:
+            # docs/turntable.md, "Limits")
+            var_rate = (float((sig_g**2).mean()) + sig_rate**2) / block_n
         if ec is not None:
             iez = 3 + L.idx["ez"][c]
             ieo = 3 + L.idx["eo"]
@@ -1009,10 +1017,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                     hr = (1.0 + kr) * (base + gs @ x[iG]) + br
                 else:
                     hr = (1.0 + kr) * base + br + Hr[th] @ x[th]
-                # the gyro noise reaches the row through (1 + k_r), as in the covariance
-                # with the attitude's process noise below
-                rows.append(("rate", Hr, hr, rc.z[j],
-                             ((1.0 + kr) ** 2 * sg2 + sig_rate**2) / block_n))
+                rows.append(("rate", Hr, hr, rc.z[j], var_rate))
             if rows:
                 H = np.vstack([H] + [r[1] for r in rows])
                 h = np.concatenate([h, [r[2] for r in rows]])
@@ -1026,22 +1031,6 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             Kg = PH @ Si
             x += Kg @ v
             P -= Kg @ PH.T
-            w_hat = None
-            # (the linearised passes only: in the first, an extended filter from the neutral
-            # unit, the rate innovations hold the start's second-order mounting terms, 15
-            # sigma at 200 deg/s, which taken for gyro noise turned the attitude 5 mrad off
-            # the encoder and dropped both channels; independent rows are safe there)
-            if rows and rows[-1][0] == "rate" and not first:
-                # The rate row's noise is mostly the block's gyro noise about the axis,
-                # the same noise that turns the attitude about the axis from this block to
-                # the next (Q_phi): E[w_phi v_rate] = (1 + k_r) sigma_g^2 dt a_enu. Treated
-                # as independent, the pair counted that noise twice (gyro_D RMS z 1.25 on
-                # the 9-cycle plan). Joint Gaussian update of (x, w_phi): w_phi's mean and
-                # covariance given the innovation, and its covariance with the state
-                ir = len(v) - 1
-                mw = (1.0 + kr) * sg2 * dt_s * share * (Rbar @ a_b)
-                w_hat = mw * float(Si[ir] @ v)
-                c_xw = PH @ Si[:, ir]  # cov(x, w_phi) = -c_xw mw^T after the update
             # rounding makes P drift from symmetric, and with the axis rows at 10 urad against
             # wide priors (a plan check's pass from the prior) the drift grew into negative
             # variances within 16 blocks, which had put two cross-axis entries of the plan
@@ -1071,13 +1060,6 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             P[:3, :] += BP
             P[:, :3] += BP.T
             P[:3, :3] += BP[:, iG] @ B.T + Q_phi
-            if w_hat is not None:  # the rate row's share of the process noise (above)
-                x[:3] += w_hat
-                D = -np.outer(c_xw, mw)  # (ns, 3): cov(x, w_phi), carried through F
-                D[:3] += B @ D[iG]
-                P[:, :3] += D
-                P[:3, :] += D.T
-                P[:3, :3] -= np.outer(mw, mw) * Si[ir, ir]
             Rh = E @ Rh @ b.r_end[j]
             Rh = _rot(x[:3]) @ Rh
             x[:3] = 0.0
