@@ -35,12 +35,16 @@ def test_within_sigma_over_seeds(name):
     assert not bad, (name, bad)
 
 
-# Turntable groups whose errors miss the rule against the fit's OWN sigma as well (the
-# estimator's calibration, not the prediction's): none since the rate channel's correlated
-# noise is modelled (issue 14; before, turntable9 gyro_D RMS z 1.271 and turntable3 accel_K
-# 99th pct 3.299, docs/plan.md). For a group listed here only the agreement of the
-# predicted z with the fit's own z would be asserted.
-TURNTABLE_ESTIMATOR_LIMITS: dict = {}
+# Turntable groups whose errors miss the rule (or sit at its edge) against the fit's OWN
+# sigma as well: the estimator's calibration on these generated plans, not the
+# prediction's (docs/plan.md, measured figures, seeds 100-119, after the hook's start fix
+# of issue 20): turntable3 accel_K 99th pct 3.299 (the fit's own 3.286; 3.37 measured
+# again 2026-11-24); turntable9 gyro_D RMS z 1.271 (the fit's own 1.248, its D[2,1] entry
+# 1.59). The rate channel's correlated-noise update brought the latter to 1.094 but was
+# taken out (docs/turntable.md, Limits). For them only the agreement of the predicted z
+# with the fit's own z is asserted.
+TURNTABLE_ESTIMATOR_LIMITS = {"turntable3": ("accel_K",),
+                              "turntable9": ("gyro_D",)}
 
 
 @pytest.mark.slow
