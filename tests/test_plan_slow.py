@@ -45,6 +45,10 @@ def test_within_sigma_over_seeds(name):
 # with the fit's own z is asserted.
 TURNTABLE_ESTIMATOR_LIMITS = {"turntable3": ("accel_K",),
                               "turntable9": ("gyro_D",)}
+# turntable3 accel_K is pooled over 60 seeds instead (test below): over seeds 120-159 the
+# fit's own z has RMS 0.99, 99th pct 2.46, largest 3.16 (per entry 0.87-1.07), so the 3.37
+# of seeds 100-119 is those seeds' draw, as with the heading below
+ACCEL_K_SEEDS = range(100, 160)
 
 
 @pytest.mark.slow
@@ -72,6 +76,17 @@ def test_turntable_within_sigma_over_seeds(name):
         if (not ok and not known) or abs(rms / rms_f - 1) > 0.1:
             bad.append((key, rms, q99, rms_f, q99_f, ok_f))
     assert not bad, (name, bad)
+
+
+@pytest.mark.slow
+def test_turntable3_accel_K_within_sigma_over_60_seeds():
+    pred = pc.predicted("turntable3")
+    z = np.concatenate([pc.normalised_errors("turntable3", s, pred)["accel_K"].ravel()
+                        for s in ACCEL_K_SEEDS])
+    rms, q99 = pooled_rule(z)
+    print(f"turntable3 accel_K over {len(ACCEL_K_SEEDS)} seeds: RMS z {rms:.3f}, 99th pct "
+          f"{q99:.2f}, largest {np.abs(z).max():.2f} ({len(z)} values)")
+    assert 0.8 <= rms <= 1.25 and q99 < 3.3, (rms, q99)
 
 
 # The heading is one number per seed: 20 values pool too few for the rule (its RMS then
