@@ -359,12 +359,14 @@ def _left_jacobian(phi: np.ndarray) -> np.ndarray:
     itself is exact either way)."""
     t2 = np.einsum("ni,ni->n", phi, phi)
     t = np.sqrt(t2)
-    small = t < 1e-4
+    small = t < 1e-3
     ts = np.where(small, 1.0, t)
     a = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
     b = np.where(small, 1.0 / 6.0 - t2 / 120.0, (ts - np.sin(ts)) / ts**3)
-    S = skew(phi)
-    return np.eye(3) + a[:, None, None] * S + b[:, None, None] * (S @ S)
+    # [phi x]^2 = phi phi^T - |phi|^2 I, without a batched matrix product
+    J = b[:, None, None] * (phi[:, :, None] * phi[:, None, :]) + a[:, None, None] * skew(phi)
+    J[:, (0, 1, 2), (0, 1, 2)] += (1.0 - b * t2)[:, None]
+    return J
 
 
 def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: bool,
