@@ -758,6 +758,7 @@ class _PassOut:
 # the free entries of K and of the proof-mass offsets as (row, column) index arrays
 _K_ROWS, _K_COLS = (np.array(v) for v in zip(*K_LOWER))
 _P_ROWS, _P_COLS = (np.array(v) for v in zip(*P_OFF))
+_ROWS3 = np.arange(3)
 
 
 def _rigid_gyro_rows(K: np.ndarray, r: np.ndarray, cg: np.ndarray) -> np.ndarray:
@@ -769,9 +770,18 @@ def _rigid_gyro_rows(K: np.ndarray, r: np.ndarray, cg: np.ndarray) -> np.ndarray
     return np.einsum("ia,ic,cap->ip", K, r, cg)
 
 
+def _accel_cols(L: "_Layout", c: int) -> tuple:
+    """The state columns _accel_rows writes for cycle c (per block they cost as much as
+    the rows): gyro, bias, K, the cycle's lever arm, proof masses."""
+    return (3 + L.gyro, 3 + L.idx["ab"], 3 + L.idx["K"],
+            3 + L.idx["s"][2 * c:2 * c + 2] if L.est_s else None,
+            3 + L.idx["p"] if L.est_p else None)
+
+
 def _accel_rows(L: "_Layout", c: int, basis: np.ndarray, ns: int, K: np.ndarray,
                 r: np.ndarray, Cw: np.ndarray, Rh: np.ndarray, r_mean: np.ndarray,
-                wg: np.ndarray, KJ: np.ndarray, g_n: np.ndarray, g_sk: np.ndarray):
+                wg: np.ndarray, KJ: np.ndarray, g_n: np.ndarray, g_sk: np.ndarray,
+                cols: tuple | None = None, out: np.ndarray | None = None):
     """The accelerometer rows (3, ns) of one block's measurement Jacobian (state: the
     attitude error phi, then theta at 3 + its index) for the model b_i + K_i . (gb + C r_i)
     (``_block_accel``, ``ImuModel.predict``): K (3, 3) accelerometer K, r (3, 3) row i the
@@ -779,7 +789,8 @@ def _accel_rows(L: "_Layout", c: int, basis: np.ndarray, ns: int, K: np.ndarray,
     block's mean centripetal (+ tangential) operator, Rh the attitude at the block start,
     r_mean and wg (3, 3, 21) the block's ``_Blocks`` entries, KJ (3, 21)
     ``_rigid_gyro_rows``. Also returns the mean attitude Rbar, gravity in body axes
-    gb = Rbar^T g_n and the gyro-parameter block KW."""
+    gb = Rbar^T g_n and the gyro-parameter block KW. cols: ``_accel_cols(L, c)``; out:
+    a zeroed (3, ns) array to write the rows into (the filter's per-block H)."""
     Rbar = Rh @ r_mean
     gb = Rbar.T @ g_n
     dfdphi = Rbar.T @ g_sk
@@ -791,15 +802,16 @@ def _accel_rows(L: "_Layout", c: int, basis: np.ndarray, ns: int, K: np.ndarray,
     # the rigid-body terms through the corrected gyros: row i at s + p_i
     KW = KW + KJ
     KCw = K @ Cw
-    H = np.zeros((3, ns))
-    H[:, 3 + L.gyro] = KW
+    c_g, c_ab, c_K, c_s, c_p = cols if cols is not None else _accel_cols(L, c)
+    H = np.zeros((3, ns)) if out is None else out
+    H[:, c_g] = KW
     H[:, 0:3] = K @ dfdphi
-    H[np.arange(3), 3 + L.idx["ab"]] = 1.0
-    H[_K_ROWS, 3 + L.idx["K"]] = U[_K_ROWS, _K_COLS]
-    if L.est_s:
-        H[:, 3 + L.idx["s"][2 * c:2 * c + 2]] = KCw @ basis
-    if L.est_p:
-        H[_P_ROWS, 3 + L.idx["p"]] = KCw[_P_ROWS, _P_COLS]
+    H[_ROWS3, c_ab] = 1.0
+    H[_K_ROWS, c_K] = U[_K_ROWS, _K_COLS]
+    if c_s is not None:
+        H[:, c_s] = KCw @ basis
+    if c_p is not None:
+        H[_P_ROWS, c_p] = KCw[_P_ROWS, _P_COLS]
     return H, Rbar, gb, KW
 
 
@@ -896,6 +908,7 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             h_rig = model.predict(_contract_params(par_lin, s_all), kin_c,
                                   sensors=("accel",))["accel"]
         Nperp = _perp_basis(cy.a_enu).T  # (2, 3)
+        acols = _accel_cols(L, c)
         skip = np.zeros(nb, bool)
         if not opt.tangential:
             fast = np.linalg.norm(b.dw_raw, axis=1) > opt.accel_skip
@@ -938,9 +951,10 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             r_c = s_c[None, :] + cur["P"]  # row i: accelerometer i's proof mass, s + p_i
             # the accelerometer rows of H (tests/test_turntable.py checks them against
             # finite differences of the catalogue model)
-            H[:3], Rbar, gb_, KW = _accel_rows(
+            _, Rbar, gb_, KW = _accel_rows(
                 L, c, cy.basis, ns, Kc, r_c, Cw, Rh, b.r_mean[j], b.wg[:, j],
-                _rigid_gyro_rows(Kc, r_c, b.cg[j]) if first else KJ_all[j], g_n, g_sk)
+                _rigid_gyro_rows(Kc, r_c, b.cg[j]) if first else KJ_all[j], g_n, g_sk,
+                cols=acols, out=H[:3])
             if first:
                 h[:3] = _block_accel(Kc, cur["ab"], gb_, Cw, s_c[None, :] + cur["P"]) + KW @ x[iG]
             else:  # the model's rigid-body part, plus gravity through K (the model is
