@@ -108,7 +108,8 @@ def test_inconsistent_encoder_dropped_after_one_pass():
 def test_exact_rate_channel_with_encoder():
     """The generated plans' table channels are the exact motion (no noise): both used,
     converged in <= 4 passes, within sigma, both sample kinds. (A correlated-noise form of
-    the rate row, tried and taken out, failed here: docs/turntable.md, Limits.)"""
+    the rate row, tried and taken out, failed here; the channel is now integrated to an
+    angle: docs/turntable.md, "The rate channel".)"""
     from calib_cli.sim import plan_make as pm
 
     for kind in ("instant", "interval-mean"):

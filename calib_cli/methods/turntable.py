@@ -229,6 +229,7 @@ class _Layout:
         if self.est_rate:
             add("rk", 1)
             add("rb", 1)
+            add("rz", self.n_cycles)
 
     @property
     def gyro(self) -> np.ndarray:
@@ -647,6 +648,9 @@ def _encoder_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
 
 
 ENCODER_MODES = ("auto", "angle", "rate", "both", "off")
+# rad: the integrated rate channel's reading noise, as the encoder's floor (the trapezoid
+# rule's error on the profiles' kinks is far below it)
+_RATE_ANGLE_FLOOR = 2e-5
 
 
 def _gyro_angle(rec: Recording, cy: _Cycle) -> np.ndarray:
@@ -666,11 +670,19 @@ def _gyro_angle(rec: Recording, cy: _Cycle) -> np.ndarray:
 
 @dataclass(frozen=True)
 class _RateChannel:
-    """One cycle's table-rate readings: z (nb,) block means times the sign (rad/s, about
-    table_axis_enu), sign +-1 against the gyros."""
+    """One cycle's table-rate readings integrated (trapezoid rule over the stamps) to the
+    block starts: z (nb,) the angle since the cycle's first reading times the sign (rad,
+    about table_axis_enu), t (nb,) its time since the first reading (s), ok (nb,) usable;
+    sign +-1 against the gyros."""
 
     z: np.ndarray
+    t: np.ndarray
+    ok: np.ndarray
     sign: float
+
+    def every(self, f: int) -> "_RateChannel":
+        """Every f-th reading (longer blocks)."""
+        return _RateChannel(self.z[::f], self.t[::f], self.ok[::f], self.sign)
 
 
 def _rate_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
@@ -727,7 +739,15 @@ def _rate_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
                          f"{np.degrees(expected):.3f}), rate channel not used")
             continue
         sign = float(np.sign(slope))
-        out.append(_RateChannel(z=sign * y, sign=sign))
+        # the readings integrated to the block starts (the encoder's stamps): as an angle
+        # the channel's error is its own noise, integrated, and not the block's gyro noise,
+        # which also turns the attitude (a rate row's error; docs/turntable.md)
+        tt = rec.time[cy.sl] - rec.time[cy.sl][0]
+        ang = np.concatenate([[0.0], np.cumsum(0.5 * (r[1:] + r[:-1]) * np.diff(tt))])
+        idx = np.arange(0, n, block_n) - (1 if interval else 0)
+        ok = idx >= 0
+        idx = np.clip(idx, 0, len(r) - 1)
+        out.append(_RateChannel(z=sign * ang[idx], t=tt[idx], ok=ok, sign=sign))
         sig.append(sig_r)
     if all(c is None for c in out):
         return None, 0.0, notes
@@ -832,7 +852,9 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
     th = slice(3, 3 + n)
     n_run = 4 * len(_RUNOUT_HARMONICS) if opt.runout_sigma > 0 else 0
     irun = np.arange(3 + n, 3 + n + n_run)
-    ns = 3 + n + n_run
+    # the rate channel's integrated noise since the cycle start (cycle-local, a random walk)
+    irw = 3 + n + n_run
+    ns = 3 + n + n_run + (1 if rate is not None else 0)
     g_n = rec.site.specific_force_enu
     g_sk = skew(g_n)
     w_e = rec.site.earth_rate_enu
@@ -889,6 +911,10 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         P[irun, :] = 0.0
         P[:, irun] = 0.0
         P[irun, irun] = opt.runout_sigma**2
+        if rate is not None:  # the integrated rate channel's walk starts at its first reading
+            x[irw] = 0.0
+            P[irw, :] = 0.0
+            P[:, irw] = 0.0
         # the table angle since the cycle start at each block's middle, for the runout
         psi_mid = np.cumsum(b.wbar @ a_b) * T - 0.5 * (b.wbar @ a_b) * T
         sg2 = float((sig_g**2).mean())
@@ -918,18 +944,15 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
         rc = rate[c] if rate is not None else None
         if rc is not None:
             irk, irb = 3 + L.idx["rk"][0], 3 + L.idx["rb"][0]
-            we_axis = float(cy.a_enu @ w_e)
-            half_dt = 0.5 / rec.sample_rate if interval else 0.0
-            # per block: the gyro noise of the projected block mean plus the channel's own
-            # (treated as independent of the attitude's process noise, which it is not:
-            # docs/turntable.md, "Limits")
-            var_rate = (float((sig_g**2).mean()) + sig_rate**2) / block_n
+            irz = 3 + L.idx["rz"][c]
+            # the walk of the integrated channel noise per block (trapezoid rule, rad^2)
+            q_rw = sig_rate**2 * block_n / rec.sample_rate**2
         if ec is not None:
             iez = 3 + L.idx["ez"][c]
             ieo = 3 + L.idx["eo"]
             iec = 3 + L.idx["ec"][0]
             ies = 3 + L.idx["es"][0]
-            R_ref, psi_ref = Rh.copy(), 0.0
+        R_ref, psi_ref = Rh.copy(), 0.0
         for j in range(nb):
             # the first pass is an extended filter (Jacobians at the running estimate: the
             # neutral start can be far off); later passes linearise every block about the
@@ -995,13 +1018,17 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             # independent of the accelerometers': one joint update is the sequential one,
             # at a third of the cost of three)
             rows = []
-            if ec is not None and j >= 1 and ec.ok[j]:
-                # the table's encoder: its angle since the cycle start against the filter's
-                # (the attitude about the table axis since the start attitude), with the
-                # encoder's zero, once-per-revolution error and clock offset as states
+            use_e = ec is not None and j >= 1 and ec.ok[j]
+            use_r = rc is not None and j >= 1 and j < len(rc.z) and rc.ok[j]
+            if use_e or use_r:
+                # the filter's angle about the table axis since the cycle's start attitude
                 psi_ref += float(cy.a_enu @ _rotvec(Rh @ R_ref.T))
                 R_ref = Rh
                 cur_e = theta_lin + x[th]
+            if use_e:
+                # the table's encoder: its angle since the cycle start against the filter's
+                # (the attitude about the table axis since the start attitude), with the
+                # encoder's zero, once-per-revolution error and clock offset as states
                 omega = float(a_b @ b.w_start[j])
                 th_abs = ec.theta[j]
                 He = np.zeros(ns)
@@ -1014,26 +1041,22 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
                       + cur_e[ieo[0] - 3] * np.cos(th_abs) + cur_e[ieo[1] - 3] * np.sin(th_abs)
                       + omega * cur_e[iec - 3])
                 rows.append(("enc", He, he, ec.z[j], sig_enc**2))
-            if rc is not None and j < len(rc.z):
-                # the table's rate channel (the rate at each stamp, about table_axis_enu)
-                # against the corrected gyros about the table axis, earth rate removed, with
-                # the channel's scale error and offset as states. Interval-mean gyro samples
-                # lag the stamp by half a sample: their block mean plus dw/dt dt/2
-                wp = b.wbar[j] + half_dt * b.dw_raw[j]
-                base = float(a_b @ wp) - we_axis
-                gs = a_b @ b.mbar[j]  # (21,)
-                kr = (theta_lin[irk - 3] + x[irk]) if first else theta_lin[irk - 3]
-                br = (theta_lin[irb - 3] + x[irb]) if first else theta_lin[irb - 3]
+            if use_r:
+                # the table's rate channel integrated since the cycle's first reading, the
+                # same angle as the encoder's, with the channel's scale error, offset
+                # (integrated: times the time), zero and integrated noise as states. As a
+                # rate row its error would be the block's gyro noise about the axis, which
+                # also turns the attitude: counted twice, gyro_D's sigma came out 0.8x its
+                # errors (docs/turntable.md, "The rate channel")
                 Hr = np.zeros(ns)
-                Hr[iG] = (1.0 + kr) * gs
-                Hr[irk] = base
-                Hr[irb] = 1.0
-                Hr[3 + L.idx["u"][2 * c:2 * c + 2]] = (1.0 + kr) * (cy.basis.T @ wp)
-                if first:
-                    hr = (1.0 + kr) * (base + gs @ x[iG]) + br
-                else:
-                    hr = (1.0 + kr) * base + br + Hr[th] @ x[th]
-                rows.append(("rate", Hr, hr, rc.z[j], var_rate))
+                Hr[:3] = cy.a_enu
+                Hr[irk] = psi_ref
+                Hr[irb] = rc.t[j]
+                Hr[irz] = 1.0
+                Hr[irw] = 1.0
+                hr = (psi_ref * (1.0 + cur_e[irk - 3]) + cur_e[irb - 3] * rc.t[j]
+                      + cur_e[irz - 3] + x[irw])
+                rows.append(("rate", Hr, hr, rc.z[j], _RATE_ANGLE_FLOOR**2))
             if rows:
                 H = np.vstack([H] + [r[1] for r in rows])
                 h = np.concatenate([h, [r[2] for r in rows]])
@@ -1076,6 +1099,8 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
             P[:3, :] += BP
             P[:, :3] += BP.T
             P[:3, :3] += BP[:, iG] @ B.T + Q_phi
+            if rc is not None:
+                P[irw, irw] += q_rw
             Rh = E @ Rh @ b.r_end[j]
             Rh = _rot(x[:3]) @ Rh
             x[:3] = 0.0
@@ -1244,6 +1269,7 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
     if L.est_rate:
         sd[L.idx["rk"]] = opt.rate_scale_sigma
         sd[L.idx["rb"]] = opt.rate_bias_sigma
+        sd[L.idx["rz"]] = 0.1  # the integrated channel's zero against the coarse start attitude
     if _at is not None:  # experiment design: one linearised pass at the given unit
         return _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc,
                         sig_enc, rate, sig_rate, width, _at)
@@ -1470,14 +1496,12 @@ def _pass_at(rec, cycles, L, mean, sd, opt, sig_a, sig_g, block_n, s_known, enc,
             n = cy.sl.stop - cy.sl.start
             k = max(20 * f * block_n, int(span * n))
             pre_cycles.append(cy if k >= n else replace(cy, sl=slice(cy.sl.start, cy.sl.start + k)))
-        # the same channels over the longer blocks: every f-th encoder reading, the means of
-        # f rate-channel block means
+        # the same channels over the longer blocks: every f-th reading of each
         e_pre = enc if enc is None or f == 1 else [
             None if e is None else _Encoder(e.z[::f], e.theta[::f], e.ok[::f], e.sign)
             for e in enc]
         r_pre = rate if rate is None or f == 1 else [
-            None if r is None else _RateChannel(
-                r.z[:len(r.z) // f * f].reshape(-1, f).mean(axis=1), r.sign) for r in rate]
+            None if r is None else r.every(f) for r in rate]
         with np.errstate(invalid="ignore"):  # its innovation statistics are not used
             pre = _filter_pass(rec, pre_cycles, L, theta, mean, sd, opt, sig_a, sig_g,
                                f * block_n, s_known, enc=e_pre, sig_enc=sig_enc, rate=r_pre,
