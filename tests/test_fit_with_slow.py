@@ -37,15 +37,13 @@ REPORTED_ONLY: dict = {}
 # noise terms whose fitted figure scatters more than the best single Allan reading of a
 # continuous static record of the same length allows (measured: below 95 % of the
 # channels within its 95 % interval); reported, and held above ALLAN_FLOOR: {case: why}
-_RW_WHY = ("a random walk's information is at the longest averaging times, which the "
-           "record's positions (and their own means in the fit) share with the deterministic "
-           "model; an Allan reading of a continuous static record has it all")
 _GYRO_WHY = ("the gyro method sees the wander only through its ~78 equations (static means, "
              "transitions, turns), not the samples: its figure scatters more than a reading of "
              "the continuous record")
+# (the engine's random walks, accel and turntable gyro, were here at 82-83 % until their
+# figure was read by the restricted likelihood on a refined grid, diagnose_stoch.fit_process:
+# now near the Cramer-Rao bound of the record, benchmarks/allan18_crb.py)
 ALLAN_REPORTED = {
-    "accel bias_random_walk": _RW_WHY,
-    "gyro bias_random_walk": _RW_WHY,
     "gyro: gyro bias_random_walk": _GYRO_WHY,
     "gyro: gyro bias_instability": _GYRO_WHY,
 }

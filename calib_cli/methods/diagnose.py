@@ -267,7 +267,8 @@ def _try_wander(pb: Problem, cur: Fit, c: dc.Candidate):
     reset = np.concatenate([[True], pb.bin_seg[1:] != pb.bin_seg[:-1]])
     white = pb.whitener(s, high_frequency=True)
     _, _, lr_in = ds.fit_process(pb.bin_t, z, wh, kind, reset, bin_s=BIN_S, white=white)
-    val, sig, _ = ds.fit_process(pb.bin_t, z, wh, kind, bin_s=BIN_S, white=white)
+    val, sig, _ = ds.fit_process(pb.bin_t, z, wh, kind, bin_s=BIN_S, white=white,
+                                 cols=_sensor_columns(pb, cur, s))
     if not np.any(val > 0):  # tested: the likelihood is largest without a wander
         return (c, cur, {key: val}, {key: np.full_like(val, np.nan)}, len(val), 0.0, 0.0)
     q, B = (val, None) if kind == "random_walk" else (np.zeros_like(val), val)
@@ -279,6 +280,15 @@ def _try_wander(pb: Problem, cur: Fit, c: dc.Candidate):
     score = (neg2ll(cur, pb, skip_first=s) + white_logdet) - (neg2ll(f, pb) + w.logdet[1:].sum())
     k = int((val > 0).sum())
     return (c, f, {key: val}, {key: sig}, k, float(score), float(lr_in.sum()))
+
+
+def _sensor_columns(pb: Problem, cur: Fit, s: str) -> np.ndarray:
+    """(M, n, p) the current fit's Jacobian columns on sensor s's bin means, in data units
+    (the deterministic model the wander's restricted likelihood projects out)."""
+    n = pb.y[s].shape[1]
+    i = sum(pb.n_bins * pb.y[x].shape[1] for x in pb.sensors[:pb.sensors.index(s)])
+    J = np.asarray(cur.J, float)[i:i + pb.n_bins * n]
+    return (J * pb.whitener(s).ravel()[:, None]).reshape(pb.n_bins, n, -1)
 
 
 def _clean(c: dc.Candidate, params: dict, sigma: dict) -> tuple[dict, dict]:

@@ -138,6 +138,45 @@ def loglik(e, v, t, q, gm=None, reset=None, bin_s=0.5):
     return -0.5 * (nu ** 2 + logs).sum(axis=0)
 
 
+def reml_basis(cols: np.ndarray, tol: float = 1e-8) -> np.ndarray:
+    """(M, n, r) per channel an orthonormal basis of the deterministic model's columns
+    cols (M, n, p) with the constant taken out (the filter's diffuse level holds it);
+    zero-padded where a channel's rank is below r."""
+    M, n, _ = cols.shape
+    bases = []
+    for k in range(n):
+        X = cols[:, k, :] - cols[:, k, :].mean(axis=0)
+        U, sv, _ = np.linalg.svd(X, full_matrices=False)
+        r = int((sv > tol * max(sv[0], 1e-300)).sum()) if len(sv) else 0
+        bases.append(U[:, :r])
+    r = max([b.shape[1] for b in bases] + [0])
+    out = np.zeros((M, n, r))
+    for k, b in enumerate(bases):
+        out[:, k, :b.shape[1]] = b
+    return out
+
+
+def loglik_reml(e, basis, v, t, q, gm=None, bin_s=0.5):
+    """Restricted log-likelihood per channel (..., n) of residuals e (M, n) whose model's
+    columns (``reml_basis``, (M, n, r)) were fitted: the filter whitens the data and the
+    columns together, the columns are projected out of the innovations (generalised least
+    squares) and log det of their whitened Gram matrix is added, so the wander the fit
+    absorbed is not read as missing (REML; issue 18, benchmarks/allan18_crb.py)."""
+    E = np.concatenate([np.asarray(e, float)[..., None], basis], axis=-1)  # (M, n, 1 + r)
+    nu, logs = kalman(E, v, t, q, gm, None, bin_s)  # (M, ..., n, 1 + r)
+    u, X = nu[..., 0], nu[..., 1:]
+    r = basis.shape[-1]
+    live = np.abs(basis).sum(axis=0) > 0  # (n, r) padded columns are not live
+    G = np.einsum("m...i,m...j->...ij", X, X)
+    G = G + np.where(live, 0.0, 1.0)[..., :, None] * np.eye(r)
+    b = np.einsum("m...i,m...->...i", X, u)
+    L = np.linalg.cholesky(G)
+    w = np.linalg.solve(L, b[..., None])[..., 0]
+    rss = (u ** 2).sum(axis=0) - (w ** 2).sum(axis=-1)
+    logdet = 2 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1)
+    return -0.5 * (rss + logs.sum(axis=0) + logdet)
+
+
 class ProcessWhitener:
     """Whitens a sensor's (M, n) noise-unit residuals z (units of wh, the bin
     sigma of the white model) under a wandering bias: a random walk of density q
@@ -187,28 +226,62 @@ def _args(kind, vals):
     return np.zeros(vals.shape), flicker(vals)
 
 
-def fit_process(t, z, wh, kind: str, reset=None, n_grid: int = 24, bin_s=0.5, white=None):
-    """Per-channel maximum-likelihood value (q or B) on a log grid, its rough sigma
-    from the curvature of log L in log value, and the likelihood ratio against the
-    white model (level free at every reset). z: (M, n) residuals in units of wh, the
-    white model's bin sigma; white: the bin sigma of the white noise under the
-    process (default wh; the high-frequency estimate where the white model's sigma
-    was raised to the bins' scatter, which a wander makes)."""
+def fit_process(t, z, wh, kind: str, reset=None, n_grid: int = 24, bin_s=0.5, white=None,
+                n_fine: int = 17, cols=None):
+    """Per-channel maximum-likelihood value (q or B), its rough sigma from the curvature
+    of log L in log value, and the likelihood ratio against the white model (level free
+    at every reset). z: (M, n) residuals in units of wh, the white model's bin sigma;
+    white: the bin sigma of the white noise under the process (default wh; the
+    high-frequency estimate where the white model's sigma was raised to the bins'
+    scatter, which a wander makes). The maximum is found on a coarse log grid (n_grid
+    points over a factor 1000: steps of 35 %), then on ``n_fine`` points between the
+    coarse maximum's neighbours, then at the vertex of the parabola through the finest
+    three (the coarse grid alone quantised the figure by +-15 %, a scatter of 9 % on
+    top of the likelihood's own; issue 18, benchmarks/allan18_crb.py). cols: (M, n, p)
+    the columns (data units) of the deterministic model the residuals were fitted with;
+    given (and no reset), the likelihood of the value is the restricted one
+    (``loglik_reml``)."""
     e = z * wh
     v = (wh if white is None else np.asarray(white, float)) ** 2
     vals = _grid(t, wh, kind, n_grid)
+    basis = None if (cols is None or reset is not None) else reml_basis(np.asarray(cols, float))
+
+    def ll_of(q, gm):
+        if basis is None:
+            return loglik(e, v, t, q, gm, reset, bin_s)
+        return loglik_reml(e, basis, v, t, q, gm, bin_s)
+
     q, gm = _args(kind, vals)
-    ll = loglik(e, v, t, q, gm, reset, bin_s)  # (G, n)
-    ll0 = loglik(e, wh ** 2, t, np.zeros(z.shape[1]), None, reset, bin_s)
-    i = np.argmax(ll, axis=0)
+    ll = ll_of(q, gm)  # (G, n)
+    ll0 = (loglik(e, wh ** 2, t, np.zeros(z.shape[1]), None, reset, bin_s) if basis is None
+           else loglik_reml(e, basis, wh ** 2, t, np.zeros(z.shape[1]), None, bin_s))
     ch = np.arange(z.shape[1])
-    best = vals[i, ch]
-    lr = 2 * (ll[i, ch] - ll0)
-    # curvature from the neighbouring grid points (log spacing h)
     h = np.log(vals[1, 0] / vals[0, 0])
-    lo, hi = np.clip(i - 1, 0, n_grid - 1), np.clip(i + 1, 0, n_grid - 1)
-    c = (ll[lo, ch] - 2 * ll[i, ch] + ll[hi, ch]) / h ** 2
-    inner = (i > 0) & (i < n_grid - 1) & (c < 0)
-    sig = np.where(inner, best / np.sqrt(np.where(c < 0, -c, 1.0)), np.nan)
+    i = np.argmax(ll, axis=0)
+    inner = (i > 0) & (i < n_grid - 1)
+    if n_fine > 2 and np.any(inner):
+        # a fine grid over [i - 1, i + 1] of the coarse one, the same for every channel
+        # in units of the coarse step (channels at the grid's ends keep the coarse value)
+        u = np.linspace(-1.0, 1.0, n_fine)
+        fine = vals[i, ch][None, :] * np.exp(h * u)[:, None]  # (F, n)
+        qf, gmf = _args(kind, fine)
+        llf = ll_of(qf, gmf)
+        j = np.clip(np.argmax(llf, axis=0), 1, n_fine - 2)
+        hf = h * (u[1] - u[0])
+        a, b, c = llf[j - 1, ch], llf[j, ch], llf[j + 1, ch]
+        curv = (a - 2 * b + c) / hf ** 2
+        shift = np.where(curv < 0, -(c - a) / (2 * hf * np.where(curv < 0, curv, -1.0)),
+                         0.0)
+        shift = np.clip(shift, -hf, hf)
+        ref = fine[j, ch] * np.exp(shift)
+        llr = b - 0.5 * curv * shift ** 2  # log L at the vertex
+        llr = np.maximum(np.maximum(llr, b), ll[i, ch])
+        best = np.where(inner, ref, vals[i, ch])
+        llb = np.where(inner, llr, ll[i, ch])
+        c2 = np.where(inner, curv, 0.0)
+    else:
+        best, llb, c2 = vals[i, ch], ll[i, ch], np.zeros(z.shape[1])
+    lr = 2 * (llb - ll0)
+    sig = np.where(inner & (c2 < 0), best / np.sqrt(np.where(c2 < 0, -c2, 1.0)), np.nan)
     found = lr > 0
     return np.where(found, best, 0.0), np.where(found, sig, np.nan), np.where(found, lr, 0.0)
