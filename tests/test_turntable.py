@@ -245,7 +245,7 @@ def test_accel_jacobian_is_the_catalogue_models_derivative(short_rec):
     rows (norm): the filter holds the specific force's proof-mass correction, which moves
     with the rates, fixed in the gyros' D f (measured 8e-5). (With each step's left
     Jacobian truncated at I + [step x]/2, as it was, the gyro columns were 1.4e-4 of the
-    gravity part off at 200 deg/s and 100 Hz; _left_jacobian is now exact.)"""
+    gravity part off at 200 deg/s and 100 Hz; strapdown.left_jacobian is now exact.)"""
     from dataclasses import replace
 
     from calib_cli.methods import turntable as tt

@@ -53,8 +53,8 @@ from calib_cli.model.frames import attitude_to_rotation, skew
 from calib_cli.model.imu_model import ImuModel, Packing, base_model
 from calib_cli.model.kinematics import Kinematics, rigid_accel
 from calib_cli.model.strapdown import exp_matrix as _rot
+from calib_cli.model.strapdown import left_jacobian, mean_rotation, step_rotvec
 from calib_cli.model.strapdown import log_matrix as _rotvec
-from calib_cli.model.strapdown import mean_rotation, step_rotvec
 
 # The fit's model is the effect catalogue's (CONTRACT.md section 2): the unit's core
 # (accelerometer bias and lower-triangular K, gyro bias, full G and D) plus, per the
@@ -345,29 +345,10 @@ class _Blocks:
     # (nb, 3, 3, 21): d(C r)/d theta_gyro = sum_c r_c cg[:, c], C = the block's mean
     # centripetal (+ tangential) operator, r a position in body axes
     cg: np.ndarray
-    mbar: np.ndarray  # (nb, 3, 21) block mean of dw/dtheta_gyro
     wbar: np.ndarray  # (nb, 3) block mean of the corrected rates
     dw_var: np.ndarray  # (nb,) variance of the block's mean angular acceleration (corners)
     dw_raw: np.ndarray  # (nb, 3) mean angular acceleration (also with the tangential term off)
     m: int  # samples per block
-
-
-def _left_jacobian(phi: np.ndarray) -> np.ndarray:
-    """SO(3)'s left Jacobian J_l(phi) = I + a [phi x] + b [phi x]^2 for rotation vectors
-    phi (n, 3) (rad), a = (1 - cos t) / t^2, b = (t - sin t) / t^3: how a change of a step's
-    rate moves the attitude at the step's end. Its first-order form I + [phi x]/2 put the
-    gyro columns of the Jacobian 1.4e-4 off at 200 deg/s and 100 Hz (the prediction
-    itself is exact either way)."""
-    t2 = np.einsum("ni,ni->n", phi, phi)
-    t = np.sqrt(t2)
-    small = t < 1e-3
-    ts = np.where(small, 1.0, t)
-    a = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
-    b = np.where(small, 1.0 / 6.0 - t2 / 120.0, (ts - np.sin(ts)) / ts**3)
-    # [phi x]^2 = phi phi^T - |phi|^2 I, without a batched matrix product
-    J = b[:, None, None] * (phi[:, :, None] * phi[:, None, :]) + a[:, None, None] * skew(phi)
-    J[:, (0, 1, 2), (0, 1, 2)] += (1.0 - b * t2)[:, None]
-    return J
 
 
 def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: bool,
@@ -420,7 +401,7 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
         step = wmb[:, m] * dtb[:, m, None]
         # a rate change during the step moves the attitude at its end by R J_l(step) dw dt,
         # J_l = I + [step x]/2 + ... (the left Jacobian of SO(3)); R alone lags half a step
-        RG = ((R @ _left_jacobian(step)) * dtb[:, m, None, None]) @ Ginv
+        RG = ((R @ left_jacobian(step)) * dtb[:, m, None, None]) @ Ginv
         dq = np.zeros((nb, 3, 21))
         dq[:, :, 0:3] = -RG
         dq[:, :, 3:12] = -(RG[:, :, :, None] * wmb[:, m, None, None, :]).reshape(nb, 3, 9)
@@ -460,9 +441,9 @@ def _blocks(rec: Recording, cy: _Cycle, par: dict, block_n: int, tangential: boo
     dt2 = float(np.median(dt)) ** 2
     jump2 = np.where(d2 > 16.0 * noise2, (d2 - noise2) / dt2**2, 0.0)
     dw_var = jump2[:n].reshape(nb, block_n).sum(axis=1) / 8.0 / block_n**2
-    cg, mbar = _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, dtb.sum(axis=1), tangential)
+    cg = _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, dtb.sum(axis=1), tangential)
     return _Blocks(t=t[:n:block_n], a_mean=A[:n].reshape(nb, block_n, 3).mean(axis=1),
-                   r_mean=r_sum / block_n, r_end=R, cen=cen, dw=dwm, q=q, cg=cg, mbar=mbar,
+                   r_mean=r_sum / block_n, r_end=R, cen=cen, dw=dwm, q=q, cg=cg,
                    wbar=wb.mean(axis=1), dw_var=dw_var if tangential else np.zeros(nb),
                    qbar=qbar / block_n, wg=wg / block_n, dw_raw=dw_raw,
                    wabs=np.linalg.norm(wb, axis=2).mean(axis=1), m=block_n,
@@ -489,18 +470,15 @@ def _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, T, tangential):
     200 deg/s, 12 m/s^2 per unit of scale). d(C r)/dtheta = sum_c r_c out[:, c] with
     C r = mean(w (w.r) - r |w|^2) + dw x r; d(w (w.r) - r |w|^2)/dw = (w.r) I + w r^T
     - 2 r w^T, and dw/dtheta = -G^-1 N, N = [I | e_j w^T | e_j f^T] linear in the
-    sample: every block mean comes from the block's first and second moments of w and f.
-    Also returns the block means of dw/dtheta_gyro (nb, 3, 21)."""
+    sample: every block mean comes from the block's first and second moments of w and f."""
     nb = n // block_n
     wb = w[:n].reshape(nb, block_n, 3)
     fb = f[:n].reshape(nb, block_n, 3)
-    mw, mf = wb.mean(axis=1), fb.mean(axis=1)
+    mw = wb.mean(axis=1)
     Sww = np.einsum("bma,bmk->bak", wb, wb) / block_n
     Swf = np.einsum("bma,bmk->bak", wb, fb) / block_n
-    # mean N (nb, 3j, 21) and mean w_a N (nb, 3a, 3j, 21)
-    one = _n_moments(np.ones((nb, 1)), mw[:, None, :], mf[:, None, :])[:, 0]
+    # mean w_a N (nb, 3a, 3j, 21)
     wN = _n_moments(mw, Sww, Swf)
-    mbar = -np.einsum("aj,bjp->bap", Ginv, one)
     # mean w_a M_{a,:} summed over a, and mean w_c M (row a), mean w_a M_{c,:}
     GwN = -np.einsum("cj,bajp->bcap", Ginv, wN)  # [b, c, a, p] = mean w_a M_{c,p}
     wM = np.einsum("baap->bp", GwN)
@@ -521,7 +499,7 @@ def _rigid_gyro_sensitivity(w, f, Ginv, n, block_n, T, tangential):
         dD = -np.einsum("aj,bjp->bap", Ginv, dN)
         for c in range(3):  # dw x e_c = -[e_c x] dw
             out[:, c] -= np.einsum("ab,nbp->nap", skew(np.eye(3)[c]), dD)
-    return out, mbar
+    return out
 
 
 _I3 = np.eye(3)
@@ -629,10 +607,7 @@ def _encoder_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
                              f"follow the gyros ({rms * 1e3:.1f} mrad RMS over 2 s windows), "
                              "encoder not used")
                 continue
-        n = (len(th) // block_n) * block_n
-        idx = np.arange(0, n, block_n) - (1 if interval else 0)
-        ok = idx >= 0
-        idx = np.clip(idx, 0, len(th) - 1)
+        idx, ok = _block_starts(len(th), block_n, interval)
         out.append(_Encoder(z=sign * (th[idx] - th[0]), theta=th[idx], ok=ok, sign=sign))
         d = np.abs(np.diff(ang[cy.sl]))
         d = d[d > 1e-12]
@@ -648,6 +623,14 @@ def _encoder_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
 
 
 ENCODER_MODES = ("auto", "angle", "rate", "both", "off")
+
+
+def _block_starts(n_samples: int, block_n: int, interval: bool):
+    """The sample index of each block's start and whether it exists: the block's first
+    stamp, or for interval-mean samples (sample k spans [t_k - dt, t_k]) the stamp before
+    it (the first block's start has no reading)."""
+    idx = np.arange(0, (n_samples // block_n) * block_n, block_n) - (1 if interval else 0)
+    return np.clip(idx, 0, n_samples - 1), idx >= 0
 # rad: the integrated rate channel's reading noise, as the encoder's floor (the trapezoid
 # rule's error on the profiles' kinks is far below it)
 _RATE_ANGLE_FLOOR = 2e-5
@@ -744,9 +727,7 @@ def _rate_setup(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
         # which also turns the attitude (a rate row's error; docs/turntable.md)
         tt = rec.time[cy.sl] - rec.time[cy.sl][0]
         ang = np.concatenate([[0.0], np.cumsum(0.5 * (r[1:] + r[:-1]) * np.diff(tt))])
-        idx = np.arange(0, n, block_n) - (1 if interval else 0)
-        ok = idx >= 0
-        idx = np.clip(idx, 0, len(r) - 1)
+        idx, ok = _block_starts(len(r), block_n, interval)
         out.append(_RateChannel(z=sign * ang[idx], t=tt[idx], ok=ok, sign=sign))
         sig.append(sig_r)
     if all(c is None for c in out):
@@ -877,7 +858,6 @@ def _filter_pass(rec, cycles, L: _Layout, theta_lin, prior_mean, prior_sd, opt: 
     innov, nis, hist_t, hist_s, lowrate, enc_innov = [], [], [], [], [], []
     rate_innov = []
     ax_v2, ax_hph, runout = [], [], []
-    interval = rec.sample_kind == "interval-mean"
     hist_idx, hist_x = [], []
     if record_history:
         if L.est_s:

@@ -141,6 +141,24 @@ def exp_matrix(phi) -> np.ndarray:
     return out
 
 
+def left_jacobian(phi: np.ndarray) -> np.ndarray:
+    """SO(3)'s left Jacobian J_l(phi) (n, 3, 3) of rotation vectors phi (n, 3), rad:
+    Exp(phi + d) = Exp(J_l(phi) d) Exp(phi) to first order in d, i.e. how a change of a
+    step's rate moves the attitude at the step's end. J_l = I + a [phi x] + b [phi x]^2,
+    a = (1 - cos t) / t^2, b = (t - sin t) / t^3, t = |phi| (series below 1e-3 rad)."""
+    phi = np.asarray(phi, dtype=float)
+    t2 = np.einsum("ni,ni->n", phi, phi)
+    t = np.sqrt(t2)
+    small = t < 1e-3
+    ts = np.where(small, 1.0, t)
+    a = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
+    b = np.where(small, 1.0 / 6.0 - t2 / 120.0, (ts - np.sin(ts)) / ts**3)
+    # [phi x]^2 = phi phi^T - |phi|^2 I, without a batched matrix product
+    J = b[:, None, None] * (phi[:, :, None] * phi[:, None, :]) + a[:, None, None] * skew(phi)
+    J[:, (0, 1, 2), (0, 1, 2)] += (1.0 - b * t2)[:, None]
+    return J
+
+
 def log_matrix(M: np.ndarray) -> np.ndarray:
     """Rotation vector (3,) of one rotation matrix M (3, 3) of angle below 180 deg, rad
     (the inverse of ``exp_matrix``)."""
