@@ -37,16 +37,12 @@ REPORTED_ONLY: dict = {}
 # noise terms whose fitted figure scatters more than the best single Allan reading of a
 # continuous static record of the same length allows (measured: below 95 % of the
 # channels within its 95 % interval); reported, and held above ALLAN_FLOOR: {case: why}
-_GYRO_WHY = ("the gyro method sees the wander only through its ~78 equations (static means, "
-             "transitions, turns), not the samples: its figure scatters more than a reading of "
-             "the continuous record")
 # (the engine's random walks, accel and turntable gyro, were here at 82-83 % until their
 # figure was read by the restricted likelihood on a refined grid, diagnose_stoch.fit_process:
-# now near the Cramer-Rao bound of the record, benchmarks/allan18_crb.py)
-ALLAN_REPORTED = {
-    "gyro: gyro bias_random_walk": _GYRO_WHY,
-    "gyro: gyro bias_instability": _GYRO_WHY,
-}
+# now near the Cramer-Rao bound of the record, benchmarks/allan18_crb.py; the gyro
+# method's two wanders, at 80.8-90.0 %, until its likelihood took the within-static
+# piece-mean contrasts, diagnose_gyro_wander.SubMeans)
+ALLAN_REPORTED: dict = {}
 ALLAN_FLOOR = 0.75
 _ROWS: dict = {}
 

@@ -16,40 +16,41 @@ import ctypes
 import glob
 import os
 
-_LIB = None
-_TRIED = False
+_LIBS = None
 
 
-def _lib():
-    global _LIB, _TRIED
-    if _TRIED:
-        return _LIB
-    _TRIED = True
-    try:
-        import numpy as np
-
-        pattern = os.path.join(os.path.dirname(np.__file__), os.pardir, "numpy.libs",
-                               "*openblas*")
-        for path in glob.glob(pattern):
-            lib = ctypes.CDLL(path)
-            if hasattr(lib, "scipy_openblas_set_num_threads64_") and hasattr(
-                    lib, "scipy_openblas_get_num_threads64_"):
-                _LIB = lib
-                break
-    except OSError:
-        _LIB = None
-    return _LIB
+def _libs() -> list:
+    """(set, get) of each bundled OpenBLAS found: numpy's (64-bit integers) and
+    SciPy's (scipy.linalg uses its own copy)."""
+    global _LIBS
+    if _LIBS is not None:
+        return _LIBS
+    _LIBS = []
+    for mod, suffix in (("numpy", "64_"), ("scipy", "")):
+        try:
+            m = __import__(mod)
+            pattern = os.path.join(os.path.dirname(m.__file__), os.pardir, f"{mod}.libs",
+                                   "*openblas*")
+            for path in glob.glob(pattern):
+                lib = ctypes.CDLL(path)
+                set_, get = (getattr(lib, f"scipy_openblas_{n}_num_threads{suffix}", None)
+                             for n in ("set", "get"))
+                if set_ is not None and get is not None:
+                    _LIBS.append((set_, get))
+                    break
+        except (OSError, ImportError):
+            continue
+    return _LIBS
 
 
 @contextlib.contextmanager
 def one_blas_thread():
-    lib = _lib()
-    if lib is None:
-        yield
-        return
-    before = int(lib.scipy_openblas_get_num_threads64_())
-    lib.scipy_openblas_set_num_threads64_(1)
+    libs = _libs()
+    before = [int(get()) for _, get in libs]
+    for set_, _ in libs:
+        set_(1)
     try:
         yield
     finally:
-        lib.scipy_openblas_set_num_threads64_(before)
+        for (set_, _), n in zip(libs, before):
+            set_(n)

@@ -127,6 +127,14 @@ def diagnose_gyro(rec: Recording, base: str = "full", alpha: float = ALPHA,
                   max_steps: int = MAX_STEPS, accel: CalibrationResult | None = None,
                   wanders: bool = True) -> GyroDiagnosis:
     """The workflow on a gyro record (module docstring)."""
+    from calib_cli.methods.blas_threads import one_blas_thread
+
+    with one_blas_thread():  # small dense systems: threads only contend
+        return _diagnose_gyro(rec, base, alpha, max_steps, accel, wanders)
+
+
+def _diagnose_gyro(rec: Recording, base: str, alpha: float, max_steps: int,
+                   accel: CalibrationResult | None, wanders: bool) -> GyroDiagnosis:
     from calib_cli.methods.accel_lsq import fit_accel
     from calib_cli.methods.gyro import excitation, fit_gyro
 

@@ -43,6 +43,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from scipy.linalg import cholesky, solve_triangular
 
 from calib_cli.model.effects import FLICKER_SCALE, FLICKER_TAUS
 
@@ -253,9 +254,10 @@ class WanderLikelihood:
         V = np.eye(n)
         if kind is not None:
             V = V + np.tensordot(np.asarray(x, float) ** 2, self.M[kind], axes=1)
-        L = np.linalg.cholesky(V)
-        rw = np.linalg.solve(L, r)
-        Aw = np.linalg.solve(L, A)
+        L = cholesky(V, lower=True, check_finite=False)
+        # L is triangular: a triangular solve, not a general one (half the run time)
+        w = solve_triangular(L, np.column_stack([r, A]), lower=True, check_finite=False)
+        rw, Aw = w[:, 0], w[:, 1:]
         d, *_ = np.linalg.lstsq(Aw, rw, rcond=None)
         e = rw - Aw @ d
         m2 = float(e @ e + 2.0 * np.log(np.diag(L)).sum())

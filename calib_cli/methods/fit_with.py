@@ -209,7 +209,8 @@ def fit_with_gyro(rec: Recording, effects, base: str = "full", accel=None,
         W = WanderLikelihood(rec, acc, structure)
         if names:  # the equations' response to the wander at the base model, as diagnose
             W.linear([], fit_gyro(rec, acc, "off", accel_independent, structure=structure))
-        res = with_wander(W, W.linear(names, res), res, wanders[0])[0]
+        with one_blas_thread():  # small dense systems: threads only contend
+            res = with_wander(W, W.linear(names, res), res, wanders[0])[0]
     res.stats["with"] = [with_arg(n, s) for n, s in effects]
     res.stats["base"] = base
     res.stats["base_model"] = ["gyro_bias", f"gyro_K ({'diagonal' if base == 'diagonal' else 'full'})"]
