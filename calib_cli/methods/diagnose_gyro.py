@@ -39,10 +39,11 @@ from calib_cli.methods.fit_with import GYRO_EFFECTS, fit_command, gyro_effect
 
 R2D = 180.0 / np.pi
 # below this margin of likelihood ratio the two wanders are reported as not separable:
-# on the linearised gyro equations of the validation plan (212 s), a hidden flicker is
-# named first in 84.5 % of 1000 draws at 5-10x its sigma (94 % at 10x that; a hidden
-# random walk in 100 %) and named first or within 12 of the other in 99.4 %, while a
-# random walk is within 12 of flicker in 1.7 % (docs/diagnose.md, "The gyro method")
+# on the linearised gyro equations and within-static contrasts of the validation plan
+# (212 s; benchmarks/gyro_wander_separation.py, 120 draws a row) a hidden flicker at
+# 5-10x its sigma is named first in 100 % and within 12 of the walk in 2.5 %; at half
+# that size named first in 88 %, named first or within 12 in 100 %; a hidden random walk
+# is within 12 of flicker in 0-0.8 % (docs/diagnose.md, "The gyro method")
 WANDER_MARGIN = 12.0
 
 
