@@ -395,3 +395,19 @@ def test_gyro_within_static_contrasts_are_white_and_bias_free():
     moved = SubMeans(prob, rec.with_(gyro=gy)).residuals(model, p) - r
     assert np.allclose(moved, 1e-3 * J[:, ps[1], 1], rtol=1e-6, atol=1e-9)
     assert np.count_nonzero(np.abs(moved) > 1e-12) == len(ps) - 1
+
+
+def test_gyro_within_static_contrasts_absent_on_short_positions():
+    """Positions shorter than two whole pieces give no contrast rows: the wander
+    likelihood is then that of the fit's own equations alone (no error, no rows)."""
+    from types import SimpleNamespace
+
+    from calib_cli.methods.diagnose_gyro_wander import SubMeans
+
+    t = np.arange(0.0, 6.0, 0.02)
+    rec = SimpleNamespace(time=t, gyro=np.zeros((len(t), 3)), temp=None)
+    statics = [SimpleNamespace(start=10, stop=80), SimpleNamespace(start=160, stop=240)]
+    sub = SubMeans(SimpleNamespace(statics=statics, sig_gyro=np.ones(3)), rec)
+    assert sub.n_rows == 0 and sub.groups == []
+    assert sub.residuals(None, {}).shape == (0,)
+    assert sub.response(6).shape == (0, 6, 3)

@@ -4,9 +4,11 @@ The fits of ``diagnose`` solve many small systems (tens to a few hundred
 unknowns). A multi-threaded OpenBLAS gains nothing there and, on a loaded
 machine, loses up to two orders of magnitude to thread contention (measured:
 eigh of 100 x 100, 250 ms with the default threads under load, 3 ms on one).
-``one_blas_thread`` sets numpy's bundled OpenBLAS to one thread for the
-duration of a block and restores the previous count; where that library or
-its symbols are not found it does nothing.
+``one_blas_thread`` sets the bundled OpenBLAS of numpy and of SciPy (scipy.linalg
+has its own copy; the gyro wander likelihood's Cholesky runs there: 45 s of CPU a
+gyro diagnosis with two workers on two cores, 5.2 s on one thread) to one thread
+for the duration of a block and restores the previous counts; a library or
+symbol that is not found is left alone.
 """
 
 from __future__ import annotations

@@ -204,12 +204,12 @@ def fit_with_gyro(rec: Recording, effects, base: str = "full", accel=None,
             extra.append(e)
             names.append(name)
     structure = "diagonal" if base == "diagonal" else "full"
-    res = fit_gyro(rec, acc, "off", accel_independent, extra=extra, structure=structure)
-    if wanders:
-        W = WanderLikelihood(rec, acc, structure)
-        if names:  # the equations' response to the wander at the base model, as diagnose
-            W.linear([], fit_gyro(rec, acc, "off", accel_independent, structure=structure))
-        with one_blas_thread():  # small dense systems: threads only contend
+    with one_blas_thread():  # small dense systems: threads only contend (as diagnose_gyro)
+        res = fit_gyro(rec, acc, "off", accel_independent, extra=extra, structure=structure)
+        if wanders:
+            W = WanderLikelihood(rec, acc, structure)
+            if names:  # the equations' response to the wander at the base model, as diagnose
+                W.linear([], fit_gyro(rec, acc, "off", accel_independent, structure=structure))
             res = with_wander(W, W.linear(names, res), res, wanders[0])[0]
     res.stats["with"] = [with_arg(n, s) for n, s in effects]
     res.stats["base"] = base
