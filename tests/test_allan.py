@@ -105,7 +105,7 @@ def test_noise_terms_recovered_many_seeds():
     print("\n".join(lines))
     docs = Path(__file__).resolve().parents[1] / "docs"
     if docs.is_dir():
-        (docs / "allan_validation.md").write_text("\n".join(lines) + "\n")
+        (docs / "validation" / "allan.md").write_text("\n".join(lines) + "\n")
     assert np.all(np.abs(ratio["random_walk"] - 1) <= 0.10)
     assert np.all(np.abs(ratio["bias_instability"] - 1) <= 0.25)
     assert inside["quantization"].mean() >= 0.9  # no quantisation simulated: not visible

@@ -1,4 +1,4 @@
-"""The issue-6 comparisons on real recordings (docs/validation.md).
+"""The issue-6 comparisons on real recordings (docs/validation/datasets.md).
 
 Datasets live at <repo>/../shared/datasets (CI clones the repo with shared/
 beside it); CALIB_DATASETS overrides the location.
@@ -99,8 +99,8 @@ def test_ferraris_example_session_sign_from_transitions():
 @needs_xsens
 @needs_imucal
 def test_write_validation_md():
-    """make validate: regenerate docs/validation.md."""
-    out = Path(__file__).resolve().parents[1] / "docs" / "validation.md"
+    """make validate: regenerate docs/validation/datasets.md."""
+    out = Path(__file__).resolve().parents[1] / "docs" / "validation" / "datasets.md"
     out.parent.mkdir(exist_ok=True)
     text = vd.markdown(ROOT)
     out.write_text(text, encoding="utf-8")

@@ -6,7 +6,7 @@ diagnose_cases) named first in >= 95 % with the final residual within 1.2x the
 noise floor, nothing added on clean data in >= 95 %. The per-seed final residual
 / floor is reported (max, share within 1.05x and within the chi^2 99 % point of
 the gyro fit's ~70 degrees of freedom, where sqrt(chi^2/dof) scatters by ~9 %).
-Writes its section of docs/diagnose-validation.md. CALIB_DIAG_N sets the cases per
+Writes its section of docs/validation/diagnose.md. CALIB_DIAG_N sets the cases per
 effect (default 40); CALIB_DIAG_CACHE=DIR keeps each finished row there.
 """
 
@@ -22,7 +22,7 @@ from calib_cli.validation import diagnose_validate as V
 
 pytestmark = pytest.mark.slow
 N = int(os.environ.get("CALIB_DIAG_N", "40"))
-DOC = Path(__file__).resolve().parent.parent / "docs" / "diagnose-validation.md"
+DOC = Path(__file__).resolve().parent.parent / "docs" / "validation" / "diagnose.md"
 _RESULTS: dict = {}
 
 

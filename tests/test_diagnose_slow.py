@@ -1,5 +1,5 @@
 """calib diagnose, many cases (`make validate K=diagnose_slow`): the rates of issue 7, written to
-docs/diagnose-validation.md.
+docs/validation/diagnose.md.
 
 - each hidden effect (every observable entry U(5, 10) x its own sigma) is named
   first in >= 95 % of the cases and the final residual RMS is within 1.2x the
@@ -31,7 +31,7 @@ from calib_cli.validation import diagnose_validate as V
 
 pytestmark = pytest.mark.slow
 N = int(os.environ.get("CALIB_DIAG_N", "40"))
-DOC = Path(__file__).resolve().parent.parent / "docs" / "diagnose-validation.md"
+DOC = Path(__file__).resolve().parent.parent / "docs" / "validation" / "diagnose.md"
 _RESULTS: dict = {}
 
 

@@ -3,7 +3,7 @@ validate K=diagnose_turntable`: one hidden effect (lever arm, g-sensitivity, tim
 at once (lever arm + g-sensitivity), each observable entry U(5, 10) x its own sigma with a
 random sign, 20 seeds per case. Per case: the seeds where diagnose names exactly the
 hidden effects and stops, and those whose final residual RMS is within 1.05x the noise.
-Writes docs/turntable-diagnose-validation.md.
+Writes docs/validation/turntable-diagnose.md.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import pytest
 
 pytestmark = pytest.mark.slow
 SEEDS = int(os.environ.get("CALIB_TT_DIAG_SEEDS", "20"))
-DOC = Path(__file__).resolve().parents[1] / "docs" / "turntable-diagnose-validation.md"
+DOC = Path(__file__).resolve().parents[1] / "docs" / "validation" / "turntable-diagnose.md"
 CASES = {"lever_arm": ["lever_arm"], "gyro g_sensitivity": ["gyro g_sensitivity"],
          "time_offset": ["time_offset"],
          "lever_arm + gyro g_sensitivity": ["lever_arm", "gyro g_sensitivity"]}

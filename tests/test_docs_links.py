@@ -99,7 +99,7 @@ def test_contract_text_matches_shared_contract():
 
 
 def test_every_relative_link_resolves():
-    files = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+    files = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
     bad = {str(f.relative_to(REPO)): b for f in files if (b := broken_links(f))}
     assert not bad, f"broken links: {bad}"
 

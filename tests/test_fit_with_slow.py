@@ -11,7 +11,7 @@ the same length in >= 95 % of the channels over the seeds.
 
 40 seeds per case and method (CALIB_WITH_N sets another number), the (case, seed)
 fits on CALIB_DIAG_WORKERS processes (default 2). Each part writes its own
-section of docs/diagnose-validation.md.
+section of docs/validation/diagnose.md.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from calib_cli.validation import diagnose_validate as V
 pytestmark = pytest.mark.slow
 N = int(os.environ.get("CALIB_WITH_N", "40"))
 WORKERS = int(os.environ.get("CALIB_DIAG_WORKERS", "2"))
-DOC = Path(__file__).resolve().parent.parent / "docs" / "diagnose-validation.md"
+DOC = Path(__file__).resolve().parent.parent / "docs" / "validation" / "diagnose.md"
 PARTS = {"static": ("accel",), "turntable": ("turntable",), "rimu": ("rimu",),
          "align": ("align",), "gyro": ("gyro",)}
 # measured and reported, not asserted: {case: why}

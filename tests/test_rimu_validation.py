@@ -1,6 +1,6 @@
 """Statistical acceptance of the RIMU calibration (make validate): the
 tetrahedron unit with ADIS16405-class sensors, many seeds. Writes
-docs/rimu-validation.md and docs/figures/rimu_normalized_errors.png."""
+docs/validation/rimu.md and docs/figures/rimu_normalized_errors.png."""
 
 from __future__ import annotations
 
@@ -123,7 +123,7 @@ def _write_docs(n_seeds, z, rms, below, by_key, acc_err, gyr_err, acc_rms, gyr_r
         f"{int((gyr_err.max(axis=1) > 0.01).sum())} of {n_seeds} (the gyro error is "
         "limited by the 10 s per position: each position mean has 0.016 deg/s of noise).",
         "",
-        "![normalised errors](figures/rimu_normalized_errors.png)",
+        "![normalised errors](../figures/rimu_normalized_errors.png)",
         "",
     ]
-    (docs / "rimu-validation.md").write_text("\n".join(lines))
+    (docs / "validation" / "rimu.md").write_text("\n".join(lines))

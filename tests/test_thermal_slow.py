@@ -1,5 +1,5 @@
 """`calib fit thermal` over many seeds (`make validate`), issue 21's figures;
-writes docs/thermal-validation.md. CALIB_THERMAL_N sets the seeds (20)."""
+writes docs/validation/thermal.md. CALIB_THERMAL_N sets the seeds (20)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from calib_cli.validation import thermal_validate as V
 
 pytestmark = pytest.mark.slow
 N = int(os.environ.get("CALIB_THERMAL_N", "20"))
-DOC = Path(__file__).resolve().parent.parent / "docs" / "thermal-validation.md"
+DOC = Path(__file__).resolve().parent.parent / "docs" / "validation" / "thermal.md"
 _R: dict = {}
 
 

@@ -4,8 +4,8 @@ drift 0.1 deg/h, accelerometer bias 6e-4 g, ... ; proof-mass offsets of 5 mm, le
 arms up to 30 cm measured on the housing to 5 mm), the paper's noise (0.1 deg/h and
 3e-4 g, read as the 1-sigma of a 1 s mean), the 9-cycle plan plus six check positions
 (each axis up and down), fitted with ``--grade navigation --noise``. Pooled within-sigma
-rule per parameter group and on the check positions' z. Writes docs/figures/
-turntable_nav_grade.md (quoted in docs/papers.md)."""
+rule per parameter group and on the check positions' z. Writes
+docs/validation/turntable-nav-grade.md (quoted in docs/papers.md)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ NOISE_1S = {"accel": 3e-4 * G0, "gyro": float(np.radians(0.1 / 3600.0))}  # 1-si
 CYCLE_S, TILTED_S, CHECK_S = 300.0, 150.0, 30.0
 # attitudes putting +z, -z, +x, -x, +y, -y up (roll, pitch, yaw deg): [90, 0, 0] is +y up
 CHECK_ATTITUDES = ([0, 0, 0], [180, 0, 0], [0, -90, 0], [0, 90, 0], [90, 0, 0], [-90, 0, 0])
-OUT = Path(__file__).resolve().parents[1] / "docs" / "figures" / "turntable_nav_grade.md"
+OUT = Path(__file__).resolve().parents[1] / "docs" / "validation" / "turntable-nav-grade.md"
 GROUPS = ("accel_bias", "accel_K", "gyro_bias", "gyro_K", "gyro_D", "lever_arm",
           "proof_mass_offsets")
 

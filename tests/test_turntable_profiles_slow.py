@@ -1,6 +1,6 @@
 """Many-seed validation of `calib fit turntable` over the rate-profile families of a real
 table and both sample kinds (issue 14). make validate K=turntable; writes
-docs/turntable-profiles-validation.md.
+docs/validation/turntable-profiles.md.
 
 3-cycle plans (3 x 400 s) for trapezoids at 50, 100, 300 and 1000 deg/s^2, smooth,
 S-curve and sinusoid, instant and interval-mean samples, 20 seeds each (CALIB_TT_SEEDS;
@@ -26,7 +26,7 @@ from tests.turntable_profiles import FAMILIES, normalized_errors, profile_record
 
 SEEDS = int(os.environ.get("CALIB_TT_SEEDS", "20"))
 DURATION = float(os.environ.get("CALIB_TT_DURATION", "400"))
-DOC = Path(__file__).resolve().parents[1] / "docs" / "turntable-profiles-validation.md"
+DOC = Path(__file__).resolve().parents[1] / "docs" / "validation" / "turntable-profiles.md"
 GROUPS = ["accel_bias", "accel_K", "gyro_bias", "gyro_K", "gyro_D", "lever_arm",
           "proof_mass_offsets"]
 
@@ -109,7 +109,7 @@ def test_turntable_profile_families():
 
 
 ENC_SEEDS = int(os.environ.get("CALIB_TT_ENC_SEEDS", "20"))
-ENC_DOC = DOC.with_name("turntable-encoder-validation.md")
+ENC_DOC = DOC.with_name("turntable-encoder.md")
 
 
 def _encoder_case(seed):
@@ -138,7 +138,7 @@ def test_turntable_encoder_channels():
     sigma on the same record, the within-sigma rule per group, the diagonal gyro scale
     factors' sigma reported against the issue's 1e-6 (docs/turntable.md: the noise floor
     of 0.05 deg/s per sample allows no less than 1.0e-6 in 600 s even at a constant
-    200 deg/s). Writes docs/turntable-encoder-validation.md."""
+    200 deg/s). Writes docs/validation/turntable-encoder.md."""
     t0 = time.perf_counter()
     with get_context("fork").Pool(2) as pool:
         results = sorted(pool.imap_unordered(_encoder_case, range(ENC_SEEDS)),

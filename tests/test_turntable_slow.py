@@ -1,6 +1,6 @@
 """Many-seed validation of the rotating-table fit (make validate).
 
-Writes docs/figures/turntable_validation.md (the tables quoted in
+Writes docs/validation/turntable.md (the tables quoted in
 docs/turntable.md) and docs/figures/turntable_sigma_history*.png.
 Set TT_WORKERS=2 to run the seeds in two processes.
 """
@@ -196,7 +196,7 @@ def test_turntable_validation():
               f"Taking the plan's axis as exact instead (`--table-tilt-deg 0`), 5 seeds tilted "
               f"by up to 0.1 deg: pooled RMS z = {exact[0]:.2f}, {100 * exact[1]:.1f} % below "
               f"3.3, max |z| = {exact[2]:.1f}."]
-    (DOCS / "turntable_validation.md").write_text("\n".join(lines) + "\n")
+    (DOCS.parent / "validation" / "turntable.md").write_text("\n".join(lines) + "\n")
     sigma_history_plot(std[0]["res"], DOCS / "turntable_sigma_history.png",
                        "3 standard cycles x 600 s: sigma of lever arms and proof-mass offsets")
     sigma_history_plot(til[0][False]["res"], DOCS / "turntable_sigma_history_tilted.png",

@@ -1,6 +1,6 @@
 """Statistical acceptance of the static accelerometer fit (make validate).
 
-Writes docs/validation-accel.md with the pooled normalized-error figures.
+Writes docs/validation/accel.md with the pooled normalized-error figures.
 """
 
 from pathlib import Path
@@ -17,7 +17,7 @@ from tests.conftest import TRUTH_SI, TWELVE, pooled_ok, random_unit_attitudes, s
 from tests.test_accel import COUNTS, z_scalar, z_vector
 
 SEEDS = 40
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "validation-accel.md"
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "validation" / "accel.md"
 ROWS = []
 
 

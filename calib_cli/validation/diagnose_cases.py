@@ -133,7 +133,7 @@ GYRO_CASES = [c for c, v in CASES.items() if v[0] == "gyro"]
 MAIN_CASES = [c for c, v in CASES.items() if v[0] != "gyro"]
 
 
-# measured and reported in docs/diagnose-validation.md, not asserted: {case: why}
+# measured and reported in docs/validation/diagnose.md, not asserted: {case: why}
 # (the gyro method's wandering biases are candidates since issue 18's validation:
 # methods/diagnose_gyro_wander.py)
 REPORTED_ONLY: dict = {}
@@ -218,7 +218,7 @@ def hidden_effect_truth(case: str, rng, scale=(5.0, 10.0), params: dict | None =
     elif params is None and name == "bias_instability":
         # a flicker figure B of U(5, 10) x BI_BIN_SIGMAS times the noise of one 0.5 s bin
         # mean per channel: the truth is then 6-20 times the fitted figure's own sigma
-        # (docs/diagnose-validation.md)
+        # (docs/validation/diagnose.md)
         n_bin = 0.5 * plan.sample_rate
         white = np.asarray(t.noise[f"{sensor}_white"], float)
         p[f"{sensor}_bias_instability"] = (rng.uniform(*scale, size=3) * BI_BIN_SIGMAS

@@ -1,5 +1,5 @@
 """Many-case validation of ``calib diagnose`` (run by tests/test_diagnose_slow.py,
-`make validate`; writes docs/diagnose-validation.md).
+`make validate`; writes docs/validation/diagnose.md).
 
     python -m calib_cli.validation.diagnose_validate N OUT.md
 """

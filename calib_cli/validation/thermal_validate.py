@@ -1,5 +1,5 @@
 """Many-seed validation of `calib fit thermal` (tests/test_thermal_slow.py,
-docs/thermal-validation.md): pooled coefficient errors per parameter group
+docs/validation/thermal.md): pooled coefficient errors per parameter group
 for the soak and the ramp design, the corrected |g| error of a hold-out
 record per temperature against its noise floor, and the thermal-lag case."""
 
