@@ -62,11 +62,10 @@ def read_fingerprint(path: str) -> str | None:
 
 
 def _stamp_h5(path: str, stamp: dict) -> None:
-    import h5py
+    from calib_cli.io.h5file import h5_writer, set_attrs
 
-    with h5py.File(path, "r+") as h5:
-        for k, v in stamp.items():
-            h5.attrs[k] = v
+    with h5_writer(path, "r+") as h5:  # a full disk: exit 2 naming it, never a crash
+        set_attrs(h5, stamp)
 
 
 def _source_artifacts(src: str) -> dict:

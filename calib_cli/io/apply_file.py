@@ -4,11 +4,20 @@ long recordings. The corrections themselves are ``methods/apply.py``."""
 
 from __future__ import annotations
 
-import h5py
 import numpy as np
 
 from calib_cli.errors import InputError
-from calib_cli.io.h5 import atomic_path, open_checked, read_calibration, write_provenance
+from calib_cli.io.h5 import (
+    _attr_str,
+    open_checked,
+    read_calibration,
+    read_segments,
+    read_site_layout,
+    write_provenance,
+    write_segments,
+    write_site_layout,
+)
+from calib_cli.io.h5file import h5_output, put, set_text
 from calib_cli.methods.apply import (
     apply_redundant,
     apply_triad,
@@ -43,9 +52,11 @@ def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = F
             raise InputError("missing group /samples (a recording is expected here)", raw)
         smp = src["samples"]
         validate.check_segments_layout(src, raw, validate.check_samples_layout(smp, raw))
-        validate.check_time(validate.load(smp["time"], raw), raw)
-        units = {s: (smp.attrs.get(f"{s}_units", "") or "") for s in ("accel", "gyro")}
-        units = {k: v.decode() if isinstance(v, bytes) else str(v) for k, v in units.items()}
+        time = validate.load(smp["time"], raw)
+        validate.check_time(time, raw)
+        units = {s: _attr_str(smp, f"{s}_units", "") for s in ("accel", "gyro")}
+        segments = read_segments(src, raw)
+        site, layout = read_site_layout(src, raw)
         check_units(c, units, raw)
         chans = corrected_channels(c)
         n = smp["time"].shape[0]
@@ -60,18 +71,23 @@ def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = F
                                  "no temperature column (give --temp DEGC)", raw)
             check_temperature(c, temp_in, raw, extrapolate)
             temp_eff = effective_temperature(c, smp["time"][...], temp_in)
-        with atomic_path(out) as tmp, h5py.File(tmp, "w") as dst:
+        with h5_output(out) as dst:
             write_provenance(dst, "corrected", [cal, raw], c.serial or (
-                src.attrs.get("unit_serial") or None),
-                {"plan_kind": src.attrs.get("plan_kind", "static"),
+                _attr_str(src, "unit_serial") or None),
+                {"plan_kind": _attr_str(src, "plan_kind", "static"),
                  "corrected_channels": ",".join(chans)})
-            for name in ("segments", "site", "layout", "plan"):
-                if name in src:
-                    src.copy(name, dst)
+            # through the checked readers, not copied: a damaged input is not passed on
+            write_segments(dst, segments)
+            write_site_layout(dst, site, layout)
+            if "plan" in src:
+                set_text(dst.create_group("plan"), "text", _attr_str(src["plan"], "text"))
             out_s = dst.create_group("samples")
-            for k in smp:
-                if k not in ("accel", "gyro"):
-                    smp.copy(k, out_s)
+            put(out_s, "time", time)
+            for k in ("temp", "table_angle", "table_rate"):
+                if k in smp:
+                    put(out_s, k, validate.load(smp[k], raw))
+            if "sample_kind" in smp.attrs:
+                set_text(out_s, "sample_kind", _attr_str(smp, "sample_kind"))
             acc = out_s.create_dataset("accel", shape=smp["accel"].shape, dtype="f8", fletcher32=True,
                                        chunks=True)
             gyr = (out_s.create_dataset("gyro", shape=smp["gyro"].shape, dtype="f8", chunks=True,
@@ -119,6 +135,6 @@ def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = F
                 acc[a:b] = f
                 if gyr is not None:
                     gyr[a:b] = w
-            out_s.attrs["accel_units"] = "m/s^2" if "accel" in chans else units["accel"]
-            out_s.attrs["gyro_units"] = "rad/s" if "gyro" in chans else units["gyro"]
+            set_text(out_s, "accel_units", "m/s^2" if "accel" in chans else units["accel"])
+            set_text(out_s, "gyro_units", "rad/s" if "gyro" in chans else units["gyro"])
     return n, chans

@@ -26,12 +26,12 @@ from calib_cli.data import Segment
 from calib_cli.errors import InputError
 from calib_cli.geometry import Layout
 from calib_cli.io.h5 import (
-    atomic_path,
     sha256_file,
     write_provenance,
     write_segments,
     write_site_layout,
 )
+from calib_cli.io.h5file import h5_output, set_attrs, set_text
 from calib_cli.methods.static_stream import OnlineFloors, StreamDetector
 from calib_cli.plan import Plan, plan_layout  # noqa: F401  (plan_layout re-exported)
 
@@ -275,7 +275,7 @@ def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_st
 
     layout = plan_layout(plan)
     units = convert_units(np.zeros((1, 3)), np.zeros((1, 3)), accel_units, gyro_units, path)[2]
-    with atomic_path(out) as tmp, h5py.File(tmp, "w") as h5:
+    with h5_output(out) as h5:
         smp = h5.create_group("samples")
         sink = _Sink(smp)
         runs = None
@@ -329,16 +329,13 @@ def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_st
         layout = Layout(layout.n, layout.el0, layout.az0, n_cycles)
         write_provenance(h5, "raw", [], plan.serial, {"plan_kind": plan.kind})
         known = hashes() if hashes else {}
-        h5.attrs["input_sha256"] = json.dumps(
-            {str(p): known.get(str(p)) or sha256_file(p) for p in inputs if p and Path(p).is_file()})
-        smp.attrs["accel_units"] = units["accel"]
-        smp.attrs["gyro_units"] = units["gyro"]
-        smp.attrs["sample_kind"] = sample_kind
+        set_text(h5, "input_sha256", json.dumps(
+            {str(p): known.get(str(p)) or sha256_file(p) for p in inputs if p and Path(p).is_file()}))
+        set_attrs(smp, {"accel_units": units["accel"], "gyro_units": units["gyro"],
+                        "sample_kind": sample_kind})
         write_segments(h5, segments)
         write_site_layout(h5, plan.site, layout)
-        h5.create_group("plan").attrs["text"] = plan.text
+        set_text(h5.create_group("plan"), "text", plan.text)
         if counters:
-            c = h5.create_group("counters")
-            for k, v in counters.items():
-                c.attrs[k] = v
+            set_attrs(h5.create_group("counters"), counters)
     return ImportSummary(n, tuple(segments), units, counters)

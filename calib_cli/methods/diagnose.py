@@ -218,8 +218,8 @@ def _new_entries(cand_fit: Fit, cur: Fit, keys: set) -> tuple[dict, dict, int]:
     k = sum(1 for j, lab in enumerate(cand_fit.labels)
             if lab[0] in keys and not cand_fit.unobs[j])
     if "lever_arm" in keys:
-        k -= cand_fit.n_constraints
-    return params, sigma, k
+        k -= cand_fit.lever_constraints
+    return params, sigma, max(k, 0)
 
 
 def neg2ll(fit: Fit, pb: Problem, skip_first: str | None = None) -> float:
