@@ -94,6 +94,7 @@ def _wrap(cmd: click.Command) -> None:
 
     @functools.wraps(cb)
     def guarded(*args, **kwargs):
+        from calib_cli.errors import CalibError
         from calib_cli.io.outpath import check_output, check_outputs_apart
 
         _check_numbers(cmd, kwargs)
@@ -101,6 +102,7 @@ def _wrap(cmd: click.Command) -> None:
         inputs = [x for n in path_params if n not in outs for x in _flat(kwargs.get(n))]
         for x in inputs:
             _regular_or_dir(x)
+        files = [x for x in inputs if _is_file(x)]
         inputs += [x for n in profiles for x in _flat(kwargs.get(n)) if _is_file(x)]
         named = []  # (option, path, directory) of every output
         for n in sorted(outs):
@@ -109,7 +111,12 @@ def _wrap(cmd: click.Command) -> None:
                 check_output(v, inputs, directory=directory, option=_option_name(cmd, n))
                 named.append((_option_name(cmd, n), v, directory))
         check_outputs_apart(named, inputs)
-        return cb(*args, **kwargs)
+        try:
+            return cb(*args, **kwargs)
+        except CalibError as exc:  # a core error naming no file: the one input it came from
+            if exc.path is None and len(files) == 1:
+                exc.path = str(files[0])
+            raise
 
     guarded._calib_guarded = True
     cmd.callback = guarded
