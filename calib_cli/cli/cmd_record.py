@@ -15,7 +15,7 @@ from rich.table import Table
 
 from calib_cli.cli.common import Ctx, complete_profile, err_console, info, interactive
 from calib_cli.cli.main import cli
-from calib_cli.errors import InputError
+from calib_cli.errors import CalibError, InputError
 
 COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
 
@@ -320,7 +320,11 @@ def _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
     rec = journal_to_recording(journal_path)
     inputs = [p for p in (plan_path, prof.path, tprof.path if tprof else None,
                          cprof.path if cprof and cprof.kind != "manual" else None) if p]
-    write_raw(out, rec, inputs)
+    try:
+        write_raw(out, rec, inputs)
+    except CalibError as exc:  # a full disk: the journal keeps the recording (issue 37)
+        exc.message += f"; the journal {journal_path} keeps the recording (calib recover)"
+        raise
     if not keep_journal:
         os.unlink(journal_path)
     info(f"recorded {len(rec)} samples, {len(rec.segments)} segments -> {out}; "

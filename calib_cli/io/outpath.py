@@ -459,3 +459,22 @@ def _atomic_dir(path):
         if isinstance(exc, OSError) and _is_write_error(exc, (path,)):
             raise write_error(exc, path) from None
         raise
+
+
+@contextlib.contextmanager
+def drop_if_empty(path, created: bool):
+    """On a failure, remove directory ``path`` when this command ``created`` it and
+    it holds no file but calib's own hidden lock files (empty subdirectories
+    go too): a full disk leaves nothing behind; outputs already written stay."""
+    try:
+        yield
+    except BaseException:
+        if created:
+            with contextlib.suppress(OSError):
+                for d, _, files in os.walk(path, topdown=False):
+                    if d == str(path) and all(f.startswith(".calib") for f in files):
+                        for f in files:
+                            os.unlink(os.path.join(d, f))
+                    with contextlib.suppress(OSError):
+                        os.rmdir(d)  # only when empty
+        raise
