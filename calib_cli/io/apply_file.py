@@ -9,10 +9,10 @@ import numpy as np
 from calib_cli.errors import InputError
 from calib_cli.io.h5 import (
     _attr_str,
+    check_raw_header,
     open_checked,
     read_calibration,
     read_segments,
-    read_site_layout,
     write_provenance,
     write_segments,
     write_site_layout,
@@ -50,27 +50,26 @@ def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = F
     with open_checked(raw, ("raw",)) as src:
         if "samples" not in src:
             raise InputError("missing group /samples (a recording is expected here)", raw)
+        n, units, site, layout = check_raw_header(src, raw)
         smp = src["samples"]
-        validate.check_segments_layout(src, raw, validate.check_samples_layout(smp, raw))
         time = validate.load(smp["time"], raw)
         validate.check_time(time, raw)
-        units = {s: _attr_str(smp, f"{s}_units", "") for s in ("accel", "gyro")}
-        segments = read_segments(src, raw)
-        site, layout = read_site_layout(src, raw)
+        validate.check_rate(time, raw)
+        segments = read_segments(src, raw, n)
         check_units(c, units, raw)
         chans = corrected_channels(c)
         n = smp["time"].shape[0]
         temp_eff = None
         if is_thermal(c):
             if "temp" in smp:
-                temp_in = np.asarray(smp["temp"][...], dtype=float)
+                temp_in = np.asarray(validate.load(smp["temp"], raw), dtype=float)
             elif temp_c is not None:
                 temp_in = np.full(n, float(temp_c))
             else:
                 raise InputError("the calibration has temperature terms but the recording has "
                                  "no temperature column (give --temp DEGC)", raw)
             check_temperature(c, temp_in, raw, extrapolate)
-            temp_eff = effective_temperature(c, smp["time"][...], temp_in)
+            temp_eff = effective_temperature(c, time, temp_in)
         with h5_output(out) as dst:
             write_provenance(dst, "corrected", [cal, raw], c.serial or (
                 _attr_str(src, "unit_serial") or None),
@@ -107,20 +106,19 @@ def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = F
                 if progress is not None:
                     progress(a // CHUNK, -(-n // CHUNK))
                 b = min(n, a + CHUNK)
-                try:
-                    a0, b0 = (max(0, a - 1), min(n, b + 1)) if size else (a, b)
-                    a_in = smp["accel"][a0:b0]
-                    g_in = smp["gyro"][a0:b0] if gyr is not None else None
-                except OSError:
-                    raise InputError("damaged data in /samples/accel or /samples/gyro (checksum) "
-                                     f"(samples {a}..{b})", raw) from None
+                a0, b0 = (max(0, a - 1), min(n, b + 1)) if size else (a, b)
+                a_in = np.asarray(validate.rows(smp["accel"], a0, b0, raw), dtype=float)
+                g_in = (np.asarray(validate.rows(smp["gyro"], a0, b0, raw), dtype=float)
+                        if gyr is not None else None)
                 validate.check_finite(a_in, raw, "/samples/accel", a0)
+                validate.check_magnitudes(a_in, "accel", units["accel"], raw, a0)
                 if g_in is not None:
                     validate.check_finite(g_in, raw, "/samples/gyro", a0)
+                    validate.check_magnitudes(g_in, "gyro", units["gyro"], raw, a0)
                 if size:  # one sample of context each side for the rate derivative
                     f, w = apply_triad(c, a_in, g_in, accel_si=units["accel"] != "count",
                                        temp=None if temp_eff is None else temp_eff[a0:b0],
-                                       time=smp["time"][a0:b0])
+                                       time=time[a0:b0])
                     f, w = f[a - a0:a - a0 + b - a], w[a - a0:a - a0 + b - a]
                 elif rimu:
                     res = (apply_redundant(c, a_in, g_in,

@@ -58,12 +58,25 @@ def write_diagnosis(path, summary: dict, bins: dict, residuals: dict, noise_sigm
 def read_diagnosis(path) -> dict:
     """The summary JSON object of a diagnosis file."""
     p = str(path)
+    from calib_cli.io import validate
+
     with open_checked(p, "diagnosis") as h5:
-        try:
-            raw = h5["summary"][()]
-        except KeyError:
-            raise InputError("missing field /summary", p) from None
+        if "summary" not in h5:
+            raise InputError("missing field /summary", p)
+        ds = h5["summary"]
+        if not isinstance(ds, h5py.Dataset):
+            raise InputError("/summary is not a dataset", p)
+        if ds.shape == ():  # written before issue 37: a scalar string
+            raw = validate.decode(validate.load(ds, p), "/summary", p)
+        else:  # (1,) fixed-length text, checksummed
+            texts = validate.strings(ds, p)
+            if len(texts) != 1:
+                raise InputError(f"/summary holds {len(texts)} texts, expected 1", p)
+            raw = texts[0]
     try:
-        return json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
+        obj = json.loads(raw)
     except json.JSONDecodeError as exc:
         raise InputError(f"/summary is not valid JSON ({exc})", p) from None
+    if not isinstance(obj, dict):
+        raise InputError("/summary is not a JSON object", p)
+    return obj

@@ -87,7 +87,13 @@ def open_checked(path, kinds) -> h5py.File:
                     "--out raw.h5 (or calib import text, docs/import.md)")
         raise InputError(f"not an HDF5 file (or damaged){hint}", p) from None
     try:
+        # before any text is read: HDF5 loops forever on some damaged string heaps
+        validate.check_global_heaps(h5, p)
         kind = _attr_str(h5, "kind")
+    except (KeyError, RuntimeError, OSError, ValueError, TypeError) as exc:
+        h5.close()
+        raise DamagedInput(f"damaged HDF5 structure ({str(exc).split('(')[0].strip()})",
+                           p) from None
     except BaseException:
         h5.close()
         raise
@@ -100,6 +106,7 @@ def open_checked(path, kinds) -> h5py.File:
         # calib_cli/io/validate.py (issue 15): version parsed, each dataset's declared size
         validate.format_version(h5, p, FORMAT_VERSION)
         validate.check_declared_sizes(h5, p)
+        validate.check_root_text(h5, p)  # issue 37: provenance text decodes as UTF-8
     except (KeyError, RuntimeError, OSError, ValueError, TypeError) as exc:
         h5.close()  # HDF5 refuses its own damaged metadata this way: bad input, not a bug
         raise InputError(f"damaged HDF5 structure ({str(exc).split('(')[0].strip()})",
@@ -389,18 +396,30 @@ def write_raw(path, rec: Recording, inputs=(), kind: str = "raw") -> None:
             set_text(t, "effects", json.dumps(rec.truth.get("effects", [])))
 
 
+def check_raw_header(h5, p: str):
+    """The checks of a recording's structure, nothing of the samples read (the
+    chunked readers of apply and allan call it too): (n, units, site, layout)."""
+    try:
+        smp = _need(h5, "samples", p)
+        n = validate.check_samples_layout(smp, p)
+        units = validate.sample_units(smp, p)
+        site, layout = read_site_layout(h5, p)
+        validate.check_sample_types(smp, p, units, layout.n)
+        validate.check_segments_layout(h5, p, n)
+    except (RuntimeError, OSError) as exc:  # HDF5 refusing its own structure
+        raise DamagedInput(f"damaged HDF5 structure ({str(exc).split('(')[0].strip()})",
+                           p) from None
+    return n, units, site, layout
+
+
 def read_raw(path, kinds=("raw", "corrected")) -> Recording:
     """Read a raw (or corrected) recording, fully into memory, every field
     checked (io/validate.py)."""
     p = str(path)
     with open_checked(p, kinds) as h5:
         try:
-            smp = _need(h5, "samples", p)
-            n = validate.check_samples_layout(smp, p)
-            units = validate.sample_units(smp, p)
-            site, layout = read_site_layout(h5, p)
-            validate.check_sample_types(smp, p, units, layout.n)
-            validate.check_segments_layout(h5, p, n)
+            n, units, site, layout = check_raw_header(h5, p)
+            smp = h5["samples"]
             time = np.asarray(validate.load(smp["time"], p), dtype=float)
             accel = np.asarray(validate.load(smp["accel"], p), dtype=float)
             gyro = (np.asarray(validate.load(smp["gyro"], p), dtype=float) if "gyro" in smp

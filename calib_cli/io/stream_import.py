@@ -31,6 +31,7 @@ from calib_cli.io.h5 import (
     write_segments,
     write_site_layout,
 )
+from calib_cli.io import validate
 from calib_cli.io.h5file import h5_output, set_attrs, set_text
 from calib_cli.methods.static_stream import OnlineFloors, StreamDetector
 from calib_cli.plan import Plan, plan_layout  # noqa: F401  (plan_layout re-exported)
@@ -290,6 +291,10 @@ def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_st
             else:
                 a, g, _ = convert_units(ch.accel, ch.gyro, accel_units, gyro_units, path)
             check_time_range(ch.time, path)  # 1e20 s: one line, exit 3 (issue 15)
+            # a cell of 1e300 is no sample: exit 3 naming it (issue 37)
+            validate.check_magnitudes(np.asarray(a), "accel", units["accel"], path, sink.n)
+            if g is not None:
+                validate.check_magnitudes(np.asarray(g), "gyro", units["gyro"], path, sink.n)
             sink.append("time", ch.time)
             sink.append("accel", a)
             if runs is None and ch.segment is None:

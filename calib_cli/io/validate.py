@@ -109,7 +109,80 @@ def load(ds, path: str) -> np.ndarray:
         raise DamagedInput(f"damaged data in {ds.name}: {what}", path) from None
 
 
-def _decode(v, where: str, path: str) -> str:
+def _has_vlen(h5) -> bool:
+    """Whether any attribute or dataset of the file holds variable-length data
+    (types only, from the object headers: nothing of a heap is read)."""
+    found = []
+
+    def vlen(dt) -> bool:
+        return h5py.check_vlen_dtype(dt) is not None or bool(
+            dt.names and any(vlen(dt.fields[n][0]) for n in dt.names))
+
+    def visit(_name, obj):
+        if not found and isinstance(obj, h5py.Dataset) and vlen(obj.dtype):
+            found.append(obj)
+        if not found and any(vlen(obj.attrs.get_id(n).dtype) for n in obj.attrs):
+            found.append(obj)
+
+    visit("/", h5)
+    if not found:
+        h5.visititems(visit)
+    return bool(found)
+
+
+_GCOL = b"GCOL\x01"
+
+
+def check_global_heaps(h5, path: str) -> None:
+    """Walk every global heap collection of a file that holds variable-length
+    data (calib's files before issue 37, other tools' files) as HDF5 will, and
+    refuse one HDF5 would loop on forever or read past (a free-space object of
+    size 0, an object beyond its collection): exit 3 instead of a hang. Files
+    without variable-length data (calib's own since issue 37) are not read."""
+    import mmap
+
+    if not _has_vlen(h5):
+        return
+    try:
+        with open(path, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as m:
+            n = len(m)
+            pos = m.find(_GCOL)
+            while pos != -1:
+                size = int.from_bytes(m[pos + 8:pos + 16], "little")
+                end = pos + size
+                bad = size < 32 or end > n
+                p = pos + 16
+                while not bad and p < end:
+                    if p + 16 > end:  # a tail too small for a header: free space
+                        break
+                    idx = int.from_bytes(m[p:p + 2], "little")
+                    osize = int.from_bytes(m[p + 8:p + 16], "little")
+                    need = 16 + ((osize + 7) // 8) * 8 if idx else osize
+                    bad = need < 16 or p + need > end
+                    p += need
+                if bad:
+                    raise DamagedInput(f"damaged string heap at byte {pos} (a text of the file "
+                                       "cannot be read)", path)
+                pos = m.find(_GCOL, pos + 4)
+    except (OSError, ValueError):  # an empty or unreadable file: HDF5 says so on opening
+        return
+
+
+def rows(ds, a: int, b: int, path: str) -> np.ndarray:
+    """Rows a..b of a dataset (chunked readers); a failed checksum is exit 3."""
+    try:
+        return ds[a:b]
+    except (OSError, RuntimeError, ValueError, TypeError) as exc:
+        msg = str(exc).lower()
+        what = ("checksum mismatch (Fletcher-32): the file was altered or damaged"
+                if "letcher" in msg or "checksum" in msg or "filter" in msg
+                else "unreadable data")
+        raise DamagedInput(f"damaged data in {ds.name} (samples {a}..{b}): {what}",
+                           path) from None
+
+
+def decode(v, where: str, path: str) -> str:
+    """A text value read from HDF5 (bytes or str) as UTF-8; exit 3 naming it."""
     if isinstance(v, np.ndarray) and v.size == 1 and v.dtype.kind in "SUO":
         v = v.reshape(-1)[0]
     if isinstance(v, (bytes, np.bytes_)):
@@ -142,7 +215,18 @@ def text(obj, name: str, path: str, default: str = "") -> str:
     except (OSError, RuntimeError, KeyError, ValueError, TypeError) as exc:
         raise DamagedInput(f"{where} cannot be read ({str(exc).split('(')[0].strip()})",
                            path) from None
-    return _decode(v, where, path)
+    return decode(v, where, path)
+
+
+def check_root_text(h5, path: str) -> None:
+    """Every text attribute of the root (the provenance) decodes as UTF-8."""
+    for name in h5.attrs:
+        try:
+            v = h5.attrs[name]
+        except (OSError, RuntimeError, ValueError, TypeError, UnicodeDecodeError):
+            v = b""  # text() below names it
+        if isinstance(v, (bytes, str)) or (isinstance(v, np.ndarray) and v.dtype.kind in "SO"):
+            text(h5, name, path)
 
 
 def strings(ds, path: str) -> list[str]:
@@ -152,7 +236,7 @@ def strings(ds, path: str) -> list[str]:
         raise InputError(f"{ds.name} must be a list of text, has shape "
                          f"{getattr(arr, 'shape', ())} of {getattr(arr, 'dtype', type(arr))}",
                          path)
-    return [_decode(x, f"{ds.name}[{i}]", path) for i, x in enumerate(arr)]
+    return [decode(x, f"{ds.name}[{i}]", path) for i, x in enumerate(arr)]
 
 
 def number(obj, name: str, path: str, default=None, lo=-np.inf, hi=np.inf,
@@ -597,10 +681,4 @@ def segment_columns(g, path: str, n: int) -> dict:
             raise InputError(f"{where} points outside the samples ({a}..{b} of {n})", path)
         if out["plan_index"][i] < -1:
             raise InputError(f"{where} has plan_index {int(out['plan_index'][i])}", path)
-        if kind == "turn" and (np.isnan(out["rotation_angle"][i])
-                               or np.isnan(out["rotation_axis_body"][i]).any()):
-            raise InputError(f"{where} is a turn without rotation_angle and rotation_axis_body",
-                             path)
-        if kind == "rotating" and np.isnan(out["table_axis_enu"][i]).any():
-            raise InputError(f"{where} is rotating without table_axis_enu", path)
     return out
