@@ -292,14 +292,14 @@ def _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
                              f"{session.source}; nothing was recorded (check the port, the "
                              "baud rate or CAN channel, and that the unit is streaming)",
                              journal_path) from None
-    except BaseException:
+    except BaseException as exc:
         display.close()
         with contextlib.suppress(Exception):
             session.close()
         if driver is not None:
             with contextlib.suppress(Exception):
                 driver.stop()
-        if session.n_rows:
+        if session.n_rows and "calib recover" not in getattr(exc, "message", ""):
             err_console.print(f"calib: the journal {journal_path} keeps what was recorded "
                               "(calib recover)", markup=False)
         else:  # nothing recorded: leave nothing behind

@@ -182,6 +182,8 @@ def parse_plan(text: str, path: str = "<plan>") -> Plan:
     if abs(lat) > 90:
         raise InputError(f"site.latitude_deg must lie in [-90, 90], got {lat}", path)
     height = _num(site_raw.get("height_m", 0.0), "site.height_m", path)
+    if not -1e3 <= height <= 1e4:  # where a bench stands (normal gravity overflowed at 1e300)
+        raise InputError(f"site.height_m must lie in [-1000, 10000] m, got {height:g}", path)
     g = site_raw.get("g")
     if g is not None:
         g = _num(g, "site.g", path, positive=True)
