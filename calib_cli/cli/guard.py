@@ -94,7 +94,7 @@ def _wrap(cmd: click.Command) -> None:
 
     @functools.wraps(cb)
     def guarded(*args, **kwargs):
-        from calib_cli.errors import EstimationError
+        from calib_cli.errors import EstimationError, InputError
         from calib_cli.io.outpath import check_output, check_outputs_apart
 
         _check_numbers(cmd, kwargs)
@@ -113,8 +113,9 @@ def _wrap(cmd: click.Command) -> None:
         check_outputs_apart(named, inputs)
         try:
             return cb(*args, **kwargs)
-        except EstimationError as exc:  # the estimate failed on the data of the one input
-            if exc.path is None and len(files) == 1:
+        except (EstimationError, InputError) as exc:  # the data of the one input (issue 37)
+            option = isinstance(exc, InputError) and exc.message.startswith("-")  # --opt ...
+            if exc.path is None and len(files) == 1 and not option:
                 exc.path = str(files[0])
             raise
 
