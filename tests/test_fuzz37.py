@@ -674,8 +674,8 @@ def _cal_cases(fz, rng, n):
         if r < 0.4:
             out = d / "o.h5"
             args = ["apply", p, d / "raw.h5", "--out", out]
-            check = (lambda out=out, e=expect: _same_corrected(out, base / "corr.h5")
-                     if e == "same" else None)
+            def check(out=out, e=expect):
+                return _same_corrected(out, base / "corr.h5") if e == "same" else None
         elif r < 0.75:
             out = d / "o.json"
             args = ["export", p, "--format", "json", "--out", out]

@@ -364,11 +364,16 @@ def test_13_calibration_without_K_is_refused(base, run_cli, tmp_path):
 # -- 16. checksums on every dataset -----------------------------------------------------
 
 
+def _datasets(h) -> list:
+    out = []
+    h.visititems(lambda n, o: out.append(o) if isinstance(o, h5py.Dataset) else None)
+    return out
+
+
 def test_16_every_dataset_checksummed_and_text_fixed_length(base):
     for f in (base / "raw.h5", base / "cal.h5"):
         with h5py.File(f) as h:
-            dsets = []
-            h.visititems(lambda n, o: dsets.append(o) if isinstance(o, h5py.Dataset) else None)
+            dsets = _datasets(h)
             for ds in dsets:
                 if ds.size >= 1 and ds.shape:
                     assert ds.fletcher32, ds.name

@@ -552,7 +552,7 @@ def _c_header_rimu(cal, prov, source, single, prefix) -> str:
         lines += [f"#define {P}_HAS_{S} 1",
                   _c_str_const(f"{P}_{S}_UNITS", units.get(s_) or ("m/s^2" if s_ == "accel"
                                                                     else "rad/s")),
-                  f"/* per-channel bias b and scale 1 + ks */",
+                  "/* per-channel bias b and scale 1 + ks */",
                   _c_vec(f"{P}_{S}_BIAS", b, single, T),
                   _c_vec(f"{P}_{S}_SCALE", scale, single, T),
                   "/* body estimate: PINV[r][i], row r = body axis x, y, z */",

@@ -22,11 +22,11 @@ from calib_cli import __version__
 from calib_cli.data import SAMPLE_KINDS, CalibrationResult, Recording, Segment
 from calib_cli.errors import DamagedInput, InputError
 from calib_cli.geometry import Layout
-from calib_cli.plan import KINDS as PLAN_KINDS
 from calib_cli.io import validate
 from calib_cli.io.escape import line_text
 from calib_cli.io.h5file import h5_output, put, set_attrs, set_text
 from calib_cli.model.earth import Site
+from calib_cli.plan import KINDS as PLAN_KINDS
 
 FORMAT_VERSION = 1
 KINDS = ("raw", "calibration", "corrected", "diagnosis", "allan")

@@ -25,13 +25,13 @@ import numpy as np
 from calib_cli.data import Segment
 from calib_cli.errors import InputError
 from calib_cli.geometry import Layout
+from calib_cli.io import validate
 from calib_cli.io.h5 import (
     sha256_file,
     write_provenance,
     write_segments,
     write_site_layout,
 )
-from calib_cli.io import validate
 from calib_cli.io.h5file import h5_output, set_attrs, set_text
 from calib_cli.methods.static_stream import OnlineFloors, StreamDetector
 from calib_cli.plan import Plan, plan_layout  # noqa: F401  (plan_layout re-exported)
