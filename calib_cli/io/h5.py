@@ -92,8 +92,7 @@ def open_checked(path, kinds) -> h5py.File:
         kind = _attr_str(h5, "kind")
     except (KeyError, RuntimeError, OSError, ValueError, TypeError) as exc:
         h5.close()
-        raise DamagedInput(f"damaged HDF5 structure ({str(exc).split('(')[0].strip()})",
-                           p) from None
+        raise _structure(exc, p) from None
     except BaseException:
         h5.close()
         raise
@@ -109,8 +108,7 @@ def open_checked(path, kinds) -> h5py.File:
         validate.check_root_text(h5, p)  # issue 37: provenance text decodes as UTF-8
     except (KeyError, RuntimeError, OSError, ValueError, TypeError) as exc:
         h5.close()  # HDF5 refuses its own damaged metadata this way: bad input, not a bug
-        raise InputError(f"damaged HDF5 structure ({str(exc).split('(')[0].strip()})",
-                         p) from None
+        raise _structure(exc, p) from None
     except BaseException:
         h5.close()
         raise
@@ -151,6 +149,11 @@ def _ref_attrs(obj, where: str, p: str) -> None:
         if _has_reference(obj.attrs.get_id(name).dtype):
             raise InputError(f"attribute {name!r} of {line_text(where)} holds HDF5 object or region "
                              "references; calib does not follow references (docs/security.md)", p)
+
+
+def _structure(exc, path) -> DamagedInput:
+    """HDF5 refusing its own damaged metadata: bad input (exit 3), not a bug."""
+    return DamagedInput(f"damaged HDF5 structure ({str(exc).split('(')[0].strip()})", path)
 
 
 def check_untrusted_h5(h5: h5py.File, path: str) -> None:
@@ -407,8 +410,7 @@ def check_raw_header(h5, p: str):
         validate.check_sample_types(smp, p, units, layout.n)
         validate.check_segments_layout(h5, p, n)
     except (RuntimeError, OSError) as exc:  # HDF5 refusing its own structure
-        raise DamagedInput(f"damaged HDF5 structure ({str(exc).split('(')[0].strip()})",
-                           p) from None
+        raise _structure(exc, p) from None
     return n, units, site, layout
 
 
@@ -454,8 +456,7 @@ def read_raw(path, kinds=("raw", "corrected")) -> Recording:
         except (KeyError, ValueError, TypeError, IndexError, OverflowError) as exc:
             raise InputError(f"malformed raw file: {exc}", p) from None
         except (RuntimeError, OSError) as exc:  # HDF5 refusing its own structure
-            raise DamagedInput(f"damaged HDF5 structure ({str(exc).split('(')[0].strip()})",
-                               p) from None
+            raise _structure(exc, p) from None
         rec = Recording(time=time, accel=accel, gyro=gyro, segments=segments, site=site,
                          plan_kind=plan_kind, plan_text=plan_text,
                          serial=_attr_str(h5, "unit_serial") or None, units=units,
@@ -548,8 +549,7 @@ def read_calibration(path) -> CalibrationResult:
         except (KeyError, ValueError, TypeError, IndexError, OverflowError) as exc:
             raise InputError(f"malformed calibration file: {exc}", p) from None
         except (RuntimeError, OSError) as exc:  # HDF5 refusing its own structure
-            raise DamagedInput(f"damaged HDF5 structure ({str(exc).split('(')[0].strip()})",
-                               p) from None
+            raise _structure(exc, p) from None
     res = CalibrationResult(method=method, params=params, sigma=sigma, units=units,
                             covariance=cov, cov_order=order, stats=stats, residuals=residuals,
                             tables=tables, model=model, raw_units=raw_units, layout=layout,

@@ -102,11 +102,14 @@ def load(ds, path: str) -> np.ndarray:
     try:
         return ds[()]
     except (OSError, RuntimeError, ValueError, TypeError, UnicodeDecodeError) as exc:
-        msg = str(exc).lower()
-        what = ("checksum mismatch (Fletcher-32): the file was altered or damaged"
-                if "letcher" in msg or "checksum" in msg or "filter" in msg
-                else "unreadable data (damaged or of a type calib does not read)")
-        raise DamagedInput(f"damaged data in {ds.name}: {what}", path) from None
+        raise DamagedInput(f"damaged data in {ds.name}: {_why(exc)}", path) from None
+
+
+def _why(exc) -> str:
+    msg = str(exc).lower()
+    return ("checksum mismatch (Fletcher-32): the file was altered or damaged"
+            if "letcher" in msg or "checksum" in msg or "filter" in msg
+            else "unreadable data (damaged or of a type calib does not read)")
 
 
 def _has_vlen(h5) -> bool:
@@ -173,11 +176,7 @@ def rows(ds, a: int, b: int, path: str) -> np.ndarray:
     try:
         return ds[a:b]
     except (OSError, RuntimeError, ValueError, TypeError) as exc:
-        msg = str(exc).lower()
-        what = ("checksum mismatch (Fletcher-32): the file was altered or damaged"
-                if "letcher" in msg or "checksum" in msg or "filter" in msg
-                else "unreadable data")
-        raise DamagedInput(f"damaged data in {ds.name} (samples {a}..{b}): {what}",
+        raise DamagedInput(f"damaged data in {ds.name} (samples {a}..{b}): {_why(exc)}",
                            path) from None
 
 
