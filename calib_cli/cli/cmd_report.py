@@ -56,6 +56,10 @@ def report_cmd(cal, raw, out_dir, tol_path, pdf=False):
 
     c = read_calibration(cal)
     ctx = ReportContext(cal=c, cal_path=cal, prov=provenance(cal))
+    if file_kind(cal) == "diagnosis":  # its steps and residuals: a section of their own
+        from calib_cli.io.diag_h5 import read_diagnosis, read_diagnosis_arrays
+
+        ctx.diagnosis = {"summary": read_diagnosis(cal), "arrays": read_diagnosis_arrays(cal)}
     if tol_path:
         from calib_cli.batch.tolerance import load_tolerances
 
@@ -81,7 +85,8 @@ def report_cmd(cal, raw, out_dir, tol_path, pdf=False):
             from calib_cli.report.pdf import write_pdf
 
             pages = write_pdf(sections, title, Path(tmp) / "report.pdf")
-    info(f"report with {len(manifest['figures'])} figures -> {out / 'report.html'}")
+    n = len(manifest["figures"])
+    info(f"report with {n} figure{'' if n == 1 else 's'} -> {out / 'report.html'}")
     if pdf:
         info(f"{pages} pages -> {out / 'report.pdf'}")
     return 0

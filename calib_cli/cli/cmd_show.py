@@ -13,7 +13,7 @@ from calib_cli.io.contract_json import calibration_json  # noqa: F401  (re-expor
 from calib_cli.io.escape import term_text
 from calib_cli.io.h5 import file_kind, provenance, read_calibration, read_raw
 from calib_cli.report.format import CHECK_POSITION_HEADER, check_position_rows
-from calib_cli.units import g_figures_line
+from calib_cli.model.display import g_figures_line
 
 
 def raw_json(path) -> dict:

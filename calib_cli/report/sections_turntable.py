@@ -232,18 +232,36 @@ def residual_rate_figure(res) -> Figure:
                             "per cycle", "table rate (deg/s)", False)
 
 
+def _summary_line(ctx: ReportContext) -> str:
+    """Cycles and the fit's options: the turntable fit's own statistics, else (fit
+    --with, a diagnosis: the diagnose refit engine) the record's rotating segments and
+    the calibration's model."""
+    cal, st = ctx.cal, ctx.cal.stats
+    if st.get("n_cycles") is not None:
+        return (f"{st['n_cycles']} rotation cycles ({', '.join(st.get('cycles', []))}); lever "
+                f"arms: {st.get('lever_arm_mode', 'not recorded')}, proof masses: "
+                f"{st.get('proof_mass_mode', 'not recorded')}, tangential term: "
+                f"{value_text('tangential', st.get('tangential'))}.")
+    rec = ctx.recording()
+    cycles = [s.label for s in rec.segments if s.kind == "rotating"] if rec is not None else []
+    model = ", ".join(str(m) for m in st.get("base_model") or []) or "not recorded"
+    line = f"Fitted by the diagnose refit engine; base model: {model}"
+    if st.get("with"):
+        line += f"; added: {', '.join(map(str, st['with']))}"
+    if cycles:
+        line += f"; {len(cycles)} rotation cycles in the record ({', '.join(cycles)})"
+    return line + "."
+
+
 @register("turntable")
 def turntable_sections(ctx: ReportContext):
     cal, st = ctx.cal, ctx.cal.stats
-    text = [f"{st.get('n_cycles', '?')} rotation cycles ({', '.join(st.get('cycles', []))}); "
-            f"lever arms: {st.get('lever_arm_mode', '?')}, proof masses: "
-            f"{st.get('proof_mass_mode', '?')}, tangential term: "
-            f"{value_text('tangential', st.get('tangential'))}."]
+    text = [_summary_line(ctx)]
     if st.get("accel_noise_inflation", 1.0) > 1.0:
         text.append(f"The model did not explain the accelerometer data: noise widened "
                     f"x{st['accel_noise_inflation']:.1f} (lever arms or proof masses missing?).")
     tables = []
-    if "lever_arm" in cal.params:
+    if "lever_arm" in cal.params and "lever_arm" not in (st.get("with") or []):
         s = np.asarray(cal.params["lever_arm"], float)
         sd = cal.sigma.get("lever_arm")
         sd = np.full(s.shape, np.nan) if sd is None else np.asarray(sd, dtype=float)
@@ -256,7 +274,10 @@ def turntable_sections(ctx: ReportContext):
     if cpt is not None:
         tables.append(cpt)
     elif (st.get("check_positions") or {}).get("note"):
-        text.append("Check positions: " + st["check_positions"]["note"] + ".")
+        # the check positions are static segments of the plan the fit did not use; the
+        # |g| error of the summary is over the table's rests between rotations
+        text.append("Check positions (static segments of the plan, not used by the fit): "
+                    + st["check_positions"]["note"] + ".")
     figs = []
     if cal.tables.get("sigma_history_labels") is not None and len(cal.tables["sigma_history_labels"]):
         figs.append(FigureItem(
