@@ -13,6 +13,8 @@ from calib_cli.cli.common import Ctx, info, out_console, print_json, to_jsonable
 from calib_cli.cli.main import cli
 from calib_cli.io.h5 import read_raw
 
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
+
 
 def _render(j: dict) -> None:
     t = Table(title=f"calib diagnose ({j['method']}): base model {', '.join(j['base_model'])}")

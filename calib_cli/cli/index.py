@@ -1,10 +1,11 @@
 """A static description of the click tree, for answers that must be fast.
 
-`calib --help` (the list of commands) and shell completion answer from
-``cli/_tree.py`` -- names, one-line helps, options, choices and which options
+`calib --help` (the list of commands), every `calib X --help` and shell
+completion answer from ``cli/_tree.py`` -- names, help texts, usage lines,
+the options' help records as click renders them, choices and which options
 complete profile names -- without importing the commands' modules (numpy,
-SciPy, h5py: seconds on a loaded machine). Target: < 0.3 s, measured by
-``benchmarks/bench_cli.py`` (``make bench``).
+SciPy, h5py: seconds on a loaded machine). Target: <= 0.5 s (0.3 s for the
+list and completion), measured by ``benchmarks/bench_cli.py`` (``make bench``).
 
 ``_tree.py`` is generated from the real tree:
 
@@ -47,13 +48,27 @@ def _param_entry(p: click.Parameter) -> dict:
     return d
 
 
-def describe(cmd: click.Command, name: str) -> dict:
-    d = {"help": cmd.get_short_help_str(limit=10_000), "params": [_param_entry(p) for p in cmd.params]}
+def describe(cmd: click.Command, name: str, parent: click.Context | None = None) -> dict:
+    """The command's names, options and choices (completion) and what its `--help`
+    prints: the full help text, the usage line's pieces and each option's help record
+    (as click renders them), so `calib X --help` needs no command module."""
+    ctx = click.Context(cmd, info_name=name, parent=parent, **cmd.context_settings)
+    # the option rows click's format_options writes (arguments have none)
+    records = [p.get_help_record(ctx) for p in cmd.get_params(ctx)
+               if not isinstance(p, click.Argument)]
+    d = {"help": cmd.get_short_help_str(limit=10_000), "params": [_param_entry(p) for p in cmd.params],
+         "doc": cmd.help or "", "usage": cmd.collect_usage_pieces(ctx),
+         "records": [list(r) for r in records if r is not None]}
+    for key in ("short_help", "epilog"):
+        if getattr(cmd, key, None):
+            d[key] = getattr(cmd, key)
     if cmd.hidden:
         d["hidden"] = True
+    if cmd.deprecated:
+        d["deprecated"] = True
     if isinstance(cmd, click.Group):
-        ctx = click.Context(cmd, info_name=name)
-        d["commands"] = {n: describe(cmd.get_command(ctx, n), n) for n in cmd.list_commands(ctx)}
+        d["commands"] = {n: describe(cmd.get_command(ctx, n), n, ctx)
+                         for n in cmd.list_commands(ctx)}
     return d
 
 
@@ -62,7 +77,13 @@ def full_tree() -> dict:
     from calib_cli.cli import main
 
     main._register()
-    return describe(main.cli, "calib")
+    from calib_cli.cli.cmd_show import SHOWERS
+
+    d = describe(main.cli, "calib")
+    # which module shows each file kind other modules register with `calib show`: the
+    # show command imports that one alone
+    d["showers"] = {kind: fn.__module__ for kind, fn in sorted(SHOWERS.items())}
+    return d
 
 
 def render(tree: dict) -> str:
@@ -104,19 +125,80 @@ def _stub_param(d: dict) -> click.Parameter:
                         hidden=hidden, **kw)
 
 
+class NotHelp(Exception):
+    """The stub tree was run with arguments that do not ask for help."""
+
+
+class _StubHelp:
+    """`--help` of a stub command: the real command's usage, text and option records."""
+
+    def collect_usage_pieces(self, ctx):
+        return list(self._calib["usage"])
+
+    def format_options(self, ctx, formatter):
+        records = [tuple(r) for r in self._calib["records"]]
+        if records:
+            with formatter.section("Options"):
+                formatter.write_dl(records)
+        if isinstance(self, click.Group):
+            self.format_commands(ctx, formatter)
+
+    def invoke(self, ctx):
+        raise NotHelp
+
+
+class _StubCommand(_StubHelp, click.Command):
+    pass
+
+
+class _StubGroup(_StubHelp, click.Group):
+    def invoke(self, ctx):
+        pending = getattr(ctx, "_protected_args", None)  # click >= 8.2
+        if pending is None:
+            pending = ctx.protected_args
+        if not (pending or ctx.args):
+            raise NotHelp
+        return click.Group.invoke(self, ctx)  # on to the subcommand (its help)
+
+
 def stub(d: dict | None = None, name: str = "calib") -> click.Command:
-    """A click command (group) with the real tree's names, options and choices but
-    no callbacks: what shell completion walks."""
+    """A click command (group) with the real tree's names, options, choices and help
+    texts but no callbacks: what shell completion walks and what `calib X --help`
+    prints (running it with arguments that ask for no help raises NotHelp)."""
     d = tree() if d is None else d
     params = [_stub_param(p) for p in d["params"]]
+    kw = {"params": params, "help": d.get("doc") or d["help"], "hidden": d.get("hidden", False),
+          "short_help": d.get("short_help"), "epilog": d.get("epilog"),
+          "deprecated": d.get("deprecated", False),
+          "context_settings": {"help_option_names": ["-h", "--help"]}}
     if "commands" in d:
-        group = click.Group(name, params=params, help=d["help"], hidden=d.get("hidden", False),
-                            context_settings={"help_option_names": ["-h", "--help"]})
+        group = _StubGroup(name, **kw)
         for n, sub in d["commands"].items():
             group.add_command(stub(sub, n), n)
-        return group
-    return click.Command(name, params=params, help=d["help"], hidden=d.get("hidden", False),
-                         context_settings={"help_option_names": ["-h", "--help"]})
+        cmd = group
+    else:
+        cmd = _StubCommand(name, **kw)
+    cmd._calib = d
+    return cmd
+
+
+def help_from_tree(args: list) -> bool:
+    """Print `calib ARGS`'s help from the static tree when ARGS ask for a subcommand's
+    help (`-h`/`--help` before any `--`); True when it did. Anything else (no help
+    asked, a usage error) is left to the real command line, which says it properly."""
+    end = args.index("--") if "--" in args else len(args)
+    if not any(a in ("-h", "--help") for a in args[:end]):
+        return False
+    if not any(not a.startswith("-") for a in args[:end]):
+        return False  # `calib --help`: the real group (its epilog names the docs directory)
+    # -q/--quiet/--debug anywhere, as the real group takes them (cli/main.py)
+    moved = [a for a in args[:end] if a in ("-q", "--quiet", "--debug")]
+    args = moved + [a for a in args[:end] if a not in moved] + list(args[end:])
+    try:
+        rv = stub().main(args=args, prog_name="calib", standalone_mode=False)
+    except (NotHelp, click.ClickException, click.exceptions.Abort):
+        return False
+    return rv == 0
 
 
 def top_level_rows() -> list[tuple[str, str]]:

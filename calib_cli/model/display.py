@@ -204,7 +204,7 @@ def counts_note(params: dict, units: dict) -> str | None:
     'accel in counts: K diagonal 414.4, 412.1, 414.5 count/(m/s^2), 1 count = 0.2461,
     ... mg'."""
     parts = []
-    for s, si in SI_UNIT.items():
+    for s in SI_UNIT:
         u = units.get(f"{s}_bias", "")
         if "count" not in u:
             continue

@@ -236,7 +236,7 @@ def _summary_line(ctx: ReportContext) -> str:
     """Cycles and the fit's options: the turntable fit's own statistics, else (fit
     --with, a diagnosis: the diagnose refit engine) the record's rotating segments and
     the calibration's model."""
-    cal, st = ctx.cal, ctx.cal.stats
+    st = ctx.cal.stats
     if st.get("n_cycles") is not None:
         return (f"{st['n_cycles']} rotation cycles ({', '.join(st.get('cycles', []))}); lever "
                 f"arms: {st.get('lever_arm_mode', 'not recorded')}, proof masses: "
