@@ -78,16 +78,22 @@ def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir, cal_
     rec = read_raw(raw)
     from calib_cli.cli.progress import bar
 
-    with bar("diagnose"):
-        if method == "gyro":
-            from calib_cli.methods.diagnose_gyro import diagnose_gyro
+    from calib_cli.errors import CalibError
 
-            d = diagnose_gyro(rec, base=base, alpha=alpha)
-            if noise != "auto":
-                info("--noise does not apply to --method gyro (the gyro fit's own noise "
-                     "estimate)")
-        else:
-            d = diagnose(rec, method, base=base, alpha=alpha, noise=noise)
+    with bar("diagnose"):
+        try:
+            if method == "gyro":
+                from calib_cli.methods.diagnose_gyro import diagnose_gyro
+
+                d = diagnose_gyro(rec, base=base, alpha=alpha)
+                if noise != "auto":
+                    info("--noise does not apply to --method gyro (the gyro fit's own noise "
+                         "estimate)")
+            else:
+                d = diagnose(rec, method, base=base, alpha=alpha, noise=noise)
+        except CalibError as exc:  # the core does not know the file: name it
+            exc.path = exc.path or raw
+            raise
     j = to_jsonable(d.to_json())
     j["fit_command"] = d.fit_command(str(raw), str(cal_out or "CAL.h5"))
     cal = d.calibration(rec)

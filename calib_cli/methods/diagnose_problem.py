@@ -223,8 +223,13 @@ def _build(rec: Recording, method: str, bin_s: float) -> Problem:
         raise EstimationError(f"{len(use)} segments with a known attitude; the RIMU base model "
                               "needs at least 4 positions")
     if method == "turntable" and not any(s.kind == "rotating" for s in use):
+        from calib_cli.methods.registry import METHOD_OF_PLAN
+
+        right = METHOD_OF_PLAN.get(rec.plan_kind)
         raise EstimationError("no rotating segment with a table axis and a known start "
-                              "attitude: not a turntable recording")
+                              "attitude: not a turntable recording"
+                              + (f" (a {rec.plan_kind} plan: --method {right})"
+                                 if right and right != "turntable" else ""))
     parts, ys = [], {s: [] for s in sensors}
     starts, counts, bin_seg, bounds = [], [], [], []
     fs = rec.sample_rate
