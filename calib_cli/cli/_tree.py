@@ -1486,7 +1486,10 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                                          'opts': ['--ramp-positions']},
                                                         {'choices': ['heat', 'heat-cool'],
                                                          'name': 'cycles',
-                                                         'opts': ['--cycles']}],
+                                                         'opts': ['--cycles']},
+                                                        {'is_flag': True,
+                                                         'name': 'as_json',
+                                                         'opts': ['--json']}],
                                              'records': [['--out FILE', '[required]'],
                                                          ['--positions [6|12|18|24]',
                                                           'static: number of positions.  '
@@ -1571,6 +1574,11 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                                          ['--cycles [heat|heat-cool]',
                                                           'thermal ramp: heat only, or heat then '
                                                           'cool.  [default: heat-cool]'],
+                                                         ['--json',
+                                                          'Print {"output", "kind", "sha256", '
+                                                          '"warnings"} of the written file as '
+                                                          'JSON on stdout and nothing else '
+                                                          'there.'],
                                                          ['-h, --help',
                                                           'Show this message and exit.']],
                                              'usage': ['[OPTIONS]',
@@ -1759,7 +1767,8 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                     {'name': 'chamber',
                                      'opts': ['--chamber'],
                                      'profile': 'chamber'},
-                                    {'name': 'chamber_port', 'opts': ['--chamber-port']}],
+                                    {'name': 'chamber_port', 'opts': ['--chamber-port']},
+                                    {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}],
                          'records': [['--imu TEXT',
                                       'IMU profile: a .toml path or a profile name (`calib '
                                       'profiles`).  [required]'],
@@ -1818,6 +1827,9 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                       "Climatic chamber profile (path, shipped name, or 'manual') "
                                       'for plans with chamber_temp_degC (docs/thermal.md).'],
                                      ['--chamber-port TEXT', 'Serial port of the chamber.'],
+                                     ['--json',
+                                      'Print {"output", "kind", "sha256", "warnings"} of the '
+                                      'written file as JSON on stdout and nothing else there.'],
                                      ['-h, --help', 'Show this message and exit.']],
                          'usage': ['[OPTIONS]']},
               'recover': {'doc': 'Turn a recording journal into raw.h5.',
@@ -1826,8 +1838,12 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                       'name': 'journal',
                                       'opts': ['journal'],
                                       'path': [True, False]},
-                                     {'name': 'out', 'opts': ['--out'], 'path': [True, False]}],
+                                     {'name': 'out', 'opts': ['--out'], 'path': [True, False]},
+                                     {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}],
                           'records': [['--out FILE', '[required]'],
+                                      ['--json',
+                                       'Print {"output", "kind", "sha256", "warnings"} of the '
+                                       'written file as JSON on stdout and nothing else there.'],
                                       ['-h, --help', 'Show this message and exit.']],
                           'usage': ['[OPTIONS]', 'JOURNAL']},
               'report': {'doc': 'Markdown and self-contained HTML report of a calibration, with '
@@ -1851,7 +1867,8 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                     {'name': 'tol_path',
                                      'opts': ['--tolerances'],
                                      'path': [True, False]},
-                                    {'is_flag': True, 'name': 'pdf', 'opts': ['--pdf']}],
+                                    {'is_flag': True, 'name': 'pdf', 'opts': ['--pdf']},
+                                    {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}],
                          'records': [['--out DIRECTORY',
                                       'Directory for report.md, report.html, the PNG figures '
                                       '(created).  [required]'],
@@ -1862,6 +1879,10 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                      ['--pdf',
                                       'Also write the same report as report.pdf (A4, '
                                       'matplotlib).'],
+                                     ['--json',
+                                      'Print {"output", "kind", "html", "markdown", "pdf", '
+                                      '"verdict", "figures"} as JSON on stdout and nothing else '
+                                      'there.'],
                                      ['-h, --help', 'Show this message and exit.']],
                          'usage': ['[OPTIONS]', 'CAL', '[RAW]']},
               'rimu-check': {'doc': 'Parity-space fault detection and isolation; exit 6 when a '

@@ -77,7 +77,6 @@ def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir, cal_
                                    "the calibration already)")
     rec = read_raw(raw)
     from calib_cli.cli.progress import bar
-
     from calib_cli.errors import CalibError
 
     with bar("diagnose"):

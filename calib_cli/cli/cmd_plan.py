@@ -7,7 +7,7 @@ import re
 import click
 import numpy as np
 
-from calib_cli.cli.common import err_console, info, print_json
+from calib_cli.cli.common import err_console, info, json_output_option, output_json, print_json
 from calib_cli.cli.main import cli
 from calib_cli.errors import InputError
 from calib_cli.units import SUFFIXES
@@ -291,10 +291,12 @@ def _vec(text, n, name):
               help="thermal ramp: positions visited in turn.")
 @click.option("--cycles", type=click.Choice(["heat", "heat-cool"]), default="heat-cool",
               show_default=True, help="thermal ramp: heat only, or heat then cool.")
+@json_output_option
 def plan_make_cmd(method, out, positions, fit_method, duration, sample_rate, turn_duration, axis,
                   angle, start, latitude, rimu_profile, table_rate, tilted, tilt_deg,
                   tilted_duration, max_rate, max_accel, max_duration, rate_family, design,
-                  temps, temp_range, soak, ramp_dpm, unit_tau, ramp_positions, cycles):
+                  temps, temp_range, soak, ramp_dpm, unit_tau, ramp_positions, cycles,
+                  as_json=False):
     """Write a plan of METHOD's family (its parameters in a [generator] table)."""
     from calib_cli.io.h5 import atomic_path
     from calib_cli.io.plan import parse_plan
@@ -338,6 +340,8 @@ def plan_make_cmd(method, out, positions, fit_method, duration, sample_rate, tur
     if warning:
         info(f"[yellow]warning:[/] {warning}")
     info(f"{method} plan, {len(d['segment'])} segments -> {out}")
+    if as_json:
+        output_json(out, "plan", [warning] if warning else [])
 
 
 @plan_group.command("optimize")

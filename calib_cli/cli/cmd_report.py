@@ -47,7 +47,10 @@ def _allan_for(raw: str, kind: str):
                    "against it instead of against the noise floor.")
 @click.option("--pdf", "pdf", is_flag=True,
               help="Also write the same report as report.pdf (A4, matplotlib).")
-def report_cmd(cal, raw, out_dir, tol_path, pdf=False):
+@click.option("--json", "as_json", is_flag=True,
+              help='Print {"output", "kind", "html", "markdown", "pdf", "verdict", "figures"} '
+                   "as JSON on stdout and nothing else there.")
+def report_cmd(cal, raw, out_dir, tol_path, pdf=False, as_json=False):
     """Markdown and self-contained HTML report of a calibration, with plots.
 
     RAW (optional): a free-running raw record (or an 'allan' file) adds the
@@ -89,4 +92,16 @@ def report_cmd(cal, raw, out_dir, tol_path, pdf=False):
     info(f"report with {n} figure{'' if n == 1 else 's'} -> {out / 'report.html'}")
     if pdf:
         info(f"{pages} pages -> {out / 'report.pdf'}")
+    if as_json:
+        from calib_cli.cli.common import print_json
+        from calib_cli.report.builder import verdict
+
+        word, line = verdict(ctx)
+        print_json({"output": str(out), "kind": "report", "html": str(out / "report.html"),
+                    "markdown": str(out / "report.md"),
+                    "pdf": str(out / "report.pdf") if pdf else None,
+                    "verdict": {"result": word, "line": line},
+                    "figures": [{"file": str(out / f["file"]), "caption": f["caption"]}
+                                for f in manifest["figures"]],
+                    "sections": [s.title for s in sections]})
     return 0
