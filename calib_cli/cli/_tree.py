@@ -422,7 +422,9 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                                         {'is_flag': True,
                                                          'name': 'as_json',
                                                          'opts': ['--json']}],
-                                             'records': [['--out FILE', ''],
+                                             'records': [['--out FILE',
+                                                          'Calibration file to write (CAL.h5; '
+                                                          'required unless --list-effects).'],
                                                          ['--method [auto|vector|scalar]',
                                                           'vector: known attitudes; scalar: |a| = '
                                                           'g.  [default: auto]'],
@@ -496,7 +498,9 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                                         {'is_flag': True,
                                                          'name': 'as_json',
                                                          'opts': ['--json']}],
-                                             'records': [['--out FILE', ''],
+                                             'records': [['--out FILE',
+                                                          'Calibration file to write (CAL.h5; '
+                                                          'required unless --list-effects).'],
                                                          ['--method [two-position|classic|static]',
                                                           'two-position: any rotation between the '
                                                           'positions; classic: the 2- or '
@@ -592,7 +596,9 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                                        {'is_flag': True,
                                                         'name': 'as_json',
                                                         'opts': ['--json']}],
-                                            'records': [['--out FILE', ''],
+                                            'records': [['--out FILE',
+                                                         'Calibration file to write (CAL.h5; '
+                                                         'required unless --list-effects).'],
                                                         ['--accel FILE',
                                                          'Accelerometer calibration to take the '
                                                          'gravity directions from (default: fit '
@@ -653,7 +659,9 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                                        {'is_flag': True,
                                                         'name': 'as_json',
                                                         'opts': ['--json']}],
-                                            'records': [['--out FILE', ''],
+                                            'records': [['--out FILE',
+                                                         'Calibration file to write (CAL.h5; '
+                                                         'required unless --list-effects).'],
                                                         ['--with EFFECT[,EFFECT...]',
                                                          'Add catalogue effects to the base model '
                                                          '(contract names, optionally '
@@ -800,7 +808,9 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                                             {'choices': ['auto', 'hf'],
                                                              'name': 'with_noise',
                                                              'opts': ['--noise-floor']}],
-                                                 'records': [['--out FILE', ''],
+                                                 'records': [['--out FILE',
+                                                              'Calibration file to write (CAL.h5; '
+                                                              'required unless --list-effects).'],
                                                              ['--lever-arm [off|known|estimate]',
                                                               'off: no centripetal terms; known: '
                                                               "each cycle's lever_arm_m from the "

@@ -11,7 +11,8 @@ from calib_cli.io.h5 import read_raw
 
 @fit_group.command("align")
 @click.argument("raw", required=False, type=click.Path(dir_okay=False))
-@click.option("--out", type=click.Path(dir_okay=False))
+@click.option("--out", type=click.Path(dir_okay=False),
+              help="Calibration file to write (CAL.h5; required unless --list-effects).")
 @click.option("--method", type=click.Choice(["two-position", "classic", "static"]),
               default="two-position", show_default=True,
               help="two-position: any rotation between the positions; classic: the 2- or "

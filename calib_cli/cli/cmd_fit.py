@@ -118,7 +118,8 @@ def run_with(method, raw, out, with_text, list_effects, base, noise, as_json,
 
 @fit_group.command("accel")
 @click.argument("raw", required=False, type=click.Path(dir_okay=False))
-@click.option("--out", type=click.Path(dir_okay=False))
+@click.option("--out", type=click.Path(dir_okay=False),
+              help="Calibration file to write (CAL.h5; required unless --list-effects).")
 @click.option("--method", type=click.Choice(["auto", "vector", "scalar"]), default="auto",
               show_default=True, help="vector: known attitudes; scalar: |a| = g.")
 @with_options

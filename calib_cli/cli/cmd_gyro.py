@@ -13,7 +13,8 @@ from calib_cli.io.h5 import read_calibration, read_raw
 
 @fit_group.command("gyro")
 @click.argument("raw", required=False, type=click.Path(dir_okay=False))
-@click.option("--out", type=click.Path(dir_okay=False))
+@click.option("--out", type=click.Path(dir_okay=False),
+              help="Calibration file to write (CAL.h5; required unless --list-effects).")
 @click.option("--accel", "accel_path", type=click.Path(dir_okay=False),
               help="Accelerometer calibration to take the gravity directions from "
                    "(default: fit it from RAW, `fit accel --method auto`).")

@@ -18,7 +18,8 @@ _SHOW = {"accel": (1e3 / 9.80665, "mg"), "gyro": (R2D, "deg/s")}
 
 @fit_group.command("rimu")
 @click.argument("raw", required=False, type=click.Path(dir_okay=False))
-@click.option("--out", type=click.Path(dir_okay=False))
+@click.option("--out", type=click.Path(dir_okay=False),
+              help="Calibration file to write (CAL.h5; required unless --list-effects).")
 @with_options
 @json_option
 def fit_rimu_cmd(raw, out, with_text, list_effects, with_base, with_noise, as_json):

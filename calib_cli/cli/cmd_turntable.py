@@ -22,7 +22,8 @@ def _auto_or_number(text: str, name: str):
 
 @fit_group.command("turntable")
 @click.argument("raw", required=False, type=click.Path(dir_okay=False))
-@click.option("--out", type=click.Path(dir_okay=False))
+@click.option("--out", type=click.Path(dir_okay=False),
+              help="Calibration file to write (CAL.h5; required unless --list-effects).")
 @click.option("--lever-arm", "lever_arm", type=click.Choice(["off", "known", "estimate"]),
               default="estimate", show_default=True,
               help="off: no centripetal terms; known: each cycle's lever_arm_m from the plan; "
