@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from calib_cli.io.escape import mpl_text
 from calib_cli.model.display import num
@@ -42,28 +43,7 @@ def disagreement_figure(summary: dict, arrays: dict) -> Figure:
         axes[0].set_xlabel("time from the record's start (s)")
         axes[0].set_ylabel("bin RMS residual / noise")
     else:
-        fig = Figure(figsize=(10, 3.6), layout="constrained")
-        axes = np.atleast_1d(fig.subplots(1, 1))
-        groups = list(stages[0][1]) if stages else []
-        for (name, per), col in zip(stages, (VERMILION, BLUE)):
-            x0, xs, ys = 0, [], []
-            for gname in groups:
-                v = np.abs(np.asarray(per.get(gname, []), float)).ravel()
-                xs.append(x0 + np.arange(len(v)))
-                ys.append(v)
-                x0 += len(v) + 2
-            if xs:
-                axes[0].plot(np.concatenate(xs), np.concatenate(ys), "o", ms=4, color=col,
-                             label=name, alpha=0.8)
-        x0 = 0
-        for gname in groups:
-            n = np.asarray(stages[0][1][gname]).size
-            axes[0].annotate(mpl_text(gname.replace("_", " ")), (x0 + n / 2, 1.0),
-                             xycoords=("data", "axes fraction"), ha="center", va="bottom",
-                             fontsize=7)
-            x0 += n + 2
-        axes[0].set_xlabel("equation (grouped: static positions, transitions, turns)")
-        axes[0].set_ylabel("|residual| / noise")
+        return _equation_figure(stages)
     axes[0].axhline(1.0, color="k", lw=0.8, ls="--")
     axes[0].legend(fontsize=8, loc="upper right")
     axes[0].grid(alpha=0.3)
@@ -80,6 +60,31 @@ def disagreement_figure(summary: dict, arrays: dict) -> Figure:
         axes[1].set_ylabel("segment RMS / noise")
         axes[1].legend(fontsize=8)
         axes[1].grid(alpha=0.3, axis="y")
+    return fig
+
+
+def _equation_figure(stages) -> Figure:
+    """The gyro method's diagnosis: its equation groups' residuals (static gyro means in
+    deg/h, transition and turn angles in arcsec), base and final model, a panel each."""
+    from calib_cli.model.display import DEG, DPH
+
+    groups = list(stages[0][1]) if stages else []
+    fig = Figure(figsize=(10, 3.0 * max(len(groups), 1)), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(max(len(groups), 1), 1, squeeze=False)[:, 0])
+    for ax, gname in zip(axes, groups):
+        f, unit = (DEG * 3600.0, "arcsec") if "angle" in gname else (DPH, "deg/h")
+        offs = (-0.12, 0.12) if len(stages) > 1 else (0.0,)
+        for (name, per), col, off in zip(stages, (VERMILION, BLUE), offs):
+            v = np.asarray(per.get(gname, []), float).ravel() * f
+            ax.plot(np.arange(len(v)) + off, v, "o", ms=4, color=col, label=name, alpha=0.85)
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.axhline(0.0, color="k", lw=0.8)
+        ax.set_ylabel(f"residual ({unit})")
+        ax.set_title(mpl_text(gname.replace("_", " ")), fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+    axes[-1].set_xlabel("equation")
+    fig.suptitle("Residuals of the gyro equations, base and final model")
     return fig
 
 
@@ -120,10 +125,17 @@ def diagnosis_section(ctx: ReportContext) -> Section:
                             "-> final model.", ["turn", "base (deg)", "final (deg)"],
                             [[str(r.get("turn")), num(r.get("error_initial_deg"), 4),
                               num(r.get("error_final_deg"), 4)] for r in te]))
-    fig = FigureItem("disagreement", disagreement_figure(s, d.get("arrays") or {}),
-                     "Residuals of the base model (vermilion) and of the final model (blue) "
-                     "in noise units (the dashed line: the noise). Top: each 0.5 s bin's RMS "
-                     "over the channels against time; bottom: the RMS of each segment. What "
-                     "to look for: the final model near 1 everywhere; a segment or a time "
-                     "span still above it is an effect the model lacks there.")
+    arrays = d.get("arrays") or {}
+    timed = len((arrays.get("bins") or {}).get("time", [])) > 0
+    cap = ("Residuals of the base model (vermilion) and of the final model (blue) in noise "
+           "units (the dashed line: the noise). Top: each 0.5 s bin's RMS over the channels "
+           "against time; bottom: the RMS of each segment. What to look for: the final model "
+           "near 1 everywhere; a segment or a time span still above it is an effect the "
+           "model lacks there.") if timed else (
+           "Residuals of the gyro method's equations, base model (vermilion) and final model "
+           "(blue): the static positions' gyro means (deg/h) and the angles of the "
+           "transitions and turns (arcsec). What to look for: the final model's residuals "
+           "within the noise of each equation; one equation far off is a disturbed position "
+           "or turn.")
+    fig = FigureItem("disagreement", disagreement_figure(s, arrays), cap)
     return Section("Diagnosis", text=text, tables=tables, figures=[fig])

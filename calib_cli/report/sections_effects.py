@@ -131,7 +131,11 @@ def _curve_panels(cal, eff, panels, sensor, xlabel, title) -> Figure:
         ax.set_xlabel(mpl_text(xlabel))
         ax.grid(alpha=0.3)
     axes[0].set_ylabel(mpl_text(f"added to the reading ({unit})"))
-    axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0)
+    handles = {}
+    for ax in axes:  # every channel drawn in any panel, once
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(lab, h)
+    fig.legend(list(handles.values()), list(handles), loc="outside right upper", fontsize=7)
     fig.suptitle(mpl_text(title), fontsize=10)
     return fig
 
