@@ -113,8 +113,19 @@ def display_of(key: str, unit: str, idx: tuple = ()) -> tuple[float, str]:
         if spec is not None and spec.display != (1.0, "") and spec.unit == unit:
             f, u = spec.display
         else:
-            f, u = 1.0, unit
+            f, u = si_display(unit)
     return f, _powered(u, power)
+
+
+def si_display(unit: str) -> tuple[float, str]:
+    """An SI unit no table names, in engineering units by its leading quantity:
+    m/s^2... -> mg..., rad/s... -> deg/h... (a toy method's or a new effect's
+    parameter); anything else unchanged."""
+    for si, (f, u) in (("m/s^2", (MG, "mg")), ("rad/s", (DPH, "deg/h"))):
+        rest = unit[len(si):]
+        if unit.startswith(si) and not rest.startswith("^"):
+            return f, u + rest
+    return 1.0, unit
 
 
 def is_matrix(key: str, unit: str) -> bool:

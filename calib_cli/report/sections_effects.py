@@ -140,6 +140,28 @@ def _curve_panels(cal, eff, panels, sensor, xlabel, title) -> Figure:
     return fig
 
 
+def _single_panel(cal, sensor, x, y, sd, xlabel, title) -> Figure:
+    """One axis: a line per channel with its 1-sigma band."""
+    f, unit = _display(cal, sensor, y)
+    fig = Figure(figsize=(8.0, 4.0), layout="constrained")
+    ax = fig.subplots()
+    n = y.shape[1]
+    for ch in range(n):
+        col = OKABE_ITO[ch % len(OKABE_ITO)]
+        ax.plot(x, y[:, ch] * f, color=col, lw=1.3,
+                label=mpl_text(f"{sensor} {AX[ch] if n == 3 else ch}"))
+        if sd is not None:
+            ax.fill_between(x, (y[:, ch] - sd[:, ch]) * f, (y[:, ch] + sd[:, ch]) * f,
+                            color=col, alpha=0.18, lw=0)
+    ax.axhline(0.0, color="0.5", lw=0.7)
+    ax.set_xlabel(mpl_text(xlabel))
+    ax.set_ylabel(mpl_text(f"added to the reading ({unit})"))
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0)
+    ax.set_title(mpl_text(title), fontsize=10)
+    return fig
+
+
 def _g(cal) -> float:
     return float(cal.stats.get("g_reference") or 9.80665)
 
@@ -212,19 +234,23 @@ def thermal_section(ctx: ReportContext, eff: AddedEffect) -> Section:
     s = eff.sensor or "accel"
     lo, hi = _temp_range(ctx, eff)
     T = np.linspace(lo, hi, N_SWEEP)
-    panels = []
-    # a triad: each axis with +1 g along it; a redundant unit: level, z up
-    for i in range(3 if cal.layout.n == 3 else 1):
+    # each accelerometer of a triad with +1 g along its own axis (the scale part shows),
+    # a redundant unit level (z up); gyros at rest
+    n = cal.layout.n
+    ys, sds = [], []
+    for i in range(3 if n == 3 else 1):
         v = np.zeros((N_SWEEP, 3))
         if s == "accel":
-            v[:, i if cal.layout.n == 3 else 2] = _g(cal)
-        kin = _kin(f=v, temp=T) if s == "accel" else _kin(temp=T)
-        name = (f"{s} {AX[i]}" if cal.layout.n == 3 else f"{s}, unit level") + (
-            " (+1 g along it)" if s == "accel" and cal.layout.n == 3 else
-            (" (z up)" if s == "accel" else " (at rest)"))
-        panels.append((name, T, kin, i if cal.layout.n == 3 else -1))
-    fig = _curve_panels(cal, eff, panels, s, "temperature (degC)",
-                        f"{eff.with_arg}: thermal curve over {lo:.1f} .. {hi:.1f} degC")
+            v[:, i if n == 3 else 2] = _g(cal)
+        y, sd = response(cal, eff, _kin(f=v, temp=T), s)
+        chans = [i] if n == 3 else list(range(n))
+        ys.append(y[:, chans])
+        sds.append(None if sd is None else sd[:, chans])
+    y = np.concatenate(ys, axis=1)
+    sd = None if any(x is None for x in sds) else np.concatenate(sds, axis=1)
+    fig = _single_panel(cal, s, T, y, sd, "temperature (degC)",
+                        f"{eff.with_arg}: thermal curve over {lo:.1f} .. {hi:.1f} degC"
+                        + (", each axis at +1 g" if s == "accel" and n == 3 else ""))
     cap = ("What the temperature drift adds to each channel over the recorded temperatures "
            "(bias and, for accelerometers at +1 g, scale), zero at the reference temperature "
            f"{float(eff.desc.get('temp_ref', 25.0)) if eff.desc else 25.0:g} degC, with its "
