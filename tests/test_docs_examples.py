@@ -77,3 +77,25 @@ def test_the_fence_finder():
     assert [(s, c) for s, c in FENCE.findall(text)] == [("", "calib --help\n"),
                                                         (" slow", "calib a\n")]
     assert page.exists()
+
+
+@pytest.mark.slow
+@pytest.mark.part("docs_examples")
+def test_the_diagnose_walkthrough_quotes_the_current_figures(tmp_path):
+    """docs/diagnose.md's walkthrough quotes the residuals and scores of its own run."""
+    import json
+
+    page = ROOT / "docs" / "diagnose.md"
+    code = next(c for s, c in blocks(page) if s and "diagnose_turntable.toml" in c)
+    _run(page, code, tmp_path)
+    d = json.loads((tmp_path / "diag.json").read_text(encoding="utf-8"))
+    text = page.read_text(encoding="utf-8")
+    walk = text[text.index("## Walkthrough"):text.index("## Validation")]
+    quoted = [f"{d['residual_rms_initial']:.2f}", f"{d['residual_rms_final']:.3f}",
+              f"{d['noise_rms']:.3f}"]
+    for st in d["steps"]:
+        quoted += [f"{st['score']:.0f}", f"{st['threshold']:.1f}",
+                   f"{st['residual_rms_before']:.2f} -> "]
+    missing = [q for q in quoted if q not in walk]
+    assert not missing, f"docs/diagnose.md's walkthrough is stale: {missing} not quoted"
+    assert [st["with"] for st in d["steps"]] == ["lever_arm", "g_sensitivity"]
