@@ -184,10 +184,15 @@ def sigma_entries(key: str, val, sig, unit: str) -> list[Entry]:
 
 
 def _catalogue_specs() -> dict:
-    """key -> ParamSpec over every catalogue effect (triad and redundant layouts)."""
-    if _SPECS:
-        return _SPECS
+    """key -> ParamSpec over every catalogue effect (triad and redundant layouts);
+    rebuilt when an effect is registered."""
     from calib_cli.model.effects import CATALOGUE, Layout, make_effect
+
+    names = tuple(CATALOGUE)
+    if _SPECS.get("__names__") == names:
+        return _SPECS
+    _SPECS.clear()
+    _SPECS["__names__"] = names
 
     for layout in (Layout(), Layout(n=6, el0=np.zeros(6), az0=np.zeros(6))):
         for name, cls in CATALOGUE.items():
