@@ -221,7 +221,8 @@ def chromium() -> str | None:
     return shutil.which("chromium") or shutil.which("chromium-browser")
 
 
-def screenshot(html, png, width: int = 1280, height: int = 2400, timeout: float = 120.0) -> None:
+def screenshot(html, png, width: int = 1280, height: int = 2400, timeout: float = 120.0,
+               extra: tuple = ()) -> None:
     """Render HTML with headless Chromium into PNG (a fresh profile, no network)."""
     exe = chromium()
     if exe is None:
@@ -231,10 +232,34 @@ def screenshot(html, png, width: int = 1280, height: int = 2400, timeout: float 
                         "--disable-background-networking", "--disable-component-update",
                         "--disable-sync", "--hide-scrollbars", f"--user-data-dir={profile}",
                         f"--window-size={width},{height}", f"--screenshot={Path(png).resolve()}",
-                        Path(html).resolve().as_uri()], stdout=subprocess.DEVNULL,
+                        *extra, Path(html).resolve().as_uri()], stdout=subprocess.DEVNULL,
                        stderr=subprocess.DEVNULL, timeout=timeout, check=False)
-    if not Path(png).is_file() or Path(png).stat().st_size < 10_000:
+    if not Path(png).is_file() or Path(png).stat().st_size < 5_000:
         raise RuntimeError(f"chromium rendered no page of {html}")
+
+
+CELL_W, CELL_H, COLS, SCALE = 1280, 1600, 4, 0.25
+
+
+def screenshot_all(htmls: list, png, timeout: float = 300.0) -> list:
+    """Render every report in one headless Chromium (one launch, not one per
+    report): a page of iframes, each report at 1280 x 1600 px scaled to a quarter,
+    COLS to a row. Returns each report's cell (x0, y0, x1, y1) in PNG pixels."""
+    rows = -(-len(htmls) // COLS)
+    w, h = int(CELL_W * SCALE), int(CELL_H * SCALE)
+    cells, frames = [], []
+    for k, html in enumerate(htmls):
+        x, y = (k % COLS) * w, (k // COLS) * h
+        cells.append((x, y, x + w, y + h))
+        frames.append(f'<iframe src="{Path(html).resolve().as_uri()}" style="position:absolute;'
+                      f"left:{x}px;top:{y}px;width:{CELL_W}px;height:{CELL_H}px;border:0;"
+                      f'transform:scale({SCALE});transform-origin:0 0"></iframe>')
+    index = Path(png).with_suffix(".html")
+    index.write_text("<!DOCTYPE html><html><body style=\"margin:0\">" + "".join(frames)
+                     + "</body></html>", encoding="utf-8")
+    screenshot(index, png, width=COLS * w, height=rows * h, timeout=timeout,
+               extra=("--allow-file-access-from-files", "--virtual-time-budget=20000"))
+    return cells
 
 
 def _shrink(png: Path) -> None:
