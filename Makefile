@@ -23,7 +23,7 @@ demo-all: $(STAMP)
 	PATH=$(CURDIR)/$(BIN):$$PATH bash sample_data/demo_all.sh
 
 test: $(STAMP)
-	MPLBACKEND=Agg $(BIN)/python -m pytest -q
+	MPLBACKEND=Agg $(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 # the HTML report of every method rendered by headless Chromium -> docs/figures/report-*.png;
 # installs the distribution's chromium package where it is missing (needs root or sudo)
