@@ -321,6 +321,10 @@ def _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
     inputs = [p for p in (plan_path, prof.path, tprof.path if tprof else None,
                          cprof.path if cprof and cprof.kind != "manual" else None) if p]
     write_raw(out, rec, inputs)
+    if session.device_info:  # what the recorder set on the unit, and read back
+        from calib_cli.acquire.device import write_device_info
+
+        write_device_info(out, prof, session.device_info)
     if not keep_journal:
         os.unlink(journal_path)
     info(f"recorded {len(rec)} samples, {len(rec.segments)} segments -> {out}; "
