@@ -640,6 +640,9 @@ def _parse_imu_profile(raw: dict, text: str, path: str, t: Typed) -> ImuProfile:
     noise = t.table(raw, "noise")
     for k in noise:
         t.num(noise, k, "noise.", lo=0)
+    if len(kw.get("layouts", ())) > 1:  # temp is a channel when every datagram has it
+        with_temp = all(any(f.name == "temp" for f in lay.fields) for lay in kw["layouts"])
+        all_fields = tuple(f for f in all_fields if f.name != "temp" or with_temp)
     kw["channels"] = _channels(all_fields, path)
     binary = fmt == "binary"
     kw["configure"] = _steps(t, raw, "configure", binary)
