@@ -327,3 +327,22 @@ def test_profile_sequence_of_1000_fields_and_odd_values_refused():
     many = base + "".join(f'[[field]]\nname = "x{i}"\ntype = "i32"\n' for i in range(1000))
     with pytest.raises(InputError, match="field"):
         parse_imu_profile(many, "p.toml")
+
+
+# -- a CAN IMU from a DBC file (cantools) -----------------------------------------------
+# SAE J1939-71 scaling of ARI/ACCS (the OpenIMU300ZI J1939 manual's): 0x7D00 = 32000 is
+# zero rate (32000 / 128 - 250) and zero acceleration (32000 * 0.01 - 320); +9.81 m/s^2 is
+# 32981 = 0x80D5, +1 deg/s is 32128 = 0x7D80; little-endian (Intel) signals.
+def test_j1939_dbc_messages_decode():
+    from calib_cli.acquire.codec import CanAssembler
+
+    prof = load_imu_profile("j1939-imu")
+    asm = CanAssembler(prof)
+    items = asm.feed_message(0x0CF02A80, bytes.fromhex("80 7D 00 7D 00 7D 00 00"))
+    items += asm.feed_message(0x08F02D80, bytes.fromhex("00 7D 00 7D D5 80 00 00"))
+    rows = SampleStream(prof).push(items, 0.0)
+    np.testing.assert_allclose(rows[0, 2:5], [0, 0, 9.81], atol=1e-9)
+    np.testing.assert_allclose(rows[0, 5:8], [0, D2R, 0], atol=1e-12)  # pitch rate is gy
+    # a truncated frame is rejected and counted; a foreign id is ignored
+    assert asm.feed_message(0x08F02D80, b"\x00\x7d") == [None]
+    assert asm.feed_message(0x123, b"\x00" * 8) == [] and asm.foreign == 1

@@ -230,8 +230,9 @@ class Responder:
         self.rate_requests: list[float] = []
         self.log: list[str] = []
         self.rules = []
-        for kind, steps in (("configure", prof.configure), ("start", prof.start_steps),
-                            ("stop", prof.stop_steps), ("identify", prof.identify)):
+        # a command that is both a configuration step and the stop (GoToConfig) stops
+        for kind, steps in (("stop", prof.stop_steps), ("start", prof.start_steps),
+                            ("configure", prof.configure), ("identify", prof.identify)):
             for st in steps:
                 self.rules.append((kind, st, pattern(prof, st.send, st.text)))
 

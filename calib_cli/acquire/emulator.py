@@ -809,7 +809,8 @@ class Emulator:
                         self.imu_port.write(rep)
             due = int(now * self.fs) - self.k
             if due > 0 and self.responder is not None and not self.responder.streaming:
-                self.k += due  # stopped (configuration mode): time passes, nothing is sent
+                self._values(self.k, due)  # stopped (configuration mode): nothing is sent
+                self.k += due
                 due = 0
             if due <= 0:
                 if self.imu_port is not None:

@@ -612,9 +612,6 @@ def _parse_imu_profile(raw: dict, text: str, path: str, t: Typed) -> ImuProfile:
                                   lo_open=False)
         kw["seq_per_s"] = t.num(seq, "counts_per_s", "sequence.", None, lo=0, lo_open=True)
     if fmt == "can":
-        if not kw.get("seq_field") and len(kw["messages"]) > 1:
-            _fail("a CAN profile of several messages needs [sequence] field: the counter "
-                  "that ties the messages of one sample together", path)
         for m in kw["messages"]:
             if kw.get("seq_field") and kw["seq_field"] not in [f.name for f in m.fields]:
                 _fail(f"message 0x{m.can_id:X} lacks the counter field {kw['seq_field']!r}", path)
