@@ -558,8 +558,10 @@ def _parse_imu_profile(raw: dict, text: str, path: str, t: Typed) -> ImuProfile:
                 w = f"datagram {i + 1}"
                 t.keys(d, IMU_KEYS["datagram"], f"{w}: ")
                 flds = _fields(t, d, f"{w} ", True)
-                lays.append(_layout(t, frame, flds, sync + t.hexbytes(d, "id", f"{w}: "),
-                                    w, byte_order))
+                ident = t.hexbytes(d, "id", f"{w}: ")
+                lays.append(dataclasses.replace(
+                    _layout(t, frame, flds, sync + ident, w, byte_order),
+                    name=ident.hex().upper()))
                 for f in flds:
                     union.setdefault(f.name, f)
             kw["layouts"] = tuple(lays)
