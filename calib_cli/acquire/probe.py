@@ -71,7 +71,7 @@ def probe_port(port: str, profiles=None, listen_s: float = 0.6, active: bool = T
     """What the unit on ``port`` speaks: passive matches at each baud rate, else
     the profiles whose identification request was answered. Empty: no known
     protocol. ``open_transport(port, settings)``: for tests."""
-    from calib_cli.acquire.device import _await, render, rate_values
+    from calib_cli.acquire.device import _await, rate_values, render
     from calib_cli.acquire.transport import SerialTransport
 
     profiles = candidate_profiles() if profiles is None else profiles
