@@ -37,3 +37,13 @@ def test_bits_as_string_and_1000_fields_refused(tmp_path):
     p.write_text(BASE + "".join(f'[[field]]\nname = "x{i}"\ntype = "i32"\n' for i in range(80)))
     r = _calib("emulate", "--imu", str(p), "--duration", "0.1")  # 352 bytes: no u8 length
     assert r.returncode == 3 and "does not fit a u8 length" in r.stderr
+
+
+@pytest.mark.parametrize("bad", ["timeout_s = true", 'timeout_s = "60"', "timeout_s = nan"])
+def test_table_profile_numbers_are_numbers(bad):
+    from calib_cli.acquire.profile import load_table_profile, parse_table_profile
+    from calib_cli.errors import InputError
+
+    text = open(load_table_profile("generic-3axis").path).read()
+    with pytest.raises(InputError, match="timeout_s"):
+        parse_table_profile(text.replace("timeout_s = 60", bad), "t.toml")

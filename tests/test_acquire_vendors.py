@@ -95,15 +95,17 @@ VN_FRAME = VN_HEADER + VN_PAYLOAD + bytes.fromhex("C0 E9")
 
 
 def _vn_profile_like_capture():
-    """The shipped profile with the capture's outputs (YawPitchRoll in place of the time
-    since startup): the group header is computed from the fields' group and bit."""
+    """The shipped profile's frame, checksum and group mechanism with the capture's
+    outputs (YawPitchRoll, AngularRate, Accel, MagPres; the shipped one has TimeStartup
+    and the uncompensated Imu): the header is computed from the fields' group and bit."""
     text = load_imu_profile("vectornav-vn100").raw_text
-    text = text.replace('name = "time_ns"\ntype = "u64"\ngroup = 1\nbit = 0',
-                        'name = "yaw"\ntype = "f32"\ngroup = 1\nbit = 3\n[[field]]\n'
-                        'name = "pitch"\ntype = "f32"\ngroup = 1\nbit = 3\n[[field]]\n'
-                        'name = "roll"\ntype = "f32"\ngroup = 1\nbit = 3')
-    cut = text.index("[sequence]")
-    text = text[:cut] + text[text.index("[[field]]"):]
+    text = text[:text.index("[sequence]")]
+    outs = [("yaw", 3, ""), ("pitch", 3, ""), ("roll", 3, ""), ("gx", 5, "rad/s"),
+            ("gy", 5, "rad/s"), ("gz", 5, "rad/s"), ("ax", 8, "m/s^2"), ("ay", 8, "m/s^2"),
+            ("az", 8, "m/s^2"), ("mx", 10, ""), ("my", 10, ""), ("mz", 10, ""),
+            ("temp", 10, "degC"), ("pres", 10, "")]
+    text += "".join(f'[[field]]\nname = "{n}"\ntype = "f32"\ngroup = 1\nbit = {b}\n'
+                    f'unit = "{u}"\n' for n, b, u in outs)
     return parse_imu_profile(text, "vn-capture.toml")
 
 
@@ -124,10 +126,10 @@ def test_vectornav_binary_corrupt_byte_rejected_and_counted():
 
 def test_vectornav_shipped_header_and_register_75():
     prof = load_imu_profile("vectornav-vn100")
-    assert prof.sync == bytes.fromhex("FA 01 21 05")  # bits 0, 5, 8, 10 of group 1
+    assert prof.sync == bytes.fromhex("FA 01 01 06")  # bits 0, 9, 10 of group 1
     st = prof.start_steps[0]
     cmd = render(prof, st.send, True, "nmea", {"rate": 400, "div": 2})
-    assert cmd.startswith(b"$VNWRG,75,1,2,01,0521*") and cmd.endswith(b"\r\n")
+    assert cmd.startswith(b"$VNWRG,75,1,2,01,0601*") and cmd.endswith(b"\r\n")
 
 
 # -- VectorNav $VNIMU --------------------------------------------------------------

@@ -768,6 +768,7 @@ def parse_table_profile(text: str, path: str = "<table>") -> TableProfile:
 
 
 def _parse_table_profile(raw: dict, text: str, path: str) -> TableProfile:
+    t = Typed(path)  # typed values: a number is a number (issue 37)
     kind = raw.get("kind", "serial")
     if kind not in ("serial", "manual"):
         _fail(f"kind must be serial or manual, got {kind!r}", path)
@@ -799,9 +800,12 @@ def _parse_table_profile(raw: dict, text: str, path: str) -> TableProfile:
         _fail("commands.move must use {roll_deg}, {pitch_deg} and/or {yaw_deg}", path)
     return TableProfile(name=name, path=path, kind="serial", transport=raw.get("transport", {}),
                         commands=dict(cmds), responses=resp, replies=raw.get("replies", {}),
-                        settled_states=settled, terminator=raw.get("terminator", "\r\n"),
-                        timeout_s=float(raw.get("timeout_s", 60.0)),
-                        speed_dps=float(raw.get("speed_dps", 90.0)), axes=axes)
+                        settled_states=settled,
+                        terminator=t.text(raw, "terminator", "", "\r\n", allow_empty=False),
+                        timeout_s=float(t.num(raw, "timeout_s", "", 60.0, lo=0, hi=86400,
+                                              lo_open=True)),
+                        speed_dps=float(t.num(raw, "speed_dps", "", 90.0, lo=0, hi=1e5,
+                                              lo_open=True)), axes=axes)
 
 
 def load_table_profile(path) -> TableProfile:
