@@ -348,3 +348,7 @@ def test_j1939_dbc_messages_decode():
     # a truncated frame is rejected and counted; a foreign id is ignored
     assert asm.feed_message(0x08F02D80, b"\x00\x7d") == [None]
     assert asm.feed_message(0x123, b"\x00" * 8) == [] and asm.foreign == 1
+    # without a counter, an ARI twice in a row (its ACCS lost) is one lost sample
+    ari = bytes.fromhex("00 7D 00 7D 00 7D 00 00")
+    assert asm.feed_message(0x0CF02A80, ari) == []
+    assert asm.feed_message(0x0CF02A80, ari) == [None]

@@ -343,17 +343,19 @@ class CanAssembler:
         if vals is None:
             return [None]
         c = vals[self.seq] if self.seq else None
+        lost = []
         if self.seq is None and can_id in self.partial.get(None, {}):
-            self.partial = {}  # a message repeats before the sample completed: one was lost
+            self.partial = {}  # a message repeats before its partner came: a sample was lost
+            lost = [None]
         part = self.partial.setdefault(c, {})
         part[can_id] = vals
         if len(part) < len(self.msgs):
-            return []
+            return lost
         merged = {}
         for v in part.values():
             merged.update(v)
         self.partial = {}  # older incomplete samples can no longer complete
-        return [tuple(merged[n] for n in self.names)]
+        return lost + [tuple(merged[n] for n in self.names)]
 
 
 def make_decoder(prof: ImuProfile):
