@@ -79,8 +79,7 @@ class NoisePort:
 
 def test_noise_is_no_known_protocol(tmp_path, cands):
     noise = NoisePort(str(tmp_path / "noise"))
-    try:
-        assert probe_port(noise.link, cands, listen_s=0.3) == []
+    try:  # the real process: exit 3 and the message
         r = subprocess.run([sys.executable, "-m", "calib_cli", "profiles", "--probe",
                             noise.link], capture_output=True, text=True, timeout=120)
     finally:

@@ -59,7 +59,7 @@ def test_vendor_profile_six_positions_fit_within_sigma(tmp_path, name):
     check_fit(z)
 
 
-@pytest.mark.parametrize("name", ["xsens-mti", "safran-stim300", "microstrain-gx5"])
+@pytest.mark.parametrize("name", ["xsens-mti", "safran-stim300"])
 def test_vendor_faults_counted_exactly(tmp_path, name):
     faults = Faults(corrupt=0.02, drop=0.01, seed=5)
     em, _, counts, _ = record6(tmp_path, name, VENDORS[name], faults=faults, seed=4)
