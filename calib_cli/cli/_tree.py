@@ -144,7 +144,8 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                       'profile': 'chamber'},
                                      {'name': 'chamber_tau', 'opts': ['--chamber-tau']},
                                      {'name': 'chamber_ramp_dpm', 'opts': ['--chamber-ramp-dpm']},
-                                     {'name': 'temp_start', 'opts': ['--temp-start']}]},
+                                     {'name': 'temp_start', 'opts': ['--temp-start']},
+                                     {'name': 'datagram', 'opts': ['--datagram']}]},
               'export': {'help': 'Export the correction (K^-1, biases, D) for firmware and other '
                                  'tools.',
                          'params': [{'argument': True,
@@ -736,7 +737,8 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                        'name': 'kind',
                                        'opts': ['--kind']},
                                       {'is_flag': True, 'name': 'show_all', 'opts': ['--all']},
-                                      {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}]},
+                                      {'is_flag': True, 'name': 'as_json', 'opts': ['--json']},
+                                      {'name': 'probe_port', 'opts': ['--probe']}]},
               'record': {'help': 'Record an experiment plan (or a free-running log) from an IMU '
                                  'into raw.h5.',
                          'params': [{'name': 'imu', 'opts': ['--imu'], 'profile': 'imu'},
