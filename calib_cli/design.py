@@ -135,14 +135,16 @@ def noise_like(rec: Recording, path: str = "<raw>") -> Noise:
     rot = [s for s in rec.segments if s.kind == "rotating"]
     if (rot and not rec.layout.redundant and rec.accel is not None and rec.gyro is not None
             and (rec.plan_kind == "turntable" or not rec.static_segments())):
-        # a turntable record: the fit's own estimate (third differences over its cycles)
-        from calib_cli.methods.turntable import _third_diff_sigma
+        # a turntable record: the fit's own estimate (third differences over its cycles,
+        # robust to the corners: methods/noise.py, as methods/turntable.py)
+        from calib_cli.methods.noise import difference_sigma
 
         if rec.in_counts("accel") or rec.in_counts("gyro"):
             raise InputError("the recording is in raw counts: give --accel-noise/--gyro-noise "
                              "in SI instead", path)
         on = np.concatenate([np.arange(s.start, s.stop) for s in rot])
-        return Noise(_third_diff_sigma(rec.accel[on]), _third_diff_sigma(rec.gyro[on]),
+        return Noise(difference_sigma(rec.accel[on], 3, robust="mad"),
+                     difference_sigma(rec.gyro[on], 3, robust="mad"),
                      rec.sample_rate, f"like {path}", rec)
     out = {}
     for sensor in ("accel", "gyro"):

@@ -12,7 +12,7 @@ Three kinds of equations, each whitened by its own noise:
   its vertical part otherwise, the unknown horizontal part added to the
   variance).
 - transitions between consecutive static positions that are recorded without
-  a gap: the corrected gyro output, integrated as a quaternion from the last
+  a gap: the corrected gyro output, integrated as a rotation from the last
   sample of one position to the first of the next, must carry the gravity
   direction measured (by the calibrated accelerometer) at the first onto the
   one measured at the second. Two residuals per transition (the tangent
@@ -24,28 +24,27 @@ Three kinds of equations, each whitened by its own noise:
 Integration: per sample interval the rotation vector
 phi = (w_n + w_n+1) dt / 2 + (w_n x w_n+1) dt^2 / 12 (exact to third order
 for a rate that varies linearly over the interval, the coning correction),
-quaternions composed in body order by a pairwise (tree) product.
+rotations (SciPy's ``Rotation``) composed in body order by a pairwise (tree) product.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError, InputError
 from calib_cli.methods import lsq
+from calib_cli.methods.noise import pooled_within
 from calib_cli.methods.result import build_result
 from calib_cli.methods.static_detect import too_few_hint
 from calib_cli.model.correction import correct
 from calib_cli.model.earth import EARTH_RATE
 from calib_cli.model.effects import Bias, GSensitivity, Layout, ScaleMisalignment
-from calib_cli.model.frames import attitude_to_rotation
+from calib_cli.model.frames import attitude_to_rotation, axis_angle
 from calib_cli.model.imu_model import ImuModel, Packing
 from calib_cli.model.kinematics import Kinematics
 from calib_cli.model.strapdown import exp_matrix
-from calib_cli.model.strapdown import quat_exp as _qexp
-from calib_cli.model.strapdown import quat_matrix as _qmat
-from calib_cli.model.strapdown import quat_mul as _qmul
 from calib_cli.model.truth import effect_from_description
 
 GAP_FACTOR = 1.5  # a sample interval > 1.5 x the median is a gap: no integration across it
@@ -69,20 +68,13 @@ def integrate(phi_list) -> np.ndarray:
     m = len(phi_list)
     L = max(1, max(len(p) for p in phi_list))
     L2 = 1 << int(np.ceil(np.log2(L)))
-    q = np.zeros((m, L2, 4))
-    q[..., 0] = 1.0
+    phi = np.zeros((m, L2, 3))  # padded with identities
     for i, p in enumerate(phi_list):
-        if len(p):
-            q[i, :len(p)] = _qexp(p)
-    while q.shape[1] > 1:
-        q = _qmul(q[:, 0::2], q[:, 1::2])
-    return _qmat(q[:, 0])
-
-
-def _rodrigues(axis, angle, v):
-    """Rotate v (3,) about unit axis (3,) by angles (n,) -> (n, 3)."""
-    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
-    return v * c + np.cross(axis, v) * s + np.outer(1 - np.cos(angle), axis) * (axis @ v)
+        phi[i, :len(p)] = p
+    r = Rotation.from_rotvec(phi.reshape(-1, 3))
+    while len(r) > m:  # neighbours pair up within each row (L2 is a power of two)
+        r = r[0::2] * r[1::2]
+    return r.as_matrix().reshape(m, 3, 3)
 
 
 # ---------------------------------------------------------------------------
@@ -112,16 +104,13 @@ class _Problem:
         if not statics:
             self.f_static = np.zeros((0, 3))
         # static means (gyro in the data's units, accel corrected, SI)
-        self.W_static = np.array([rec.gyro[s.slice].mean(axis=0) for s in statics]).reshape(-1, 3)
+        gyr = pooled_within((rec.gyro[s.slice] for s in statics), 3)
+        acc = pooled_within((self.f_all[s.slice] for s in statics), 3)
+        self.W_static = gyr.means
         self.n_static = np.array([s.n for s in statics], dtype=float)
-        self.f_static = np.array([self.f_all[s.slice].mean(axis=0) for s in statics]).reshape(-1, 3)
-        ss_g = sum(((rec.gyro[s.slice] - m) ** 2).sum(axis=0)
-                   for s, m in zip(statics, self.W_static, strict=False))
-        ss_f = sum(((self.f_all[s.slice] - m) ** 2).sum(axis=0)
-                   for s, m in zip(statics, self.f_static, strict=False))
-        dof = max(int(self.n_static.sum()) - len(statics), 1)
-        self.sig_gyro = np.sqrt(np.asarray(ss_g) / dof) * np.ones(3)  # per sample, data units
-        self.sig_f = float(np.sqrt(np.mean(np.asarray(ss_f) / dof)))  # per sample, m/s^2
+        self.f_static = acc.means
+        self.sig_gyro = np.nan_to_num(gyr.sigma)  # per sample, data units
+        self.sig_f = float(np.sqrt(np.mean(np.nan_to_num(acc.sigma) ** 2)))  # per sample, m/s^2
         self.u = self.f_static / np.linalg.norm(self.f_static, axis=1)[:, None]
         # earth rate in body axes at each static position
         self.we_static = np.zeros((len(statics), 3))
@@ -235,7 +224,7 @@ class _Problem:
             if we is not None:
                 a = s.rotation_axis_body
                 theta = np.concatenate([[0.0], np.cumsum(0.5 * (w[:-1] + w[1:]) @ a * dt)])
-                e = _rodrigues(a, -theta, we)
+                e = axis_angle(a, -theta).apply(we)
                 total = total - (0.5 * (e[:-1] + e[1:]) * dt[:, None]).sum(axis=0)
             out.append(total)
         return np.array(out).reshape(-1, 3)
