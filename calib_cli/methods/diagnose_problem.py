@@ -34,7 +34,6 @@ from calib_cli.model.effects import Layout
 from calib_cli.model.frames import attitude_to_rotation
 
 BIN_S = 0.5  # s: bin length
-METHODS = ("accel", "align", "turntable", "rimu")
 
 
 @dataclass
@@ -175,8 +174,6 @@ def _aligned(rec: Recording) -> Recording:
 
 
 def _build(rec: Recording, method: str, bin_s: float) -> Problem:
-    if method not in METHODS:
-        raise EstimationError(f"diagnose --method {method}: unknown method")
     if method == "rimu" and not rec.layout.redundant:
         raise EstimationError("--method rimu needs a redundant-unit recording (plan kind "
                               "\"rimu\" with a [rimu] geometry)")

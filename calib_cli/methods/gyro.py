@@ -86,7 +86,7 @@ def _accel_model(acc: CalibrationResult) -> ImuModel:
     return ImuModel(effects, Layout())
 
 
-class _Problem:
+class GyroProblem:
     """Static means, transitions and turns of a recording, with their noise."""
 
     def __init__(self, rec: Recording, acc: CalibrationResult):
@@ -276,7 +276,7 @@ class _Problem:
 # the fit
 
 
-def _start(prob: _Problem, model: ImuModel, base: dict, counts: bool) -> dict:
+def _start(prob: GyroProblem, model: ImuModel, base: dict, counts: bool) -> dict:
     """Bias from the static means; G = s I with s from the turns or a search."""
     W = prob.rec.gyro
     d0 = np.median(prob.W_static, axis=0) if len(prob.statics) else np.zeros(3)
@@ -315,7 +315,7 @@ def _start(prob: _Problem, model: ImuModel, base: dict, counts: bool) -> dict:
     return dict(start, gyro_K=np.eye(3) * best)
 
 
-def _observable_D(prob: _Problem) -> bool:
+def _observable_D(prob: GyroProblem) -> bool:
     """g-sensitivity is observable from the static positions when their specific
     forces span 3-D (with the bias: rank 4 of [1, f])."""
     if len(prob.statics) < 4:
@@ -330,7 +330,7 @@ def excitation(rec: Recording, accel: CalibrationResult, base: str = "full"):
     (``Effect.not_excited``): turns both ways, temperature, gravity in 3-D."""
     from calib_cli.model.effects import Excitation
 
-    prob = _Problem(rec, accel)
+    prob = GyroProblem(rec, accel)
     both = False
     if len(prob.idx):
         d0 = np.median(prob.W_static, axis=0) if len(prob.statics) else 0.0
@@ -383,7 +383,7 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
         raise EstimationError(f"the gyro fit needs static positions (bias, noise, gravity "
                               f"directions); the recording has {len(rec.static_segments())}"
                               f"{too_few_hint(rec, 2)}")
-    prob = _Problem(rec, accel)
+    prob = GyroProblem(rec, accel)
     if noise is not None:
         prob.sig_gyro = np.broadcast_to(np.asarray(noise["gyro"], float), (3,)).copy()
         prob.sig_f = float(np.sqrt(np.mean(np.asarray(noise["accel"], float) ** 2)))
@@ -465,7 +465,7 @@ def _independent_accel(prob, model, packing, fit, base, sig, scales, accel):
         h = 0.1 * float(np.sqrt(C_a[m, m]))
         params = {k: np.array(v, float, copy=True) for k, v in accel.params.items()}
         params[key].reshape(-1)[flat] += h
-        J_a[:, m] = (_Problem(prob.rec, replace(accel, params=params)).residuals(model, p, sig)
+        J_a[:, m] = (GyroProblem(prob.rec, replace(accel, params=params)).residuals(model, p, sig)
                      - r0) / h
     L = np.linalg.cholesky(np.eye(len(r0)) + J_a @ C_a @ J_a.T)
 
@@ -533,7 +533,7 @@ def _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D, cr
     return with_accel(res, accel, cross)
 
 
-def _warnings(p: dict, prob: _Problem) -> list[str]:
+def _warnings(p: dict, prob: GyroProblem) -> list[str]:
     out = []
     if np.any(np.diag(p["gyro_K"]) < 0):
         out.append("gyro_K has a negative scale factor: the sign of a turn's rotation_angle_deg "
