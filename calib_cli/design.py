@@ -187,7 +187,7 @@ def noise_like(rec: Recording, path: str = "<raw>") -> Noise:
     if rec.in_counts("accel") or rec.in_counts("gyro"):
         raise InputError("the recording is in raw counts: give --accel-noise/--gyro-noise "
                          "in SI instead", path)
-    return Noise(out["accel"], out["gyro"], rec.sample_rate, f"like {path}")
+    return Noise(out["accel"], out["gyro"], rec.sample_rate, f"like {path}", rec)
 
 
 def nominal_truth(plan: Plan, truth: Truth | None = None) -> Truth:
@@ -314,6 +314,34 @@ def _channels_like(rec: Recording, like: Recording, topt) -> Recording:
     return rec.with_(table_angle=ang, table_rate=rt)
 
 
+def attitudes_like(plan: Plan, like: Recording) -> Plan:
+    """The plan with the attitudes it leaves unknown taken from the recording ``--like``
+    names: each static position without attitude_deg is simulated at the attitude the
+    recording's mean specific force (and, where its gyros resolve the earth rate, its
+    mean rate) shows at that position. The information of a fit depends on the
+    positions' directions; a plan that does not state them would otherwise be predicted
+    at random ones (the simulator's) instead of the recorded ones."""
+    if like.accel is None or like.layout.redundant or like.in_counts("accel"):
+        return plan
+    from calib_cli.model.earth import EARTH_RATE
+    from calib_cli.model.frames import attitude_from_static
+
+    seen = {}
+    for s in like.segments:
+        if s.kind == "static" and s.plan_index >= 0 and s.plan_index not in seen and s.n > 0:
+            w = None
+            if like.gyro is not None and not like.in_counts("gyro"):
+                w = like.gyro[s.slice].mean(axis=0)
+            seen[s.plan_index] = attitude_from_static(like.accel[s.slice].mean(axis=0), w,
+                                                      EARTH_RATE, like.site.latitude)
+    segs = list(plan.segments)
+    for i, seg in enumerate(segs):
+        if seg.kind == "static" and seg.attitude is None and i in seen:
+            att = [float(x) for x in np.degrees(seen[i])]
+            segs[i] = replace(seg, extra={**seg.extra, "sim_attitude_deg": att})
+    return replace(plan, segments=tuple(segs))
+
+
 def _with_rate(plan: Plan, rate: float) -> Plan:
     return replace(plan, extra={**plan.extra, "sample_rate_hz": float(rate)})
 
@@ -332,6 +360,8 @@ def predict_result(plan: Plan, method: str, noise: Noise, truth: Truth | None = 
 
     check_plannable(plan)
     p = _with_rate(plan, noise.rate)
+    if noise.like is not None:
+        p = attitudes_like(p, noise.like)
     rec = simulate(p, nominal_truth(plan, truth), seed=0)
     try:
         return _fit(method, rec, noise, options or {}), rec
