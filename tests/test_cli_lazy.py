@@ -10,7 +10,7 @@ import pkgutil
 import click
 
 import calib_cli.cli as pkg
-from calib_cli.cli.main import register_all, cli
+from calib_cli.cli.main import cli, register_all
 
 
 def _callback_modules(cmd, acc):

@@ -17,7 +17,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 import calib_cli
 from calib_cli.methods import registry
@@ -64,13 +63,40 @@ METHOD = Method(
 REGISTRATION = '\nregister(resolve("calib_cli.methods.toy:METHOD"))\n'
 
 
-def _calib(root, *args, check=True):
-    env = {**os.environ, "PYTHONPATH": str(root), "MPLBACKEND": "Agg"}
-    r = subprocess.run([sys.executable, "-m", "calib_cli", *map(str, args)], cwd=root,
-                       env=env, capture_output=True, text=True, timeout=300)
-    if check:
-        assert r.returncode == 0, (args, r.stderr)
-    return r
+DRIVER = r'''"""Runs in the copied package: the command line in-process (one interpreter for
+all the commands), the API, and prints what the test checks as JSON."""
+import contextlib, io, json, sys
+from pathlib import Path
+
+from calib_cli.cli.main import main
+
+
+def calib(*args):
+    out, err = io.StringIO(), io.StringIO()
+    code = 0
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            main([str(a) for a in args])
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 0
+    return {"code": code, "out": out.getvalue(), "err": err.getvalue()}
+
+
+d, plan = Path(sys.argv[1]), sys.argv[2]
+r = {"simulate": calib("simulate", plan, "--out", d / "raw.h5", "--seed", "3"),
+     "help": calib("fit", "--help"), "help_toy": calib("fit", "toy", "--help"),
+     "fit": calib("fit", "toy", d / "raw.h5", "--out", d / "toy.h5", "--scale", "1"),
+     "bad": calib("fit", "toy", d / "raw.h5", "--out", d / "x.h5", "--scale", "-1")}
+(d / "pipe.toml").write_text('[[step]]\nstep = "fit"\nmethod = "toy"\nscale = 1.0\n')
+r["batch"] = calib("batch", d / "pipe.toml", d / "raw.h5", "--out", d / "out", "--json")
+from calib_cli import api
+
+r["api"] = api.fit("toy", api.read_raw(d / "raw.h5"), scale=1.0).params["accel_bias"].tolist()
+r["show"] = calib("show", d / "toy.h5", "--json")
+r["plan"] = calib("plan", "check", plan, "--method", "toy", "--json", "--like", d / "raw.h5")
+r["report"] = calib("report", d / "toy.h5", "--out", d / "rep")
+print(json.dumps(r))
+'''
 
 
 def test_toy_method_is_one_module_and_one_line(tmp_path):
@@ -81,34 +107,28 @@ def test_toy_method_is_one_module_and_one_line(tmp_path):
     reg.write_text(reg.read_text() + REGISTRATION)
     d = tmp_path / "work"
     d.mkdir()
-    _calib(root, "simulate", PLAN, "--out", d / "raw.h5", "--seed", "3")
-    # the command line: listed, its option generated, fitted
-    assert "toy" in _calib(root, "fit", "--help").stdout
-    assert "--scale" in _calib(root, "fit", "toy", "--help").stdout
-    _calib(root, "fit", "toy", d / "raw.h5", "--out", d / "toy.h5", "--scale", "1")
-    bad = _calib(root, "fit", "toy", d / "raw.h5", "--out", d / "x.h5", "--scale", "-1",
-                 check=False)
-    assert bad.returncode == 3 and "--scale" in bad.stderr
+    (tmp_path / "driver.py").write_text(DRIVER)
+    env = {**os.environ, "PYTHONPATH": str(root), "MPLBACKEND": "Agg"}
+    p = subprocess.run([sys.executable, str(tmp_path / "driver.py"), str(d), str(PLAN)],
+                       cwd=root, env=env, capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    r = json.loads(p.stdout)
+    for k in ("simulate", "help", "help_toy", "fit", "batch", "show", "plan", "report"):
+        assert r[k]["code"] == 0, (k, r[k]["err"])
+    # the command line: listed, its option generated and checked (exit 3 naming it)
+    assert "toy" in r["help"]["out"] and "--scale" in r["help_toy"]["out"]
+    assert r["bad"]["code"] == 3 and "--scale" in r["bad"]["err"]
     # the batch: a step with the option as a key
-    (d / "pipe.toml").write_text('[[step]]\nstep = "fit"\nmethod = "toy"\nscale = 2.0\n')
-    r = _calib(root, "batch", d / "pipe.toml", d / "raw.h5", "--out", d / "out", "--json")
-    assert json.loads(r.stdout)["summary"]["ok"] == 1
-    # the Python API, with the option as a keyword: the same result as the command line
-    code = ("import sys, json; from calib_cli import api; rec = api.read_raw(sys.argv[1]); "
-            "c = api.fit('toy', rec, scale=1.0); print(json.dumps(c.params['accel_bias'].tolist()))")
-    env = {**os.environ, "PYTHONPATH": str(root)}
-    out = subprocess.run([sys.executable, "-c", code, str(d / "raw.h5")], cwd=root, env=env,
-                         capture_output=True, text=True, check=True).stdout
-    shown = json.loads(_calib(root, "show", d / "toy.h5", "--json").stdout)
-    assert np.allclose(json.loads(out), shown["params"]["accel_bias"], rtol=1e-12)
-    # plan check predicts it (the fit's own information at the stated noise)
-    r = _calib(root, "plan", "check", PLAN, "--method", "toy", "--json", "--like", d / "raw.h5")
-    pred = json.loads(r.stdout)
+    assert json.loads(r["batch"]["out"])["summary"]["ok"] == 1
+    # the Python API, the option as a keyword: the command line's result
+    shown = json.loads(r["show"]["out"])
+    assert np.allclose(r["api"], shown["params"]["accel_bias"], rtol=1e-12)
+    # plan check predicts it (the fit's own information at the recording's noise)
+    pred = json.loads(r["plan"]["out"])
     assert pred["method"] == "toy" and pred["unobservable"] == []
     ratio = np.asarray(pred["sigma"]["accel_bias"]) / np.asarray(shown["sigma"]["accel_bias"])
     assert np.all((ratio > 0.87) & (ratio < 1.15)), ratio
     # the report
-    _calib(root, "report", d / "toy.h5", "--out", d / "rep")
     md = (d / "rep" / "report.md").read_text()
     assert "toy" in md and "accel_bias" in md
 

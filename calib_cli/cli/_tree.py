@@ -785,6 +785,9 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                     {'name': 'tol_path',
                                      'opts': ['--tolerances'],
                                      'path': [True, False]},
+                                    {'name': 'history_dir',
+                                     'opts': ['--history'],
+                                     'path': [False, True]},
                                     {'is_flag': True, 'name': 'pdf', 'opts': ['--pdf']}]},
               'rimu-check': {'help': 'Parity-space fault detection and isolation; exit 6 when a '
                                      'fault is found.',

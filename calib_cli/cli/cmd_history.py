@@ -37,8 +37,8 @@ def _plot(entries, keys, path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from calib_cli.io.history import element_names
     from calib_cli.io.h5 import atomic_path
+    from calib_cli.io.history import element_names
     from calib_cli.report.figures import use_palette
 
     use_palette()  # the Okabe-Ito colour-blind-safe cycle of every calib figure
