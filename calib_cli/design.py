@@ -91,8 +91,8 @@ def resolve_method(plan: Plan, method: str = "auto") -> str:
     """The fit a plan's record goes to, as the table says (methods/registry.py): a
     method whose ``claims`` takes the plan (a static plan with chamber setpoints goes to
     the thermal fit, one with turns of known angle to the gyro fit), else the method of
-    the plan's kind; for the accelerometer fit its variant, as ``fit accel --method
-    auto`` chooses (vector with attitudes, else scalar)."""
+    the plan's kind; where the method has variants, the one its ``variant_of`` names (the
+    accelerometer fit: vector with attitudes, else scalar, as ``fit accel --method auto``)."""
     from calib_cli.methods.registry import FITS, method_of_plan_kind, plan_method_names
 
     names = plan_method_names()
@@ -112,12 +112,9 @@ def resolve_method(plan: Plan, method: str = "auto") -> str:
                              f"{method!r}", plan.path)
         if m.name != method:  # a variant named explicitly
             return method
-    if m.variants:
-        statics = [s for s in plan.segments if s.kind == "static"]
-        known = bool(statics) and all(s.attitude is not None for s in statics)
-        return next((v for v, o in m.variants.items()
-                     if o.get("method") == ("vector" if known else "scalar")), m.name)
-    return m.name
+    from calib_cli.methods.method import resolve
+
+    return resolve(m.variant_of)(plan) if m.variant_of else m.name
 
 
 def default_noise(plan: Plan, rate: float | None = None, truth: Truth | None = None) -> Noise:

@@ -260,6 +260,7 @@ class Method:
     plan_kinds: tuple = ()
     claims: Any = None
     variants: dict = field(default_factory=dict)  # plan check --method NAME -> options
+    variant_of: Any = None  # plan -> the variant its records get (auto)
     # plan check's candidate additions: "module:function(plan, name) -> [(words, segments)]"
     plan_candidates: Any = None
     result_names: tuple = ()  # further ``method`` values of its calibrations ("vector")

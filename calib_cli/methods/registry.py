@@ -390,6 +390,13 @@ def _thermal_with(rec, o, effects):
     return _fit_thermal(rec, o, lag=any(n == "thermal_lag" for n, _ in effects))
 
 
+def _accel_variant(plan) -> str:
+    """``fit accel --method auto`` on a plan: vector when every static position has an
+    attitude, else scalar (CONTRACT.md section 5)."""
+    statics = [s for s in plan.segments if s.kind == "static"]
+    return "vector" if statics and all(s.attitude is not None for s in statics) else "scalar"
+
+
 def _has_turns(plan) -> bool:
     """A static plan with turns of known angle goes to the gyro fit (Ferraris)."""
     return any(s.kind == "turn" for s in plan.segments)
@@ -486,6 +493,7 @@ register(Method(
     screen="inside", information=lambda rec, o, noise, like: _fit_accel(rec, o, noise),
     plan_kinds=("static",), variants={"vector": {"method": "vector"},
                                       "scalar": {"method": "scalar"}},
+    variant_of=_accel_variant,
     result_names=("vector", "scalar"), plan_candidates="calib_cli.design:position_candidates",
     with_engine="engine", diagnose="engine", report=("calib_cli.report.sections_static",),
     options_name="AccelOptions", docs="docs/accel.md"))
