@@ -1,6 +1,6 @@
 """methods/noise.py: each white-noise estimator recovers the sigma it is documented
 for, on the data shape it is documented for; the tree product of rotations of the
-gyro fit equals the sequential one."""
+gyro fit equals the sequential one; the scalar-first quaternion conversion."""
 
 import numpy as np
 import pytest
@@ -61,3 +61,12 @@ def test_gyro_tree_product_equals_the_sequential_product():
         for v in p:
             R = R * Rotation.from_rotvec(v)
         np.testing.assert_allclose(G, R.as_matrix(), atol=1e-12)
+
+
+def test_scalar_first_quaternions_round_trip():
+    from calib_cli.model.frames import rotation_from_wxyz, rotation_to_wxyz
+
+    r = Rotation.from_rotvec([[0.3, -0.2, 0.1], [0.0, 0.0, 1.0]])
+    q = rotation_to_wxyz(r)
+    assert np.allclose(q[1], [np.cos(0.5), 0, 0, np.sin(0.5)])  # w first
+    assert np.allclose(rotation_from_wxyz(q).as_matrix(), r.as_matrix())

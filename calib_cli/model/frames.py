@@ -34,6 +34,19 @@ def axis_angle(axis, angle_rad) -> Rotation:
     return Rotation.from_rotvec(np.multiply.outer(ang, a))
 
 
+def rotation_from_wxyz(q) -> Rotation:
+    """Rotations of quaternions (..., 4) stored scalar first (w, x, y, z: PX4's and
+    ArduPilot's logs, Hamilton convention); SciPy's ``Rotation`` takes them scalar last.
+    The package's one conversion between the two orders (``rotation_to_wxyz`` back)."""
+    return Rotation.from_quat(np.roll(np.asarray(q, dtype=float), -1, axis=-1))
+
+
+def rotation_to_wxyz(rot: Rotation) -> np.ndarray:
+    """Quaternions (..., 4), scalar first, of rotations (the inverse of
+    ``rotation_from_wxyz``)."""
+    return np.roll(rot.as_quat(), 1, axis=-1)
+
+
 def skew(v) -> np.ndarray:
     """Cross-product matrices [v x] (..., 3, 3) of 3-vectors v (..., 3)."""
     v = np.asarray(v, dtype=float)
