@@ -29,7 +29,7 @@ def run() -> None:
         pkg.GC_DEFERRED = True
 
     if "_CALIB_COMPLETE" in os.environ:  # shell completion: from the static tree, < 0.3 s
-        from calib_cli.cli.index import stub
+        from calib_cli.cli.tree import stub
 
         stub().main(prog_name="calib")
         return

@@ -9,7 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from calib_cli.cli import index
+from calib_cli.cli import index, tree
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -65,7 +65,7 @@ def test_completion_from_the_static_tree():
 def test_stub_tree_mirrors_every_command():
     from calib_cli.cli import main
 
-    main._register()
+    main.register_all()
 
     def names(cmd, prefix=()):
         import click
@@ -77,4 +77,4 @@ def test_stub_tree_mirrors_every_command():
                 out |= names(cmd.get_command(ctx, n), prefix + (n,))
         return out
 
-    assert names(index.stub()) == names(main.cli)
+    assert names(tree.stub()) == names(main.cli)

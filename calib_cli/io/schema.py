@@ -241,10 +241,10 @@ def known_param_keys() -> set[str]:
     import numpy as np
 
     from calib_cli.model.effects import Layout
-    from calib_cli.model.truth import _key_owner
+    from calib_cli.model.truth import key_owner
 
-    keys = set(_key_owner(Layout(), {}))
-    keys |= set(_key_owner(Layout(n=6, el0=np.zeros(6), az0=np.zeros(6)), {}))
+    keys = set(key_owner(Layout(), {}))
+    keys |= set(key_owner(Layout(n=6, el0=np.zeros(6), az0=np.zeros(6)), {}))
     return keys | {"attitude"}
 
 
