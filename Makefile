@@ -23,7 +23,7 @@ demo-all: $(STAMP)
 	PATH=$(CURDIR)/$(BIN):$$PATH bash sample_data/demo_all.sh
 
 test: $(STAMP)
-	MPLBACKEND=Agg $(BIN)/python -m pytest -q
+	MPLBACKEND=Agg $(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 # the HTML report of every method, --with effect and diagnosis rendered by headless
 # Chromium -> docs/figures/report-*.png (calib_cli/validation/report_cases.py);

@@ -53,7 +53,7 @@ def _complete(words: str) -> dict:
 
 def _subcommands() -> list[list[str]]:
     """Every command path of the static tree (`show`, `fit accel`, `plan check`, ...)."""
-    from calib_cli.cli.index import tree
+    from calib_cli.cli.tree import tree
 
     def walk(d, prefix):
         out = []

@@ -9,7 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from calib_cli.cli import index
+from calib_cli.cli import index, tree
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -65,7 +65,7 @@ def test_completion_from_the_static_tree():
 def test_stub_tree_mirrors_every_command():
     from calib_cli.cli import main
 
-    main._register()
+    main.register_all()
 
     def names(cmd, prefix=()):
         import click
@@ -77,7 +77,7 @@ def test_stub_tree_mirrors_every_command():
                 out |= names(cmd.get_command(ctx, n), prefix + (n,))
         return out
 
-    assert names(index.stub()) == names(main.cli)
+    assert names(tree.stub()) == names(main.cli)
 
 
 def _paths(cmd, prefix=()):
@@ -98,13 +98,13 @@ def test_every_subcommand_help_from_the_static_tree_equals_the_real_one():
 
     from calib_cli.cli import main
 
-    main._register()
+    main.register_all()
     runner = CliRunner()
     paths = [p for p in _paths(main.cli) if p]
     assert len(paths) > 30
     for path in paths:
         real = runner.invoke(main.cli, [*path, "--help"], prog_name="calib", terminal_width=80)
-        fast = runner.invoke(index.stub(), [*path, "--help"], prog_name="calib",
+        fast = runner.invoke(tree.stub(), [*path, "--help"], prog_name="calib",
                              terminal_width=80)
         assert real.exit_code == fast.exit_code == 0, path
         assert fast.output == real.output, path

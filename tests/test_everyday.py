@@ -78,7 +78,7 @@ def test_tables_are_full_width_in_a_pipe(tmp_path):
 
 
 def test_every_option_has_a_help_line():
-    from calib_cli.cli.index import tree
+    from calib_cli.cli.tree import tree
 
     missing = []
 

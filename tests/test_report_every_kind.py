@@ -21,7 +21,7 @@ def reports(tmp_path_factory):
 
 
 def test_the_cases_cover_every_method_effect_and_diagnosis():
-    from calib_cli.cli.index import tree
+    from calib_cli.cli.tree import tree
     from calib_cli.methods.fit_with import EFFECTS
 
     fits = {c.command[1] for c in rc.CASES if c.command[0] == "fit"}

@@ -37,8 +37,8 @@ def _plot(entries, keys, path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from calib_cli.batch.history import element_names
     from calib_cli.io.h5 import atomic_path
+    from calib_cli.io.history import element_names
     from calib_cli.report.figures import use_palette
 
     use_palette()  # the Okabe-Ito colour-blind-safe cycle of every calib figure
@@ -97,7 +97,7 @@ def _cell(e) -> str:
 @click.option("--json", "as_json", is_flag=True, help="One JSON object on stdout.")
 def history_cmd(directory, serial, plot_path, as_json):
     """Each parameter of a unit over its calibrations found under DIRECTORY."""
-    from calib_cli.batch.history import scan
+    from calib_cli.io.history import scan
 
     entries = scan(directory, serial)
     if not entries:

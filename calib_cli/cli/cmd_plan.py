@@ -9,7 +9,9 @@ import numpy as np
 
 from calib_cli.cli.common import err_console, info, json_output_option, output_json, print_json
 from calib_cli.cli.main import cli
+from calib_cli.cli.method_options import plan_option_values, plan_options
 from calib_cli.errors import InputError
+from calib_cli.methods.registry import plan_method_names
 from calib_cli.units import SUFFIXES
 
 COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
@@ -144,41 +146,6 @@ def _condition_json(res) -> dict:
             for k, v in cd.items()}
 
 
-def turntable_fit_options(f):
-    """The turntable fit's options plan check and optimize predict with (as `calib fit
-    turntable`'s; default: the fit's defaults)."""
-    f = click.option("--prior", "priors", multiple=True, metavar="KEY=SIGMA",
-                     help="turntable: override one prior 1-sigma (SI), as fit turntable.")(f)
-    f = click.option("--grade", type=click.Choice(["mems", "tactical", "navigation"]),
-                     help="turntable: prior widths for this grade of unit (fit's default "
-                          "mems).")(f)
-    f = click.option("--table-encoder", "table_encoder",
-                     type=click.Choice(["auto", "off", "angle", "rate", "both"]),
-                     help="turntable: the table's channels as measurements (fit's default "
-                          "auto).")(f)
-    f = click.option("--tangential", type=click.Choice(["on", "off"]),
-                     help="turntable: the dw/dt x r term (fit's default on).")(f)
-    f = click.option("--proof-mass", "proof_mass", type=click.Choice(["auto", "off", "estimate"]),
-                     help="turntable: proof-mass offsets (fit's default auto).")(f)
-    f = click.option("--lever-arm", "lever_arm", type=click.Choice(["off", "known", "estimate"]),
-                     help="turntable: lever arms (fit's default estimate).")(f)
-    return f
-
-
-def _turntable_options(plan, lever_arm, proof_mass, tangential, table_encoder, grade,
-                       priors) -> dict:
-    from calib_cli.cli.cmd_turntable import _key_values
-
-    d = {"lever_arm": lever_arm, "proof_mass": proof_mass, "tangential": tangential,
-         "table_encoder": table_encoder, "grade": grade,
-         "prior": _key_values(priors, "--prior") if priors else None}
-    d = {k: v for k, v in d.items() if v is not None}
-    if d and plan.kind != "turntable":
-        raise click.UsageError(f"--{next(iter(d)).replace('_', '-')} applies to turntable "
-                               "plans only")
-    return d
-
-
 @plan_group.command("check")
 @click.argument("plan", type=click.Path(dir_okay=False))
 @click.option("--like", type=click.Path(dir_okay=False),
@@ -188,22 +155,18 @@ def _turntable_options(plan, lever_arm, proof_mass, tangential, table_encoder, g
 @click.option("--rate", type=float, help="Sample rate, Hz (default: the plan's sample_rate_hz).")
 @click.option("--truth", "truth_path", type=click.Path(dir_okay=False),
               help="Predict at this truth model (default: a neutral unit, K = I, biases 0).")
-@click.option("--method", type=click.Choice(["auto", "vector", "scalar", "gyro", "align",
-                                             "rimu", "thermal", "turntable"]), default="auto",
+@click.option("--method", type=click.Choice(plan_method_names()), default="auto",
               show_default=True,
               help="The fit to predict (auto: as fit would choose; a static plan with turns "
                    "goes to fit gyro, one with chamber setpoints to fit thermal).")
-@click.option("--g-sensitivity", type=click.Choice(["auto", "on", "off"]), default="auto",
-              show_default=True, help="fit gyro's option.")
-@turntable_fit_options
+@plan_options
 @click.option("--no-suggest", is_flag=True, help="Skip the ranked additions (faster).")
 @click.option("--json", "as_json", is_flag=True, help="Print the prediction as JSON.")
-def plan_check_cmd(plan, like, accel_noise, gyro_noise, rate, truth_path, method, g_sensitivity,
-                   lever_arm, proof_mass, tangential, table_encoder, grade, priors, no_suggest,
-                   as_json):
+def plan_check_cmd(plan, like, accel_noise, gyro_noise, rate, truth_path, method, no_suggest,
+                   as_json, **method_options):
     """Predict the 1-sigma of every parameter PLAN's fit will report, the
     unobservable ones, and the additions that help most."""
-    from calib_cli.design import check
+    from calib_cli.design import check, resolve_method
     from calib_cli.io.plan import load_plan
     from calib_cli.io.truth import load_truth
     from calib_cli.plan import plan_layout
@@ -211,15 +174,13 @@ def plan_check_cmd(plan, like, accel_noise, gyro_noise, rate, truth_path, method
     if rate is not None and rate <= 0:
         raise click.BadParameter("--rate must be positive")
     p = load_plan(plan)
-    topts = _turntable_options(p, lever_arm, proof_mass, tangential, table_encoder, grade,
-                               priors)
+    opts = plan_option_values(resolve_method(p, method), method_options)
     truth = load_truth(truth_path, plan_layout(p)) if truth_path else None
     nz = _noise(p, like, accel_noise, gyro_noise, rate, truth)
     from calib_cli.cli.progress import bar
 
     with bar("plan check"):
-        pr = check(p, method, nz, truth, {"g_sensitivity": g_sensitivity, **topts},
-                   suggestions=not no_suggest)
+        pr = check(p, method, nz, truth, opts, suggestions=not no_suggest)
     if as_json:
         print_json(check_json(pr))
     else:
@@ -357,14 +318,12 @@ def plan_make_cmd(method, out, positions, fit_method, duration, sample_rate, tur
 @click.option("--rate", type=float, help="Sample rate, Hz (default: the plan's).")
 @click.option("--truth", "truth_path", type=click.Path(dir_okay=False),
               help="Predict at this truth model (default: a neutral unit).")
-@click.option("--method", type=click.Choice(["auto", "vector", "scalar", "gyro", "align",
-                                             "rimu", "turntable"]), default="auto",
+@click.option("--method", type=click.Choice(plan_method_names()), default="auto",
               show_default=True)
-@turntable_fit_options
+@plan_options
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
 def plan_optimize_cmd(plan, targets, max_duration, out, like, accel_noise, gyro_noise, rate,
-                      truth_path, method, lever_arm, proof_mass, tangential, table_encoder,
-                      grade, priors, as_json):
+                      truth_path, method, as_json, **method_options):
     """The shortest plan of PLAN's family (generated plans: number of positions
     and durations; other plans: durations only) whose predicted sigma meets
     every --target."""
@@ -386,8 +345,7 @@ def plan_optimize_cmd(plan, targets, max_duration, out, like, accel_noise, gyro_
         if Path(out).resolve() == Path(plan).resolve():
             raise click.UsageError("--out must not be the input plan")
     p = load_plan(plan)
-    topts = _turntable_options(p, lever_arm, proof_mass, tangential, table_encoder, grade,
-                               priors)
+    topts = plan_option_values(design.resolve_method(p, method), method_options)
     truth = load_truth(truth_path, plan_layout(p)) if truth_path else None
     nz = _noise(p, like, accel_noise, gyro_noise, rate, truth)
     from calib_cli.cli.progress import bar

@@ -90,7 +90,8 @@ def _raise_interrupt(*_):
 
 @cli.command("record")
 @click.option("--imu", "imu", required=True, shell_complete=complete_profile("imu"),
-              help="IMU profile: a .toml path or a profile name (`calib profiles`).")
+              help="IMU profile: a .toml path, a profile name (`calib profiles`), or auto "
+              "(find the protocol on --port).")
 @click.option("--port", help="Serial port of the IMU (serial profiles).")
 @click.option("--can-interface", help="python-can interface (default: the profile's).")
 @click.option("--can-channel", help="CAN channel (default: the profile's).")
@@ -144,6 +145,17 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
 
     if plan_path and duration is not None:
         raise click.UsageError("give --plan or --duration, not both")
+    if imu == "auto":  # probe the port for a known protocol (acquire/probe.py)
+        if not port:
+            raise click.UsageError("--imu auto needs --port")
+        from calib_cli.acquire.probe import candidate_profiles, no_protocol_message, probe_port
+
+        cands = candidate_profiles()
+        found = probe_port(port, cands)
+        if not found:
+            raise InputError(no_protocol_message(port, cands), port)
+        imu = found[0].name
+        info(f"--imu auto: {imu} ({found[0].detail}, {found[0].how})")
     prof = load_imu_profile(imu)
     if rate:
         import dataclasses
@@ -333,6 +345,10 @@ def _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
     inputs = [p for p in (plan_path, prof.path, tprof.path if tprof else None,
                          cprof.path if cprof and cprof.kind != "manual" else None) if p]
     write_raw(out, rec, inputs)
+    if session.device_info:  # what the recorder set on the unit, and read back
+        from calib_cli.acquire.device import write_device_info
+
+        write_device_info(out, prof, session.device_info)
     if not keep_journal:
         os.unlink(journal_path)
     info(f"recorded {len(rec)} samples, {len(rec.segments)} segments -> {out}; "

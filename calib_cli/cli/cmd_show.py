@@ -37,7 +37,7 @@ def _shower(kind: str):
     if kind not in SHOWERS:
         import importlib
 
-        from calib_cli.cli.index import tree
+        from calib_cli.cli.tree import tree
 
         mod = tree().get("showers", {}).get(kind)
         if mod:

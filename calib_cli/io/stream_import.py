@@ -32,21 +32,20 @@ from calib_cli.io.h5 import (
     write_segments,
     write_site_layout,
 )
+from calib_cli.io.log_segments import (
+    Chunk,
+    check_time_range,
+    convert_units,
+    plan_cycles,
+    segments_from_column,
+    segments_from_detection,
+)
 from calib_cli.methods.static_stream import OnlineFloors, StreamDetector
 from calib_cli.plan import Plan, plan_layout  # noqa: F401  (plan_layout re-exported)
 
 CHUNK_ROWS = 65536
 READ_ROWS = 1 << 18
 OPTIONAL = ("temp", "table_angle", "table_rate")
-
-
-@dataclass
-class Chunk:
-    time: np.ndarray
-    accel: np.ndarray
-    gyro: np.ndarray | None = None
-    opt: dict = field(default_factory=dict)  # temp, table_angle, table_rate -> (m,)
-    segment: np.ndarray | None = None  # plan segment index per sample (int)
 
 
 @dataclass
@@ -201,8 +200,6 @@ def prefetch(source: Iterable[Chunk], depth: int = 3) -> Iterator[Chunk]:
 
 def segments_from_runs(vals, starts, n, plan: Plan, path: str):
     """csvlog.segments_from_column, from the runs of the column."""
-    from calib_cli.io.csvlog import segments_from_column
-
     if not vals:
         return []
     vals = np.asarray(vals)
@@ -270,8 +267,6 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
 
 def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_static_s,
                    accel_units, gyro_units, hashes, counters, check, sample_kind):
-    from calib_cli.io.csvlog import check_time_range
-    from calib_cli.io.textlog import convert_units
 
     layout = plan_layout(plan)
     units = convert_units(np.zeros((1, 3)), np.zeros((1, 3)), accel_units, gyro_units, path)[2]
@@ -310,8 +305,6 @@ def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_st
         if runs is not None:
             segments = segments_from_runs(runs.vals, runs.starts, n, plan, path)
         else:
-            from calib_cli.io.csvlog import plan_cycles, segments_from_detection
-
             report = det.result(sink.blocks, multiplier, min_static_s, times=sink.times)
             cycles = None
             if "gyro" in sink.ds and any(s.kind == "rotating" for s in plan.segments):

@@ -87,7 +87,7 @@ class ParamSpec:
         return np.zeros(self.shape, bool) if self.fixed is None else self.fixed
 
 
-class _Ctx:
+class ApplyContext:
     """Working state of one sensor's forward pass."""
 
     def __init__(self, kin: Kinematics, layout: Layout, sensor: str):
@@ -163,7 +163,7 @@ class Effect:
     def specs(self, layout: Layout) -> list[ParamSpec]:
         return []
 
-    def apply(self, p: dict, ctx: _Ctx) -> None:
+    def apply(self, p: dict, ctx: ApplyContext) -> None:
         """Add this effect's contribution to ctx (in place)."""
 
     def realisation(self, p: dict, layout: Layout, fs: float, seed: int):

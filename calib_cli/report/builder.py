@@ -12,8 +12,9 @@ Method-specific sections register themselves per method:
         return Section("Lever arms", text=["..."],
                        figures=[FigureItem("lever-arm-history", fig, "What to look for: ...")])
 
-Modules named ``calib_cli/report/sections_*.py`` are imported automatically,
-so a new method adds its sections in a new module without editing this one.
+The modules each method of the method table names (its ``report``,
+methods/registry.py) are imported when a report is built, so a new method adds its
+sections in a new module named by its declaration, without editing this one.
 A method with no registered section gets the generic report (parameters with
 sigma, statistics, provenance) and a note saying so. docs/report.md.
 """
@@ -23,7 +24,6 @@ from __future__ import annotations
 import base64
 import importlib
 import json
-import pkgutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -73,9 +73,10 @@ class ReportContext:
     raw_kind: str | None = None
     allan: object | None = None
     notes: list = field(default_factory=list)
-    tolerances: dict | None = None  # batch.tolerance.load_tolerances(), for the verdict
+    tolerances: dict | None = None  # io.tolerance.load_tolerances(), for the verdict
     tolerances_path: str | None = None
     diagnosis: dict | None = None  # a diagnosis file's summary and arrays (io.diag_h5)
+    history: list | None = None  # the unit's calibrations (io.history.scan), for the verdict
     _recording: object | None = None
 
     def recording(self):
@@ -156,14 +157,18 @@ def added_effects(cal: CalibrationResult) -> list[AddedEffect]:
 
 
 def _load_section_modules() -> None:
+    """Import the section modules the method table names (each method's ``report``,
+    methods/registry.py); their ``@register`` decorators fill SECTIONS."""
     global _loaded
     if _loaded:
         return
-    import calib_cli.report as pkg
+    from calib_cli.methods.registry import FITS
 
-    for mod in sorted(m.name for m in pkgutil.iter_modules(pkg.__path__)):
-        if mod.startswith("sections_"):
-            importlib.import_module(f"calib_cli.report.{mod}")
+    for m in FITS.values():
+        for mod in m.report:
+            importlib.import_module(mod)
+    # the sections of the effects a fit adds (--with, a diagnosis's steps), for every method
+    importlib.import_module("calib_cli.report.sections_effects")
     _loaded = True
 
 
@@ -201,19 +206,28 @@ def verdict(ctx: ReportContext) -> tuple[str, str]:
 
     cal, st = ctx.cal, ctx.cal.stats
     if ctx.tolerances is not None:
-        from calib_cli.batch.history import CalEntry
-        from calib_cli.batch.tolerance import check
+        from calib_cli.io.history import entry_of
+        from calib_cli.io.tolerance import evaluate
 
-        entry = CalEntry(ctx.cal_path, ctx.cal_path, cal.serial or "", cal.method, "", "",
-                         cal.params, cal.sigma, cal.units)
-        res = check(entry, [], ctx.tolerances)
+        res = evaluate(entry_of(ctx.cal_path, cal, ctx.prov, ctx.history), ctx.history,
+                       ctx.tolerances)
         checked = [k for k in ctx.tolerances if k in cal.params]
+        skipped = ""
+        if res["not_evaluated"]:
+            skipped = "; not evaluated: " + "; ".join(res["not_evaluated"])
+        if res["not_reported"]:
+            skipped += f"; not reported by this calibration: {', '.join(res['not_reported'])}"
         if res["failures"]:
             return "fail", (f"FAIL against the tolerances ({len(res['failures'])} failing): "
                             + "; ".join(res["failures"][:5])
-                            + ("; ..." if len(res["failures"]) > 5 else ""))
+                            + ("; ..." if len(res["failures"]) > 5 else "") + skipped + ".")
+        if res["status"] == "incomplete":
+            return "undecided", (f"INCOMPLETE against the tolerances: the rules evaluated pass "
+                                 f"({len(checked)} parameters: {', '.join(checked)})"
+                                 + skipped + ".")
         return "pass", (f"PASS against the tolerances ({len(checked)} parameters checked: "
-                        f"{', '.join(checked) or 'none reported by this method'}).")
+                        f"{', '.join(checked) or 'none reported by this method'})"
+                        + skipped + ".")
     crit = []  # (ok, text)
     ga, gf = st.get("g_error_rms_after"), st.get("g_error_floor")
     if ga is not None and gf is not None and np.isfinite(ga) and np.isfinite(gf) and gf > 0:

@@ -223,7 +223,7 @@ def calibration_section(d: Diagnosis, source: str = "") -> list[str]:
     and the before/after of the quantity the user cares about (|g| error per static
     position for accelerometer triads, the residual per segment (rotating cycles) in
     noise units for every method)."""
-    from calib_cli.methods.fit_with import g_error_per_position
+    from calib_cli.methods.with_effects import g_error_per_position
 
     lines = ["## The calibration", ""]
     cmd = d.fit_command(source or "RAW.h5", "CAL.h5")
