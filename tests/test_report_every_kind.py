@@ -94,7 +94,6 @@ def test_every_report_renders_in_headless_chromium(reports, tmp_path):
     """One Chromium renders every report (a page of iframes, a quarter scale each):
     every report's cell shows a page with text and figures, not a blank."""
     import matplotlib.image as mpimg
-    import numpy as np
 
     names = list(reports)
     cells = rc.screenshot_all([reports[n] / "report.html" for n in names], tmp_path / "all.png")

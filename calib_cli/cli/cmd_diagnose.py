@@ -12,7 +12,7 @@ from rich.table import Table
 from calib_cli.cli.common import Ctx, info, out_console, print_json, to_jsonable
 from calib_cli.cli.main import cli
 from calib_cli.io.h5 import read_raw
-from calib_cli.methods.registry import diagnosable
+from calib_cli.methods.registry import diagnosable, method_of_plan_kind
 
 COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
 
@@ -85,8 +85,11 @@ def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir, cal_
     with bar("diagnose"):
         try:
             d = run_diagnose(method, rec, base=base, alpha=alpha, noise=noise)
-        except CalibError as exc:  # the core does not know the file: name it
-            exc.path = exc.path or raw
+        except CalibError as exc:  # the core does not know the file: name it, and the
+            exc.path = exc.path or raw  # method the recording's plan is for
+            right = method_of_plan_kind(rec.plan_kind)
+            if right and right != method and f"--method {right}" not in exc.message:
+                exc.message += f" (a {rec.plan_kind} plan: --method {right})"
             raise
     if own and noise != "auto":
         info(f"--noise does not apply to --method {method} (the {method} fit's own noise "

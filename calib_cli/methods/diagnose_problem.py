@@ -208,13 +208,8 @@ def _build(rec: Recording, method: str, bin_s: float) -> Problem:
         raise EstimationError(f"{len(use)} segments with a known attitude; the RIMU base model "
                               "needs at least 4 positions")
     if method == "turntable" and not any(s.kind == "rotating" for s in use):
-        from calib_cli.methods.registry import method_of_plan_kind
-
-        right = method_of_plan_kind(rec.plan_kind)
         raise EstimationError("no rotating segment with a table axis and a known start "
-                              "attitude: not a turntable recording"
-                              + (f" (a {rec.plan_kind} plan: --method {right})"
-                                 if right and right != "turntable" else ""))
+                              "attitude: not a turntable recording")
     parts, ys = [], {s: [] for s in sensors}
     starts, counts, bin_seg, bounds = [], [], [], []
     fs = rec.sample_rate

@@ -109,7 +109,7 @@ def display_of(key: str, unit: str, idx: tuple = ()) -> tuple[float, str]:
     if key in DISPLAY:
         f, u = DISPLAY[key]
     else:
-        spec = _catalogue_specs().get(key)
+        spec = catalogue_specs().get(key)
         if spec is not None and spec.display != (1.0, "") and spec.unit == unit:
             f, u = spec.display
         else:
@@ -183,7 +183,7 @@ def sigma_entries(key: str, val, sig, unit: str) -> list[Entry]:
     return out
 
 
-def _catalogue_specs() -> dict:
+def catalogue_specs() -> dict:
     """key -> ParamSpec over every catalogue effect (triad and redundant layouts);
     rebuilt when an effect is registered."""
     from calib_cli.model.effects import CATALOGUE, Layout, make_effect

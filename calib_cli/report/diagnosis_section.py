@@ -12,8 +12,8 @@ from matplotlib.ticker import MaxNLocator
 
 from calib_cli.io.escape import mpl_text
 from calib_cli.model.display import num
-from calib_cli.report.builder import FigureItem, ReportContext, Section, Table
 from calib_cli.report.figures import BLUE, VERMILION
+from calib_cli.report.items import FigureItem, ReportContext, Section, Table
 
 
 def _stages(arrays: dict) -> list:

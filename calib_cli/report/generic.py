@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib_cli.report.builder import AddedEffect, FigureItem, ReportContext, Section, Table
 from calib_cli.report.figures import parameter_figure
+from calib_cli.report.items import AddedEffect, FigureItem, ReportContext, Section, Table
 
 CAPTION = ("Each entry with its 1-sigma bar, in display units (a dimensionless matrix as its "
            "deviation from the identity, ppm; hollow: fixed by the model, no uncertainty; "
@@ -61,13 +61,13 @@ def effect_section(ctx: ReportContext, eff: AddedEffect) -> Section:
             "of it (a noise-model term is reported under Statistics, noise_model)."],
             figures=[base_parameter_figure(ctx, [])])
     return Section(f"Added effect: {eff.with_arg}",
-                   text=[_describe(cal, eff)],
+                   text=[describe_effect(cal, eff)],
                    tables=[entry_table(cal, eff.keys, f"Parameters of {eff.with_arg}.")],
                    figures=[FigureItem(f"effect-{eff.name}", parameter_figure(
                        _items(cal, eff.keys), f"{eff.with_arg}: parameters"), CAPTION)])
 
 
-def _describe(cal, eff: AddedEffect) -> str:
+def describe_effect(cal, eff: AddedEffect) -> str:
     """The effect's own words (Effect.describe) with its largest term."""
     from calib_cli.model.truth import effect_from_description
 

@@ -20,9 +20,10 @@ from matplotlib.figure import Figure
 
 from calib_cli.io.escape import mpl_text
 from calib_cli.model.display import DPH, MG, data_units
-from calib_cli.report.builder import AddedEffect, FigureItem, ReportContext, Section, register_effect
+from calib_cli.report.builder import register_effect
 from calib_cli.report.figures import OKABE_ITO, parameter_figure
-from calib_cli.report.generic import CAPTION, _describe, entry_table
+from calib_cli.report.generic import CAPTION, describe_effect, entry_table
+from calib_cli.report.items import AddedEffect, FigureItem, ReportContext, Section
 
 AX = "xyz"
 N_SWEEP = 61
@@ -220,7 +221,7 @@ def curve_section(ctx: ReportContext, eff: AddedEffect) -> Section:
     else:
         s = eff.sensor or "accel"
         fig = _input_sweep(ctx, eff, s, s)
-    return Section(f"Added effect: {eff.with_arg}", text=[_describe(cal, eff)],
+    return Section(f"Added effect: {eff.with_arg}", text=[describe_effect(cal, eff)],
                    tables=[entry_table(cal, eff.keys, f"Parameters of {eff.with_arg}.")],
                    figures=[FigureItem(f"effect-{eff.name}", fig, _CURVE_CAPTION[eff.name])])
 
@@ -256,7 +257,7 @@ def thermal_section(ctx: ReportContext, eff: AddedEffect) -> Section:
            f"{float(eff.desc.get('temp_ref', 25.0)) if eff.desc else 25.0:g} degC, with its "
            "1-sigma band. What to look for: a curve outside its band over the range is a real "
            "drift; beyond the recorded range the polynomial is an extrapolation.")
-    return Section(f"Added effect: {eff.with_arg}", text=[_describe(cal, eff)],
+    return Section(f"Added effect: {eff.with_arg}", text=[describe_effect(cal, eff)],
                    tables=[entry_table(cal, eff.keys, f"Parameters of {eff.with_arg}.")],
                    figures=[FigureItem("effect-temperature-drift", fig, cap)])
 
@@ -309,7 +310,7 @@ def geometry_section(ctx: ReportContext, eff: AddedEffect) -> Section:
            "arm that differs between cycles by more than its bars is expected only when the "
            "unit was re-mounted; a component along a cycle's table axis is fixed at 0 (it "
            "cannot be seen).")
-    return Section(f"Added effect: {eff.with_arg}", text=[_describe(cal, eff)],
+    return Section(f"Added effect: {eff.with_arg}", text=[describe_effect(cal, eff)],
                    tables=[entry_table(cal, eff.keys, f"Parameters of {eff.with_arg}.")],
                    figures=[FigureItem(f"effect-{eff.name.replace('_', '-')}", fig, cap)])
 
@@ -327,7 +328,7 @@ def _cycle_labels(ctx, n: int) -> list:
 def noise_model_section(ctx: ReportContext, eff: AddedEffect) -> Section:
     """A wandering bias is a noise-model term: never applied or exported; its figure
     (stats.noise_model) with its sigma."""
-    from calib_cli.model.display import _catalogue_specs
+    from calib_cli.model.display import catalogue_specs
 
     cal = ctx.cal
     nm = cal.stats.get("noise_model") or {}
@@ -342,7 +343,7 @@ def noise_model_section(ctx: ReportContext, eff: AddedEffect) -> Section:
                 continue
             if eff.sensor and not k.startswith(eff.sensor):
                 continue
-            spec = _catalogue_specs().get(k)
+            spec = catalogue_specs().get(k)
             sg = (entry.get("sigma") or {}).get(k)
             sg = np.full(np.shape(v), np.nan) if sg is None else \
                 np.array([np.nan if x is None else x for x in sg], float)
