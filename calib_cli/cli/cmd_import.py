@@ -185,12 +185,13 @@ def _import_stream(path, stream, plan_path, out, window_s, multiplier, min_stati
     plan = load_plan(plan_path)
     if Path(path).is_dir():  # a ROS 2 bag folder: hash every file in it
         inputs = sorted(str(p) for p in Path(path).rglob("*") if p.is_file())
-    counters = {"source_stream": stream.name}
-    counters.update({k: v for k, v in stream.info.items() if isinstance(v, (str, int, float))})
+    # filled in while the log is read (dropouts, device ids, parameter changes)
+    counters = stream.info
+    counters["source_stream"] = stream.name
     res = import_to_raw(out, track(stream_chunks(path, stream), f"import {stream.name}"), plan,
                         path, inputs + [plan_path],
                         window_s, multiplier, min_static_s, counters=counters,
-                        check=gap_check(path, stream.name))
+                        check=gap_check(path, stream.name), provenance=stream.source)
     n_static = sum(1 for s in res.segments if s.kind == "static")
     gaps = res.counters.get("gaps", 0)
     gap_txt = (f", {gaps} short gap{'s' * (gaps != 1)} (longest "
@@ -199,8 +200,21 @@ def _import_stream(path, stream, plan_path, out, window_s, multiplier, min_stati
 
     info(f"imported {res.n} samples of {term_text(stream.name)}, {len(res.segments)} segments "
          f"({n_static} static){gap_txt} -> {out}")
+    warnings = [gap_txt[2:]] if gaps else []
+    src = stream.source
+    if src.get("samples") == "corrected":
+        n_par = len(src.get("parameters") or {})
+        info(f"the samples are already corrected by the firmware ({n_par} calibration "
+             "parameters in force recorded): `calib export --format "
+             f"{src.get('firmware')}` composes the fit with them (docs/export.md)")
+    if src.get("parameters_changed"):
+        w = ("calibration parameters changed during the log: "
+             + ", ".join(src["parameters_changed"][:6])
+             + ("..." if len(src["parameters_changed"]) > 6 else ""))
+        info(f"[yellow]warning:[/] {term_text(w)}")
+        warnings.append(w)
     if as_json:
-        output_json(out, "raw", [gap_txt[2:]] if gaps else [])
+        output_json(out, "raw", warnings)
 
 
 def _need_plan(plan_path, out, what):
