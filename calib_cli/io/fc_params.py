@@ -205,6 +205,7 @@ class Thermal:
     tmin: float
     tmax: float
     tref: float
+    slot: int | None = None  # PX4 TC_?j slot (matched by TC_?j_ID), ArduPilot: the IMU
 
     def offset(self, temp) -> np.ndarray:
         """(N, 3) offset the firmware subtracts at temperatures ``temp`` (degC)."""
@@ -367,32 +368,53 @@ def _ap_in_force(params, sensor, instance):
 # writing a calibration as parameters
 
 
+PX4_INT_SUFFIX = ("_ID", "_ROT", "_PRIO", "_ENABLE")  # PX4's int32 parameters (the rest float)
+
+
 def to_params(firmware: str, instance: int, accel: SensorCal | None, gyro: SensorCal | None
               ) -> list[tuple[str, float]]:
     """[(name, value)] of offsets, scales, device ids and temperature terms."""
-    nm = names(firmware, instance)
+    cals = {s: (instance, c) for s, c in (("accel", accel), ("gyro", gyro)) if c is not None}
+    return to_params_split(firmware, cals)
+
+
+def to_params_split(firmware: str, cals: dict) -> list[tuple[str, float]]:
+    """As ``to_params`` with an instance per sensor: {sensor: (instance, SensorCal)}
+    (PX4 keeps accelerometer and gyro calibrations in separate slots). A Thermal
+    with a NaN reference writes zero coefficients and no reference (ArduPilot's
+    shared INS_TCALn_ENABLE turns on both sensors' polynomials)."""
     out: list[tuple[str, float]] = []
-    for sensor, cal in (("accel", accel), ("gyro", gyro)):
-        if cal is None:
+    for sensor in ("accel", "gyro"):
+        if sensor not in cals:
             continue
+        inst, cal = cals[sensor]
+        nm = names(firmware, inst)
         out += list(zip(nm[f"{sensor}_off"], map(float, cal.offset)))
         if sensor == "accel":
             out += list(zip(nm["accel_scale"], map(float, cal.scale)))
         if cal.device_id is not None:
             out.append((nm[f"{sensor}_id"], float(cal.device_id)))
-    for sensor, cal in (("accel", accel), ("gyro", gyro)):
-        if cal is None or cal.thermal is None:
+    for sensor in ("accel", "gyro"):
+        if sensor not in cals or cals[sensor][1].thermal is None:
             continue
-        th, tc = cal.thermal, nm[f"{sensor}_tc"]
-        out.append((tc["enable"], 1.0))
+        inst, cal = cals[sensor]
+        th = cal.thermal
         if firmware == "px4":
+            tc = names(firmware, th.slot if th.slot is not None else inst)[f"{sensor}_tc"]
+            out.append((tc["enable"], 1.0))
             if cal.device_id is not None:
                 out.append((tc["id"], float(cal.device_id)))
             out += [(tc["tref"], th.tref), (tc["tmin"], th.tmin), (tc["tmax"], th.tmax)]
         else:
-            out += [(tc["tmin"], th.tmin), (tc["tmax"], th.tmax), (tc["caltemp"], th.tref)]
+            tc = names(firmware, inst)[f"{sensor}_tc"]
+            out += [(tc["enable"], 1.0), (tc["tmin"], th.tmin), (tc["tmax"], th.tmax)]
         for k, row in enumerate(tc["coef"]):
             out += [(row[i], float(th.coef[i, k])) for i in range(3)]
+    for sensor in ("accel", "gyro"):  # ArduPilot: the offsets hold at CALTEMP
+        if firmware == "ardupilot" and sensor in cals and cals[sensor][1].thermal is not None:
+            inst, cal = cals[sensor]
+            if np.isfinite(cal.thermal.tref):
+                out.append((names(firmware, inst)[f"{sensor}_tc"]["caltemp"], cal.thermal.tref))
     seen, uniq = set(), []
     for k, v in out:  # ArduPilot's TCAL ENABLE/TMIN/TMAX are shared by accel and gyro
         if k not in seen:

@@ -29,6 +29,8 @@ import struct
 
 import numpy as np
 
+from calib_cli.io.fc_params import PX4_INT_SUFFIX
+
 BLOCK = 200_000  # samples per block
 
 # ---------------------------------------------------------------------------
@@ -76,7 +78,6 @@ SENSOR_SELECTION = [("uint64_t", "timestamp"), ("uint32_t", "accel_device_id"),
                     ("uint32_t", "gyro_device_id")]
 _NP = {"uint64_t": "<u8", "uint32_t": "<u4", "int32_t": "<i4", "uint8_t": "u1", "float": "<f4",
        "double": "<f8", "int16_t": "<i2", "uint16_t": "<u2", "int8_t": "i1"}
-PX4_INT_PARAM = ("_ID", "_ROT", "_PRIO", "_ENABLE", "SENS_BOARD_ROT")
 
 
 def _umsg(kind: bytes, payload: bytes) -> bytes:
@@ -100,7 +101,7 @@ def _data_dtype(fields):
 
 
 def _ulog_param(name: str, value: float) -> bytes:
-    if name.endswith(PX4_INT_PARAM) or name == "SENS_BOARD_ROT":
+    if name.endswith(PX4_INT_SUFFIX):
         key, raw = f"int32_t {name}", struct.pack("<i", int(round(value)))
     else:
         key, raw = f"float {name}", struct.pack("<f", float(value))
@@ -110,7 +111,7 @@ def _ulog_param(name: str, value: float) -> bytes:
 def write_ulog(path, t_us, accel, gyro, temp=None, combined=True, sensors=True,
                corrected=None, params=None, device_ids=(1234, 5678), multi_id=0,
                gyro_t_us=None, gyro_raw=None, selection=None, param_changes=(),
-               dropouts=(), start_us=None, other_instance=False):
+               dropouts=(), start_us=None, other_instance=False, sample_t_us=None):
     """A ULog file. ``sensor_accel``/``sensor_gyro`` (instance ``multi_id``,
     device ids ``device_ids``) hold the driver's samples ``accel``/``gyro``
     (the gyro at ``gyro_t_us`` when given, values ``gyro_raw``);
@@ -119,7 +120,8 @@ def write_ulog(path, t_us, accel, gyro, temp=None, combined=True, sensors=True,
     ``param_changes``: [(t_us, name, value)]; ``dropouts``: [(t_us, ms)];
     ``selection``: write ``sensor_selection`` (default: when ``combined``);
     ``other_instance``: also an instance ``multi_id + 1`` (which the importer must
-    skip) with other values."""
+    skip) with other values; ``sample_t_us``: the accelerometer's
+    ``timestamp_sample`` when it differs from its publication time ``t_us``."""
     t_us = np.asarray(t_us, dtype=np.int64)
     n = len(t_us)
     accel = np.asarray(accel, dtype=np.float32).reshape(n, 3)
@@ -187,7 +189,8 @@ def write_ulog(path, t_us, accel, gyro, temp=None, combined=True, sensors=True,
                     vals = accel[sl] if acc else graw[gsl]
                     if multi != multi_id:
                         vals = vals * 0.5 + 0.25
-                    r["timestamp_sample"] = tt
+                    r["timestamp_sample"] = tt if not acc or sample_t_us is None else \
+                        np.asarray(sample_t_us, np.int64)[sl]
                     r["device_id"] = device_ids[0 if acc else 1] + (multi - multi_id)
                     r["x"], r["y"], r["z"] = vals[:, 0], vals[:, 1], vals[:, 2]
                     r["temperature"] = temp[sl] if acc or gyro_t_us is None else 25.0
