@@ -197,3 +197,69 @@ def test_listing_rate_from_timestamp_sample(field, run_cli, tmp_path):
     rows = {r["topic"]: r for r in json.loads(out)}
     assert rows["sensor_accel[0]"]["rate_hz"] == pytest.approx(100.0, rel=1e-12)
     assert rows["sensor_combined[0]"]["rate_hz"] == pytest.approx(1e6 / 10002, rel=1e-9)
+
+
+def _px(path):
+    return {k: v for k, v in _params_of(path, "px4" if path.suffix == ".params" else
+                                        "ardupilot").items()}
+
+
+@pytest.mark.parametrize("target", ["px4", "ardupilot"])
+def test_simulated_log_workflow(run_cli, tmp_path, target):
+    """docs/import.md's field workflow on `calib simulate --out LOG`: the export
+    composed from the corrected stream equals the absolute export of a fit on
+    the same samples before the firmware's correction (PX4: sensor_accel of the
+    same log; ArduPilot: the simulation of the same seed, float32 as the log, cut
+    into the segments the import found), to float32 rounding."""
+    plan = "sample_data/twelve_position.toml"
+    ext, imp = (".ulg", "ulog") if target == "px4" else (".bin", "dataflash")
+    inf = tmp_path / ("in.params" if target == "px4" else "in.parm")
+    nm = fc_params.names(target, 0)
+    inf.write_text("".join(f"{nm['accel_off'][i]},{OFF[i]}\n{nm['accel_scale'][i]},{SCL[i]}\n"
+                           f"{nm['gyro_off'][i]},{GOFF[i]}\n" for i in range(3)))
+    log = tmp_path / f"field{ext}"
+    code, js, err = run_cli("simulate", plan, "--out", log, "--in-force", inf, "--seed", "4",
+                            "--json")
+    assert code == 0 and json.loads(js)["kind"] == ext[1:], err
+    raw, cal, out = tmp_path / "raw.h5", tmp_path / "cal.h5", tmp_path / f"cal{inf.suffix}"
+    assert run_cli("import", imp, log, "--plan", plan, "--out", raw)[0] == 0
+    assert run_cli("fit", "gyro", raw, "--out", cal)[0] == 0
+    assert run_cli("export", cal, "--format", target, "--out", out)[0] == 0
+    if target == "px4":
+        ref_raw = tmp_path / "raw_sensor.h5"
+        assert run_cli("import", "ulog", log, "--source", "sensor", "--plan", plan, "--out",
+                       ref_raw)[0] == 0
+    else:
+        import dataclasses
+
+        from calib_cli.io.h5 import write_raw
+
+        sim = tmp_path / "sim.h5"
+        assert run_cli("simulate", plan, "--out", sim, "--seed", "4")[0] == 0
+        r = read_raw(sim)
+        ref_raw = tmp_path / "ref_raw.h5"
+        write_raw(ref_raw, dataclasses.replace(
+            r, accel=r.accel.astype(np.float32).astype(float),
+            gyro=r.gyro.astype(np.float32).astype(float), segments=read_raw(raw).segments))
+    ref_cal, ref_out = tmp_path / "ref.h5", tmp_path / f"ref{inf.suffix}"
+    assert run_cli("fit", "gyro", ref_raw, "--out", ref_cal)[0] == 0
+    assert run_cli("export", ref_cal, "--format", target, "--out", ref_out)[0] == 0
+    got, want = _px(out), _px(ref_out)
+    assert "# COMPOSED" in out.read_text() and "COMPOSED" not in ref_out.read_text()
+    for k in nm["accel_off"] + nm["accel_scale"] + nm["gyro_off"]:
+        assert got[k] == pytest.approx(want.get(k, got[k]), abs=2e-6), k
+    assert got[nm["accel_id"]] == 2490378
+
+
+@pytest.mark.parametrize("ext", [".mcap", ".bag"])
+def test_simulate_ros_logs(run_cli, tmp_path, ext):
+    plan = "sample_data/twelve_position.toml"
+    log = tmp_path / f"x{ext}"
+    assert run_cli("simulate", plan, "--out", log, "--seed", "2")[0] == 0
+    raw = tmp_path / "raw.h5"
+    code, _, err = run_cli("import", "bag", log, "--topic", "/imu", "--plan", plan, "--out", raw)
+    assert code == 0, err
+    assert read_source(raw)["samples"] == "unknown"
+    code, _, err = run_cli("simulate", plan, "--out", tmp_path / f"y{ext}", "--in-force",
+                           "sample_data/truth.toml")
+    assert code == 2 and "--in-force is for" in err

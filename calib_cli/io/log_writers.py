@@ -383,3 +383,94 @@ def write_mcap(path, t_ns, accel, gyro, topic="/imu", frame_id="imu_link"):
         write_ros2_bag(bag, t_ns, accel, gyro, storage="mcap", topic=topic, frame_id=frame_id,
                        extra_topic=False)
         shutil.move(str(next(bag.glob("*.mcap"))), str(path))
+
+
+# ---------------------------------------------------------------------------
+# calib simulate --out LOG: a simulated record as the firmware would log it
+
+LOG_SUFFIXES = {".ulg": "px4", ".bin": "ardupilot", ".mcap": None, ".bag": None}
+SIM_DEVICE_IDS = {"accel": 2490378, "gyro": 2490634}  # as a driver on SPI bus 1 numbers them
+SIM_BOOT_US = 20_000_000  # the first sample 20 s after boot (flight-controller clocks)
+SIM_EPOCH_NS = 1_700_000_000_000_000_000  # ROS stamps: wall-clock time
+
+
+def default_params(firmware: str) -> dict:
+    """The parameters of a freshly flashed board with one IMU (no calibration,
+    no rotation), its device ids as logged."""
+    from calib_cli.io import fc_params
+
+    nm = fc_params.names(firmware, 0)
+    p = {nm["accel_id"]: SIM_DEVICE_IDS["accel"], nm["gyro_id"]: SIM_DEVICE_IDS["gyro"]}
+    for i in range(3):
+        p[nm["accel_off"][i]] = 0.0
+        p[nm["accel_scale"][i]] = 1.0
+        p[nm["gyro_off"][i]] = 0.0
+    if firmware == "px4":
+        p.update({"CAL_ACC0_ROT": -1, "CAL_GYRO0_ROT": -1, "SENS_BOARD_ROT": 0,
+                  "SENS_BOARD_X_OFF": 0.0, "SENS_BOARD_Y_OFF": 0.0, "SENS_BOARD_Z_OFF": 0.0,
+                  "TC_A_ENABLE": 0, "TC_G_ENABLE": 0})
+    else:
+        p.update({"AHRS_ORIENTATION": 0, "INS_TCAL1_ENABLE": 0, "INS_GYR_CAL": 0})
+    return p
+
+
+def write_sim_log(path, rec, firmware_params: dict | None, where: str) -> dict:
+    """Write ``rec`` (a simulated record: the sensor's own samples) as the log
+    of ``path``'s suffix: ULog (``sensor_accel``/``sensor_gyro`` the samples,
+    ``sensor_combined`` corrected by the PX4 parameters in force), DataFlash
+    (``IMU``, ``ACC``, ``GYR`` corrected by the ArduPilot parameters in force,
+    as ArduPilot logs them), ``.mcap``/``.bag`` (``sensor_msgs/Imu`` on
+    ``/imu``, the samples as a ROS driver publishes them). Returns the
+    parameters written. ``where`` names the input in errors."""
+    import os
+    from pathlib import Path
+
+    from calib_cli.errors import InputError
+    from calib_cli.io import fc_params
+    from calib_cli.io.h5 import atomic_path
+
+    suffix = Path(path).suffix.lower()
+    firmware = LOG_SUFFIXES[suffix]
+    if rec.units.get("accel") != "m/s^2" or rec.units.get("gyro") != "rad/s" or \
+            rec.gyro is None or rec.accel.shape[1] != 3:
+        raise InputError("a flight-controller or ROS log holds one triad of accelerometers and "
+                         "gyros in SI units: this simulation is not one (counts, a redundant "
+                         "unit, or no gyro)", where)
+    if firmware is None and firmware_params:
+        raise InputError(f"parameters in force are for flight-controller logs: a {suffix} "
+                         "bag holds what the driver publishes", where)
+    t_us = SIM_BOOT_US + np.round(np.asarray(rec.time) * 1e6).astype(np.int64)
+    x, w = rec.accel, rec.gyro
+    temp = rec.temp if rec.temp is not None else np.full(len(t_us), 25.0)
+    prm = {}
+    if firmware is not None:
+        guess = fc_params.guess_firmware(firmware_params or {})
+        if guess is not None and guess != firmware:
+            raise InputError(f"the parameters in force are {guess} parameters, the output "
+                             f"{suffix} is a {firmware} log", where)
+        prm = {**default_params(firmware), **(firmware_params or {})}
+        try:
+            cal_a = fc_params.in_force(firmware, prm, "accel", 0, SIM_DEVICE_IDS["accel"]
+                                       if firmware == "px4" else None)
+            cal_g = fc_params.in_force(firmware, prm, "gyro", 0, SIM_DEVICE_IDS["gyro"]
+                                       if firmware == "px4" else None)
+        except fc_params.CompositionError as exc:
+            raise InputError(str(exc), where) from None
+        # float32 as the drivers deliver them, corrected as the firmware does in float
+        x = np.asarray(x, np.float32).astype(float)
+        w = np.asarray(w, np.float32).astype(float)
+        y, yg = cal_a.correct(x, temp), cal_g.correct(w, temp)
+    with atomic_path(path) as tmp:
+        if suffix == ".ulg":
+            ids = (SIM_DEVICE_IDS["accel"], SIM_DEVICE_IDS["gyro"])
+            write_ulog(tmp, t_us, x, w, temp, corrected=(y, yg), params=prm, device_ids=ids)
+        elif suffix == ".bin":
+            write_dataflash(tmp, t_us, y, yg, temp, params=prm, extra_instance=False)
+        else:
+            os.unlink(tmp)  # rosbags' writers make the file themselves
+            t_ns = SIM_EPOCH_NS + np.round(np.asarray(rec.time) * 1e9).astype(np.int64)
+            if suffix == ".mcap":
+                write_mcap(tmp, t_ns, x, w)
+            else:
+                write_ros1_bag(tmp, t_ns, x, w)
+    return prm
