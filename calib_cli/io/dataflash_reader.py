@@ -29,7 +29,7 @@ from calib_cli.errors import InputError
 HEAD1, HEAD2 = 0xA3, 0x95
 FMT_TYPE = 128
 FMT_LEN = 89
-BLOCK = 8 << 20
+BLOCK = 2 << 20
 # pymavlink DFReader.FORMAT_TO_STRUCT: numpy type and multiplier
 FORMAT = {"a": ("<i2", 32, None), "b": ("i1", 1, None), "B": ("u1", 1, None),
           "g": ("<f2", 1, None), "h": ("<i2", 1, None), "H": ("<u2", 1, None),

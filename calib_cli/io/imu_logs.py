@@ -67,10 +67,29 @@ class LogStream:
 
 
 def stream_chunks(path: str, s: LogStream) -> Iterator[Chunk]:
-    """Chunks of a stream: time relative to its first sample; checks that it increases."""
+    """Chunks of BLOCK rows of a stream (the readers' blocks gathered: the
+    import's detection works in whole chunks, as for a CSV log): time relative
+    to its first sample; checks that it increases."""
     t0 = None
     last = None
     count = 0
+    pend: list = []
+    n_pend = 0
+
+    def emit(final=False):
+        nonlocal pend, n_pend
+        t = np.concatenate([p[0] for p in pend])
+        a = np.concatenate([p[1] for p in pend])
+        g = np.concatenate([p[2] for p in pend])
+        tp = None if any(p[3] is None for p in pend) else np.concatenate([p[3] for p in pend])
+        k = len(t) if final else (len(t) // BLOCK) * BLOCK
+        for i in range(0, k, BLOCK):
+            j = slice(i, min(i + BLOCK, k))
+            yield Chunk(time=t[j], accel=a[j], gyro=g[j],
+                        opt={"temp": None if tp is None else tp[j]})
+        pend = [] if k == len(t) else [(t[k:], a[k:], g[k:], None if tp is None else tp[k:])]
+        n_pend = len(t) - k
+
     for t_ns, accel, gyro, temp in s.blocks():
         t_ns = np.asarray(t_ns, dtype=np.int64)
         if not len(t_ns):
@@ -87,14 +106,16 @@ def stream_chunks(path: str, s: LogStream) -> Iterator[Chunk]:
                              "after the first sample)", path)
         count += len(t_ns)
         last = int(t_ns[-1])
-        t = (t_ns - t0) / 1e9
-        for i in range(0, len(t), BLOCK):
-            j = slice(i, i + BLOCK)
-            yield Chunk(time=t[j], accel=np.asarray(accel[j], dtype=float),
-                        gyro=np.asarray(gyro[j], dtype=float),
-                        opt={"temp": None if temp is None else np.asarray(temp[j], dtype=float)})
+        pend.append(((t_ns - t0) / 1e9, np.asarray(accel, dtype=float),
+                     np.asarray(gyro, dtype=float),
+                     None if temp is None else np.asarray(temp, dtype=float)))
+        n_pend += len(t_ns)
+        if n_pend >= BLOCK:
+            yield from emit()
     if t0 is None:
         raise InputError(f"{s.name}: no messages", path)
+    if n_pend:
+        yield from emit(final=True)
 
 
 def gap_check(path: str, name: str):
