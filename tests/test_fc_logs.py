@@ -15,8 +15,7 @@ import numpy as np
 import pytest
 from conftest import TRUTH_SI, static_plan_text
 from log_writers import write_dataflash, write_ulog
-from test_fc_export import GOFF, OFF, SCL, _ap_params, _fw_ap_correct, _fw_px4_correct, \
-    _px4_params
+from test_fc_export import GOFF, OFF, SCL, _ap_params, _fw_ap_correct, _fw_px4_correct, _px4_params
 
 from calib_cli.io import fc_params
 from calib_cli.io.h5 import read_raw, read_source
@@ -263,3 +262,33 @@ def test_simulate_ros_logs(run_cli, tmp_path, ext):
     code, _, err = run_cli("simulate", plan, "--out", tmp_path / f"y{ext}", "--in-force",
                            "sample_data/truth.toml")
     assert code == 2 and "--in-force is for" in err
+
+
+def test_docs_field_workflow_runs(run_cli, tmp_path, monkeypatch):
+    """The commands of docs/export.md "Field workflow" run as written (on
+    simulated logs) and export composed parameters."""
+    import shlex
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "docs" / "export.md").read_text()
+    sec = text.split("### Field workflow", 1)[1].split("\n## ", 1)[0]
+    lines = [ln[4:] for ln in sec.splitlines() if ln.startswith("    ")]
+    assert sum(ln.startswith("calib ") for ln in lines) >= 9
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sample_data").symlink_to(root / "sample_data")
+    for ln in lines:
+        if ln.startswith("#"):
+            continue
+        if ln.startswith("printf"):
+            subprocess.run(ln, shell=True, check=True, cwd=tmp_path)
+            continue
+        args = shlex.split(ln.split("  #", 1)[0])
+        assert args[0] == "calib", ln
+        code, out, err = run_cli(*args[1:])
+        assert code == 0, (ln, err)
+        if "--json" in args:
+            assert json.loads(out)["export"]["mode"] == "composed"
+    for f in ("new.params", "new.parm"):
+        assert "# COMPOSED" in (tmp_path / f).read_text()

@@ -257,7 +257,8 @@ def import_bag_cmd(path, topic, stamp, plan_path, out, window_s, multiplier, min
 @_detection_options
 def import_ulog_cmd(path, source, instance, plan_path, out, window_s, multiplier, min_static_s,
                     as_json):
-    """Import the IMU of a PX4 ULog file (needs calib-cli[px4]; docs/import.md).
+    """Import the IMU of a PX4 ULog file (docs/import.md); /source of the raw file
+    records whether the samples are corrected and the parameters in force.
     Without --plan, list the IMU topics with their message counts and rates."""
     from calib_cli.io.imu_logs import list_ulog_streams, ulog_stream
 
@@ -275,12 +276,14 @@ def import_ulog_cmd(path, source, instance, plan_path, out, window_s, multiplier
 @click.argument("path", type=click.Path(dir_okay=False))
 @click.option("--message", type=click.Choice(["IMU", "ACC"]), default="IMU", show_default=True,
               help="IMU (filtered, at the logging rate) or ACC/GYR (unfiltered samples).")
-@click.option("--instance", default=0, show_default=True, type=int, help="IMU instance (field I).")
+@click.option("--instance", default=0, show_default=True, type=int,
+              help="IMU instance: field I, or 0-2 = IMU/IMU2/IMU3 (ACC1..3) of older logs.")
 @_detection_options
 def import_dataflash_cmd(path, message, instance, plan_path, out, window_s, multiplier,
                          min_static_s, as_json):
     """Import the IMU of an ArduPilot DataFlash .bin log (needs
-    calib-cli[ardupilot]; docs/import.md). Without --plan, list the IMU
+    docs/import.md; ArduPilot 4.1+ I field, or IMU/IMU2/IMU3 and ACC1..3 of older
+    logs); /source records the parameters in force. Without --plan, list the IMU
     messages with their counts and rates."""
     from calib_cli.io.imu_logs import dataflash_stream, list_dataflash_streams
 

@@ -30,8 +30,8 @@ from calib_cli.io.h5 import (
     sha256_file,
     write_provenance,
     write_segments,
-    write_source,
     write_site_layout,
+    write_source,
 )
 from calib_cli.methods.static_stream import OnlineFloors, StreamDetector
 from calib_cli.plan import Plan, plan_layout  # noqa: F401  (plan_layout re-exported)
