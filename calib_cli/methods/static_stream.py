@@ -177,7 +177,7 @@ def stream_percentile(values: Callable[[], Iterable[np.ndarray]], n: int, q: flo
         parts, off = [], 0
         for blk in values():
             first = (-off) % step
-            parts.append(blk[first::step])
+            parts.append(blk[first::step].copy())  # a copy: a view would keep the block
             off += len(blk)
         sample = np.concatenate(parts)
     sample = np.asarray(sample, dtype=float)
