@@ -331,3 +331,12 @@ def test_bad_options_and_counts(cal_files, run_cli):
         autopilot_export(_cal(B0, K0), "px4", 7, "c.h5", {})
     with pytest.raises(InputError, match="unknown autopilot"):
         autopilot_export(_cal(B0, K0), "betaflight", 0, "c.h5", {})
+
+
+def test_in_force_without_device_ids_uses_the_slot():
+    """A hand-written parameter file without CAL_ACCn_ID: its slot (0, or
+    --instance) is taken as the one in force."""
+    prm = {k: v for k, v in _px4_params().items() if not k.endswith("_ID")}
+    cal = _cal(np.zeros(3), np.eye(3), np.zeros(3), np.eye(3))
+    got = dict(autopilot_export(cal, "px4", None, "c.h5", _source("px4", {}), in_force=prm)[0])
+    assert got["CAL_ACC0_XOFF"] == OFF[0] and got["CAL_ACC0_YSCALE"] == SCL[1]

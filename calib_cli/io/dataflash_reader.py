@@ -126,15 +126,21 @@ class DataFlashReader:
         names = set(names)
         self.skipped_bytes = 0
         self.truncated_bytes = 0
+        buf = bytearray(block + 1024)  # one buffer: each block after the carried tail
+        view = memoryview(buf)
         with open(self.path, "rb") as fh:
-            buf = b""
+            carry = 0
             eof = False
             while not eof:
-                more = fh.read(block)
-                eof = not more
-                buf = buf + more if buf else more
-                n = len(buf)
-                arr = np.frombuffer(buf, np.uint8)
+                room = len(buf) - carry
+                if room < block // 2:  # a tail of damage longer than a message: grow
+                    buf = buf + bytearray(block)
+                    view = memoryview(buf)
+                    room = len(buf) - carry
+                got = fh.readinto(view[carry:carry + min(block, room)])
+                eof = not got
+                n = carry + got
+                arr = np.frombuffer(buf, np.uint8, n)
                 pos, valid = self._walk(arr, n)
                 out = {}
                 if len(valid):
@@ -145,13 +151,16 @@ class DataFlashReader:
                             continue
                         sel = valid[types == f.type]
                         if len(sel):
-                            idx = sel[:, None] + (3 + np.arange(f.length - 3))
-                            out[name] = arr[idx].view(f.dtype)[:, 0]
+                            win = np.lib.stride_tricks.sliding_window_view(arr, f.length - 3)
+                            out[name] = win[sel + 3].view(f.dtype)[:, 0]
+                            del win
+                del arr
                 if out:
                     yield out
                 if eof:
                     self.truncated_bytes = n - pos
-                buf = buf[pos:]
+                carry = n - pos
+                buf[:carry] = buf[pos:n]
 
     def _walk(self, arr: np.ndarray, n: int) -> tuple[int, np.ndarray]:
         """(where the first incomplete message starts, the start offsets of the

@@ -303,6 +303,8 @@ def _px4_in_force(params, sensor, instance, device_id):
         raise CompositionError(f"the log carries no CAL_{key}* parameters, so the "
                                "calibration in force is not known")
     slot = px4_slot(params, sensor, device_id) if device_id is not None else instance
+    if slot is None and not any(f"CAL_{key}{n}_ID" in params for n in INSTANCES["px4"]):
+        slot = instance or 0  # a parameter file without device ids: the slot given
     lvl = euler_dcm(*(_get(params, f"SENS_BOARD_{a}_OFF", 0.0) for a in AXES))
     board = _get(params, "SENS_BOARD_ROT", 0.0)
     rot_name, rot_val = "SENS_BOARD_ROT", board

@@ -32,12 +32,27 @@ from calib_cli.errors import InputError
 MAGIC = b"ULog\x01\x12\x35"
 SYNC = bytes([0x2F, 0x73, 0x13, 0x20, 0x25, 0x0C, 0xBB, 0x12])
 BLOCK = 1 << 21
+MAX_MSG = 3 + 65535  # the longest message: what a block may carry over
 TYPES = {"int8_t": "i1", "uint8_t": "u1", "int16_t": "<i2", "uint16_t": "<u2",
          "int32_t": "<i4", "uint32_t": "<u4", "int64_t": "<i8", "uint64_t": "<u8",
          "float": "<f4", "double": "<f8", "bool": "i1", "char": "i1"}
 _VALUE = {"int32_t": "<i", "float": "<f", "uint8_t": "<B", "int8_t": "<b", "uint32_t": "<I",
           "int64_t": "<q", "uint64_t": "<Q", "double": "<d", "int16_t": "<h", "uint16_t": "<H"}
 KNOWN = set(b"ABCDFILMOPQRS")
+
+
+def _windows(buf, n: int):
+    """gather(offsets, size) -> (m, size) uint8 copy of the records at ``offsets``
+    of buf[:n], through a sliding-window view (no index array of m x size)."""
+    arr = np.frombuffer(buf, np.uint8, n)
+    views: dict = {}
+
+    def gather(offsets, size):
+        if size not in views:
+            views[size] = np.lib.stride_tricks.sliding_window_view(arr, size)
+        return views[size][np.asarray(offsets, dtype=np.intp)]
+
+    return gather
 
 
 def _kv(payload: bytes, off: int = 0) -> tuple[str, str, bytes]:
@@ -176,33 +191,37 @@ class ULogReader:
         wanted: dict[int, tuple] = {}  # msg_id -> (offsets, size, dtype, name, multi_id)
         dtypes: dict[str, np.dtype] = {}
         done_once: set = set()
+        # one buffer for the whole file: a block read after the carried-over tail of
+        # the last one (reading into fresh bytes objects fragments the heap)
+        buf = bytearray(block + MAX_MSG)
+        view = memoryview(buf)
         with open(self.path, "rb") as fh:
             fh.seek(self.data_start)
-            buf = b""
+            carry = 0
             eof = False
             while not eof:
-                more = fh.read(block)
-                eof = len(more) == 0
-                buf = buf + more if buf else more
-                n = len(buf)
+                got = fh.readinto(view[carry:carry + block])
+                eof = not got
+                n = carry + got
                 pos = self._walk(buf, n, wanted, dtypes, topics, done_once)
                 out = []
-                arr = np.frombuffer(buf, np.uint8)
+                win = _windows(buf, n)
                 for mid, (offs, size, dt, name, multi) in list(wanted.items()):
                     if not offs:
                         continue
-                    o = np.asarray(offs, dtype=np.int64)
+                    rec = win(offs, size).view(dt)[:, 0]
                     offs.clear()
-                    rec = arr[o[:, None] + np.arange(size)].view(dt)[:, 0]
                     out.append((name, multi, rec))
                     if name in once:
                         done_once.add((name, multi))
                         del wanted[mid]
+                del win
                 if out:
                     yield out
                 if eof:
                     self.truncated_bytes = n - pos
-                buf = buf[pos:]
+                carry = n - pos
+                buf[:carry] = buf[pos:n]
 
     def _walk(self, buf: bytes, n: int, wanted: dict, dtypes: dict, topics: set,
               done_once: set) -> int:
