@@ -165,6 +165,10 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                     {'name': 'raw_path', 'opts': ['--raw'], 'path': [True, False]},
                                     {'name': 'rostopic', 'opts': ['--rostopic']},
                                     {'name': 'instance', 'opts': ['--instance']},
+                                    {'is_flag': True, 'name': 'residual', 'opts': ['--residual']},
+                                    {'name': 'in_force_path',
+                                     'opts': ['--in-force'],
+                                     'path': [True, False]},
                                     {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}]},
               'fit': {'commands': {'accel': {'help': 'static multi-position accelerometer fit',
                                              'params': [{'argument': True,
@@ -427,8 +431,10 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                           'opts': ['--json']}]},
                                       'dataflash': {'help': 'Import the IMU of an ArduPilot '
                                                             'DataFlash .bin log (needs '
-                                                            'calib-cli[ardupilot]; '
-                                                            'docs/import.md).',
+                                                            'docs/import.md; ArduPilot 4.1+ I '
+                                                            'field, or IMU/IMU2/IMU3 and ACC1..3 '
+                                                            'of older logs); /source records the '
+                                                            'parameters in force.',
                                                     'params': [{'argument': True,
                                                                 'name': 'path',
                                                                 'opts': ['path'],
@@ -514,8 +520,10 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                           {'is_flag': True,
                                                            'name': 'as_json',
                                                            'opts': ['--json']}]},
-                                      'ulog': {'help': 'Import the IMU of a PX4 ULog file (needs '
-                                                       'calib-cli[px4]; docs/import.md).',
+                                      'ulog': {'help': 'Import the IMU of a PX4 ULog file '
+                                                       '(docs/import.md); /source of the raw file '
+                                                       'records whether the samples are corrected '
+                                                       'and the parameters in force.',
                                                'params': [{'argument': True,
                                                            'name': 'path',
                                                            'opts': ['path'],
@@ -842,6 +850,9 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                       {'name': 'seed', 'opts': ['--seed']},
                                       {'name': 'truth_path',
                                        'opts': ['--truth'],
+                                       'path': [True, False]},
+                                      {'name': 'in_force_path',
+                                       'opts': ['--in-force'],
                                        'path': [True, False]},
                                       {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}]}},
  'help': 'calib: bench calibration of inertial measurement units.',
