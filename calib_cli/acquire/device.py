@@ -170,7 +170,7 @@ def run_steps(transport, prof, steps, rate: float, what: str, log: list) -> dict
             if want is None:
                 got = b""
                 break
-            got = _await(transport, want, st.timeout_s)
+            got = await_reply(transport, want, st.timeout_s)
             if got is not None:
                 break
         label = st.description or f"{what} step {i + 1}"
@@ -196,7 +196,7 @@ def _show(data: bytes | None, text: bool) -> str:
     return data.hex(" ").upper()
 
 
-def _await(transport, want: bytes, timeout_s: float) -> bytes | None:
+def await_reply(transport, want: bytes, timeout_s: float) -> bytes | None:
     """Read until ``want`` appears (the unit may be streaming meanwhile)."""
     buf = bytearray()
     t_end = time.monotonic() + timeout_s

@@ -71,7 +71,7 @@ def probe_port(port: str, profiles=None, listen_s: float = 0.6, active: bool = T
     """What the unit on ``port`` speaks: passive matches at each baud rate, else
     the profiles whose identification request was answered. Empty: no known
     protocol. ``open_transport(port, settings)``: for tests."""
-    from calib_cli.acquire.device import _await, rate_values, render
+    from calib_cli.acquire.device import await_reply, rate_values, render
     from calib_cli.acquire.transport import SerialTransport
 
     profiles = candidate_profiles() if profiles is None else profiles
@@ -110,7 +110,7 @@ def probe_port(port: str, profiles=None, listen_s: float = 0.6, active: bool = T
                 tr.write(render(prof, st.send, st.text, st.checksum, vals))
                 want = render(prof, st.expect, st.text, "none" if st.reply else st.checksum,
                               vals) if st.expect else b""
-                if want and _await(tr, want, min(st.timeout_s, 0.5)) is None:
+                if want and await_reply(tr, want, min(st.timeout_s, 0.5)) is None:
                     ok = False
                     break
         finally:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import struct
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -595,9 +596,7 @@ def _parse_imu_profile(raw: dict, text: str, path: str, t: Typed) -> ImuProfile:
             if missing:
                 _fail(f"frame.pattern lacks named groups for {', '.join(missing)}", path)
     else:
-        from calib_cli.acquire.candbc import can_messages
-
-        kw["messages"], kw["dbc"] = can_messages(t, raw, path, byte_order)
+        kw["messages"], kw["dbc"] = _can_messages(t, raw, path, byte_order)
     all_fields = kw.get("fields") or tuple(f for m in kw["messages"] for f in m.fields)
     if len(all_fields) > MAX_FIELDS:
         t.fail(f"{len(all_fields)} fields; at most {MAX_FIELDS}")
@@ -813,3 +812,70 @@ def load_table_profile(path) -> TableProfile:
         return TableProfile(name="manual", path="manual", kind="manual")
     p = resolve_profile(str(path), "turntable")
     return parse_table_profile(_read_named(str(path), p, "turntable"), p)
+
+
+def _can_messages(t, raw: dict, path: str, byte_order: str):
+    """(messages, dbc database or None) of a CAN profile."""
+    from calib_cli.acquire.candbc import CAN_TYPES, load_dbc  # cantools only for a DBC profile
+
+    dbc = None
+    if "dbc" in raw:
+        name = t.text(raw, "dbc", "", allow_empty=False)
+        p = Path(name)
+        dbc_path = str(p if p.is_absolute() else Path(path).parent / p)
+        dbc = load_dbc(dbc_path)
+    bo = "<" if byte_order == "little" else ">"
+    msgs = []
+    for i, m in enumerate(t.tables(raw, "message", limit=64)):
+        where = f"message {i + 1}"
+        t.keys(m, IMU_KEYS["message"], f"{where}: ")
+        for j, f in enumerate(t.tables(m, "field", limit=64)):
+            t.keys(f, FIELD_KEYS, f"{where} field {j + 1}: ")
+        if isinstance(m.get("checksum"), dict):
+            t.keys(m["checksum"], CHECKSUM_KEYS, f"{where} checksum: ")
+        if dbc is not None:
+            msgs.append(_dbc_message(t, m, where, dbc, _field))
+            continue
+        if "id" not in m:
+            t.fail(f"{where}: needs an arbitration id")
+        cid = int(t.num(m, "id", f"{where}: ", lo=0, hi=0x1FFFFFFF, integer=True))
+        flds = tuple(_field(t, f, f"{where} field {j + 1}", True)
+                     for j, f in enumerate(m.get("field", [])))
+        if any(f.type not in CAN_TYPES for f in flds):
+            t.fail(f"{where}: CAN fields are 8, 16, 32 or 64 bits")
+        pos, placed = 0, []
+        for f in flds:
+            off = pos if f.offset is None else f.offset
+            placed.append(dataclasses.replace(f, offset=off))
+            pos = off + struct.calcsize(bo + CAN_TYPES[f.type])
+        cs = _checksum(t, m.get("checksum"), f"{where}.checksum") if "checksum" in m \
+            else Checksum()
+        length = int(t.num(m, "length", f"{where}: ", pos + cs.nbytes, lo=0, hi=8,
+                           integer=True))
+        if pos + cs.nbytes > length:
+            t.fail(f"{where}: fields and checksum need {pos + cs.nbytes} bytes; a classic CAN "
+                   "frame holds 8")
+        msgs.append(CanMessage(cid, t.flag(m, "extended", f"{where}: "), tuple(placed), cs,
+                               length))
+    if not msgs:
+        t.fail("a CAN profile needs [[message]] entries")
+    return tuple(msgs), dbc
+
+
+def _dbc_message(t, m: dict, where: str, dbc, make_field):
+    name = t.text(m, "name", f"{where}: ", allow_empty=False)
+    try:
+        msg = dbc.get_message_by_name(name)
+    except KeyError:
+        t.fail(f"{where}: the DBC file has no message {name!r}; it has "
+               f"{', '.join(x.name for x in dbc.messages)}")
+    flds = []
+    for j, f in enumerate(t.tables(m, "field", limit=64)):
+        sig = t.text(f, "signal", f"{where} field {j + 1}: ", allow_empty=False)
+        if sig not in msg.signal_tree:
+            t.fail(f"{where} field {j + 1}: message {name!r} has no signal {sig!r}")
+        fd = make_field(t, {k: v for k, v in f.items() if k != "signal"},
+                        f"{where} field {j + 1}", False)
+        flds.append(dataclasses.replace(fd, literal=sig))  # literal: the DBC signal name
+    return CanMessage(msg.frame_id, msg.is_extended_frame, tuple(flds), Checksum(),
+                      msg.length, name)

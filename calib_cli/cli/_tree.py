@@ -353,6 +353,12 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
               'export': {'doc': 'Export the correction (K^-1, biases, D) for firmware and other '
                                 'tools.\n'
                                 '\n'
+                                '    px4/ardupilot: a fit on data the firmware had already '
+                                'corrected (imported from\n'
+                                '    sensor_combined, IMU or ACC) is composed with the parameters '
+                                'in force into an\n'
+                                '    absolute calibration, or exits 4 saying why it cannot be '
+                                '(docs/export.md).\n'
                                 '    With --json (needs --out), the output object is printed '
                                 'instead of the export.',
                          'help': 'Export the correction (K^-1, biases, D) for firmware and other '
@@ -374,6 +380,10 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                     {'name': 'raw_path', 'opts': ['--raw'], 'path': [True, False]},
                                     {'name': 'rostopic', 'opts': ['--rostopic']},
                                     {'name': 'instance', 'opts': ['--instance']},
+                                    {'is_flag': True, 'name': 'residual', 'opts': ['--residual']},
+                                    {'name': 'in_force_path',
+                                     'opts': ['--in-force'],
+                                     'path': [True, False]},
                                     {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}],
                          'records': [['--format [json|yaml|c-header|csv|kalibr|px4|ardupilot]',
                                       'json | yaml | c-header | csv | kalibr | px4 | ardupilot '
@@ -393,8 +403,17 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                      ['--rostopic TEXT',
                                       'kalibr: the IMU topic.  [default: /imu0]'],
                                      ['--instance INTEGER',
-                                      'px4/ardupilot: IMU instance the parameters are for.  '
-                                      '[default: 0]'],
+                                      'px4/ardupilot: the IMU instance the parameters are for '
+                                      '(PX4 CAL slot 0-3; ArduPilot 0-4 = IMUs 1-5); default: the '
+                                      'one in force in the log, else 0.'],
+                                     ['--residual',
+                                      'px4/ardupilot: write the fit of already corrected data as '
+                                      'it is (a residual on top of the parameters in force, '
+                                      'labelled so), not composed with them.'],
+                                     ['--in-force FILE',
+                                      'px4/ardupilot: the parameters in force when the data was '
+                                      'logged (a QGroundControl .params or Mission Planner .parm '
+                                      "file), instead of the log's."],
                                      ['--json',
                                       'Print {"output", "kind", "sha256", "warnings"} of the '
                                       'written file as JSON on stdout and nothing else there.'],
@@ -1074,15 +1093,20 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                               'usage': ['[OPTIONS]', 'LOG']},
                                       'dataflash': {'doc': 'Import the IMU of an ArduPilot '
                                                            'DataFlash .bin log (needs\n'
-                                                           '    calib-cli[ardupilot]; '
-                                                           'docs/import.md). Without --plan, list '
-                                                           'the IMU\n'
+                                                           '    docs/import.md; ArduPilot 4.1+ I '
+                                                           'field, or IMU/IMU2/IMU3 and ACC1..3 '
+                                                           'of older\n'
+                                                           '    logs); /source records the '
+                                                           'parameters in force. Without --plan, '
+                                                           'list the IMU\n'
                                                            '    messages with their counts and '
                                                            'rates.',
                                                     'help': 'Import the IMU of an ArduPilot '
                                                             'DataFlash .bin log (needs '
-                                                            'calib-cli[ardupilot]; '
-                                                            'docs/import.md).',
+                                                            'docs/import.md; ArduPilot 4.1+ I '
+                                                            'field, or IMU/IMU2/IMU3 and ACC1..3 '
+                                                            'of older logs); /source records the '
+                                                            'parameters in force.',
                                                     'params': [{'argument': True,
                                                                 'name': 'path',
                                                                 'opts': ['path'],
@@ -1112,8 +1136,9 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                                                  'rate) or ACC/GYR (unfiltered '
                                                                  'samples).  [default: IMU]'],
                                                                 ['--instance INTEGER',
-                                                                 'IMU instance (field I).  '
-                                                                 '[default: 0]'],
+                                                                 'IMU instance: field I, or 0-2 = '
+                                                                 'IMU/IMU2/IMU3 (ACC1..3) of '
+                                                                 'older logs.  [default: 0]'],
                                                                 ['--plan FILE',
                                                                  'The experiment plan (TOML).'],
                                                                 ['--out FILE', 'raw.h5 to write.'],
@@ -1266,12 +1291,16 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                                            ['-h, --help',
                                                             'Show this message and exit.']],
                                                'usage': ['[OPTIONS]', 'ACC', '[GYRO]']},
-                                      'ulog': {'doc': 'Import the IMU of a PX4 ULog file (needs '
-                                                      'calib-cli[px4]; docs/import.md).\n'
+                                      'ulog': {'doc': 'Import the IMU of a PX4 ULog file '
+                                                      '(docs/import.md); /source of the raw file\n'
+                                                      '    records whether the samples are '
+                                                      'corrected and the parameters in force.\n'
                                                       '    Without --plan, list the IMU topics '
                                                       'with their message counts and rates.',
-                                               'help': 'Import the IMU of a PX4 ULog file (needs '
-                                                       'calib-cli[px4]; docs/import.md).',
+                                               'help': 'Import the IMU of a PX4 ULog file '
+                                                       '(docs/import.md); /source of the raw file '
+                                                       'records whether the samples are corrected '
+                                                       'and the parameters in force.',
                                                'params': [{'argument': True,
                                                            'name': 'path',
                                                            'opts': ['path'],
@@ -2069,14 +2098,24 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                       {'name': 'truth_path',
                                        'opts': ['--truth'],
                                        'path': [True, False]},
+                                      {'name': 'in_force_path',
+                                       'opts': ['--in-force'],
+                                       'path': [True, False]},
                                       {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}],
                            'records': [['--out FILE',
-                                        "raw.h5, or a .csv log in the contract's columns.  "
+                                        "raw.h5, a .csv log in the contract's columns, or a "
+                                        'flight-controller or ROS log: .ulg (PX4), .bin '
+                                        '(ArduPilot), .mcap, .bag (docs/simulate.md).  '
                                         '[required]'],
                                        ['--seed INTEGER', 'Random seed.  [default: 0]'],
                                        ['--truth FILE',
                                         'Truth model TOML (docs/simulate.md); default: a random '
                                         'MEMS unit.'],
+                                       ['--in-force FILE',
+                                        '.ulg/.bin: the calibration parameters the firmware '
+                                        'applies before logging (a QGroundControl .params or '
+                                        "Mission Planner .parm file; default: the plan's "
+                                        '[autopilot] table, else none).'],
                                        ['--json',
                                         'Print {"output", "kind", "sha256", "warnings"} of the '
                                         'written file as JSON on stdout and nothing else there.'],

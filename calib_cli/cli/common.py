@@ -63,9 +63,10 @@ def print_json(obj) -> None:
     sys.stdout.write(json.dumps(to_jsonable(obj), indent=2) + "\n")
 
 
-def output_json(path, kind: str, warnings=()) -> None:
+def output_json(path, kind: str, warnings=(), extra: dict | None = None) -> None:
     """The --json object of a command that writes one file (import, simulate,
-    apply, export): {"output", "kind", "sha256", "warnings"} on stdout alone."""
+    apply, export): {"output", "kind", "sha256", "warnings"} on stdout alone,
+    and the command's own keys ``extra`` after them."""
     import hashlib
 
     h = hashlib.sha256()
@@ -73,7 +74,7 @@ def output_json(path, kind: str, warnings=()) -> None:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
     print_json({"output": str(path), "kind": kind, "sha256": h.hexdigest(),
-                "warnings": [str(w) for w in warnings]})
+                "warnings": [str(w) for w in warnings], **(extra or {})})
 
 
 def json_output_option(f):

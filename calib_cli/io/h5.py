@@ -57,6 +57,60 @@ def write_provenance(h5: h5py.File, kind: str, inputs=(), serial: str | None = N
     h5.attrs["input_sha256"] = json.dumps(hashes)
     for k, v in (extra or {}).items():
         h5.attrs[k] = v
+    if kind in ("calibration", "diagnosis"):  # a fit carries its data's origin on
+        copy_source(h5, inputs)
+
+
+# ---------------------------------------------------------------------------
+# the samples' origin: /source (docs/file-formats.md; io/imu_logs.py fills it)
+
+SOURCE_JSON = ("parameters", "parameters_changed", "device_ids")
+
+
+def write_source(h5, source: dict) -> None:
+    """/source: where the samples come from and whether the device had already
+    corrected them ("samples": "raw", "corrected" or "unknown") and by which
+    parameters; dicts and lists as JSON text."""
+    g = h5.require_group("source")
+    for k, v in source.items():
+        if v is None:
+            continue
+        g.attrs[k] = json.dumps(v) if isinstance(v, (dict, list, tuple)) else v
+
+
+def _read_source_group(g) -> dict:
+    out = {}
+    for k, v in g.attrs.items():
+        v = v.decode() if isinstance(v, bytes) else (v.item() if isinstance(v, np.generic) else v)
+        if k in SOURCE_JSON and isinstance(v, str):
+            try:
+                v = json.loads(v)
+            except ValueError:
+                raise InputError(f"/source/{k} is not valid JSON", g.file.filename) from None
+        out[k] = v
+    return out
+
+
+def read_source(path) -> dict:
+    """The /source of a raw, calibration or diagnosis file ({} when it has none:
+    a CSV import, a simulation)."""
+    p = str(path)
+    with h5py.File(p, "r") as h5:
+        return _read_source_group(h5["source"]) if "source" in h5 else {}
+
+
+def copy_source(h5, inputs) -> None:
+    """The /source of the first input that has one (the fitted raw file)."""
+    for p in inputs:
+        try:
+            if not (p and Path(p).is_file() and h5py.is_hdf5(p)):
+                continue
+            with h5py.File(p, "r") as src:
+                if "source" in src:
+                    write_source(h5, _read_source_group(src["source"]))
+                    return
+        except OSError:
+            continue
 
 
 @contextlib.contextmanager

@@ -29,7 +29,9 @@ PLAN_TOP = {"name", "kind", "protocol", "description", "site", "unit", "segment"
             # climatic chamber (issue 21, docs/thermal.md): ramp-rate limit and soak rule
             # (record), the unit's thermal time constant (simulate)
             "chamber_ramp_dpm", "unit_tau_s", "chamber_soak_tol_degC", "chamber_soak_s",
-            "chamber_soak_timeout_s"}
+            "chamber_soak_timeout_s",
+            # parameters in force for `simulate --out LOG.ulg|.bin` (docs/simulate.md)
+            "autopilot"}
 CHAMBER_KEYS = ("chamber_ramp_dpm", "unit_tau_s", "chamber_soak_tol_degC", "chamber_soak_s",
                 "chamber_soak_timeout_s")
 PLAN_SITE = {"latitude_deg", "height_m", "g", "longitude_deg", "name", "allow_any_g"}

@@ -31,6 +31,7 @@ from calib_cli.io.h5 import (
     write_provenance,
     write_segments,
     write_site_layout,
+    write_source,
 )
 from calib_cli.io.log_segments import (
     Chunk,
@@ -246,19 +247,21 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
                   accel_units: str = "m/s^2", gyro_units: str = "rad/s",
                   hashes: Callable[[], dict] | None = None, counters: dict | None = None,
                   check: Callable[[_Sink, list], None] | None = None,
-                  sample_kind: str = "instant") -> ImportSummary:
+                  sample_kind: str = "instant", provenance: dict | None = None) -> ImportSummary:
     """Stream ``source`` into the raw file ``out`` (written atomically).
 
     ``path`` names the log in error messages; ``inputs`` are hashed into the
     provenance (``hashes()`` may supply hashes already computed while
     streaming); ``check(sink, segments)`` may veto the segments (gap checks) and returns
     counters to record. ``source`` is closed on return (a generator's ``close``).
+    ``counters`` and ``provenance`` (the samples' origin, /source: h5.write_source)
+    are written as they are once ``source`` is exhausted (a reader fills them in).
     """
     keep_freed_memory()
     try:
         return _import_to_raw(out, source, plan, path, inputs, window_s, multiplier,
                               min_static_s, accel_units, gyro_units, hashes, counters, check,
-                              sample_kind)
+                              sample_kind, provenance)
     finally:
         close = getattr(source, "close", None)
         if close is not None:  # a reader thread (``prefetch``) stops now, not at exit
@@ -266,7 +269,8 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
 
 
 def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_static_s,
-                   accel_units, gyro_units, hashes, counters, check, sample_kind):
+                   accel_units, gyro_units, hashes, counters, check, sample_kind,
+                   provenance=None):
 
     layout = plan_layout(plan)
     units = convert_units(np.zeros((1, 3)), np.zeros((1, 3)), accel_units, gyro_units, path)[2]
@@ -334,4 +338,6 @@ def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_st
             c = h5.create_group("counters")
             for k, v in counters.items():
                 c.attrs[k] = v
+        if provenance:
+            write_source(h5, provenance)
     return ImportSummary(n, tuple(segments), units, counters)
