@@ -12,8 +12,10 @@ from matplotlib.ticker import MaxNLocator
 
 from calib_cli.io.escape import mpl_text
 from calib_cli.model.display import num
-from calib_cli.report.figures import BLUE, VERMILION
+from calib_cli.report.figures import BLUE, VERMILION, use_palette
 from calib_cli.report.items import FigureItem, ReportContext, Section, Table
+
+use_palette()  # the Okabe-Ito colour-blind-safe cycle of every calib figure
 
 
 def _stages(arrays: dict) -> list:
