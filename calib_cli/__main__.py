@@ -33,6 +33,10 @@ def run() -> None:
 
         stub().main(prog_name="calib")
         return
+    from calib_cli.cli.tree import help_from_tree
+
+    if help_from_tree(sys.argv[1:]):  # `calib X --help`: from the static tree, < 0.5 s
+        return
     pkg.LAZY_COMMANDS = True
     from calib_cli.cli.main import main
 

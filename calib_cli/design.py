@@ -384,6 +384,44 @@ def condition_number(res: CalibrationResult) -> float:
     return float(np.linalg.cond(R))
 
 
+def condition_details(res: CalibrationResult, exact: float = 1e-9) -> dict:
+    """The correlation matrix of the determined entries, explained: its condition
+    number; the exact linear dependencies in it (eigenvalues below ``exact`` times
+    the size: combinations the model itself fixes, e.g. a cycle's lever arm, two
+    free components written in three body axes, not something the plan could
+    determine) with the keys they involve; the condition number without them; the
+    most correlated pair of entries."""
+    C = np.asarray(res.covariance, float)
+    d = np.diag(C) if C.size else np.zeros(0)
+    ok = np.isfinite(d) & (d > 0)
+    out = {"condition": condition_number(res), "condition_determined": float("inf"),
+           "dependencies": 0, "dependent_keys": [], "most_correlated": None}
+    if ok.sum() < 2:
+        return out
+    names = []
+    for k, flat in np.asarray(res.cov_order, dtype=object)[ok]:
+        k = k.decode() if isinstance(k, bytes) else str(k)
+        shape = np.shape(res.params.get(k, 0))
+        idx = np.unravel_index(int(flat), shape) if shape else ()
+        names.append((k, f"{k}[{','.join(map(str, idx))}]" if idx else k))
+    C = C[np.ix_(ok, ok)]
+    s = np.sqrt(np.diag(C))
+    R = C / np.outer(s, s)
+    w, V = np.linalg.eigh((R + R.T) / 2)
+    null = w < exact * len(w)
+    keys = sorted({names[j][0] for i in np.flatnonzero(null)
+                   for j in np.flatnonzero(np.abs(V[:, i]) > 1e-6)})
+    kept = w[~null]
+    out.update(dependencies=int(null.sum()), dependent_keys=keys,
+               condition_determined=float(kept.max() / kept.min()) if len(kept) else
+               float("inf"))
+    off = np.abs(R - np.diag(np.diag(R)))
+    off[off > 1.0 - 1e-9] = 0.0  # pairs of an exact dependency
+    i, j = np.unravel_index(int(np.argmax(off)), off.shape)
+    out["most_correlated"] = [names[i][1], names[j][1], float(R[i, j])]
+    return out
+
+
 # the catalogue's typical sizes (model/effects.py) of the keys plan check ranks
 TYPICAL: dict = {}
 

@@ -2,7 +2,9 @@
 
 Read by cli/tree.py for `calib --help` and shell completion."""
 
-TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE Std 952) of a free-running '
+TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std 952) of a free-running '
+                               'record.',
+                        'help': 'Allan deviation and noise terms (IEEE Std 952) of a free-running '
                                 'record.',
                         'params': [{'argument': True,
                                     'name': 'raw',
@@ -17,8 +19,42 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                    {'name': 'kalibr_path',
                                     'opts': ['--kalibr'],
                                     'path': [True, False]},
-                                   {'name': 'rostopic', 'opts': ['--rostopic']}]},
-              'apply': {'help': 'Correct a recording with a calibration: f = K^-1 (A - b), w = '
+                                   {'name': 'rostopic', 'opts': ['--rostopic']}],
+                        'records': [['--segment TEXT',
+                                     'Label of the segment to analyse (default: the longest '
+                                     'static segment; the whole record when it has no segments).'],
+                                    ['--out FILE', "Write an 'allan' HDF5 file."],
+                                    ['--plot FILE', 'Write the Allan plot (PNG).'],
+                                    ['--target SENSOR=VALUE',
+                                     "Noise target for the averaging time, in the data's unit, "
+                                     'e.g. gyro=1e-5 (rad/s); default accel=1e-4 m/s^2, gyro=1e-5 '
+                                     'rad/s.'],
+                                    ['--exact',
+                                     'Use every overlapping cluster at every tau (slower; the '
+                                     'default keeps 16 per cluster length).'],
+                                    ['--json', 'Print one JSON object.'],
+                                    ['--kalibr FILE',
+                                     "Write Kalibr's imu.yaml (noise densities and random walks; "
+                                     'docs/allan.md).'],
+                                    ['--rostopic TEXT',
+                                     '--kalibr: the IMU topic written into imu.yaml.  [default: '
+                                     '/imu0]'],
+                                    ['-h, --help', 'Show this message and exit.']],
+                        'usage': ['[OPTIONS]', 'RAW']},
+              'apply': {'doc': 'Correct a recording with a calibration: f = K^-1 (A - b), w = '
+                               'G^-1 (W - d - D f).\n'
+                               '\n'
+                               '    A redundant-unit (RIMU) calibration gives the corrected '
+                               'single-axis outputs\n'
+                               '    (m - b) / (1 + ks) and the body-frame estimates '
+                               'samples/accel_body and\n'
+                               '    samples/gyro_body, x = (H^T H)^-1 H^T c (docs/rimu.md). A '
+                               'thermal calibration\n'
+                               '    uses the temperature column (or --temp) and refuses data '
+                               'outside its\n'
+                               '    range by more than 5 degC unless --extrapolate '
+                               '(docs/thermal.md).',
+                        'help': 'Correct a recording with a calibration: f = K^-1 (A - b), w = '
                                 'G^-1 (W - d - D f).',
                         'params': [{'argument': True,
                                     'name': 'cal',
@@ -33,8 +69,26 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                    {'is_flag': True,
                                     'name': 'extrapolate',
                                     'opts': ['--extrapolate']},
-                                   {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}]},
-              'batch': {'help': 'Run PIPELINE over every INPUT (CSV, raw.h5, or a directory), '
+                                   {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}],
+                        'records': [['--out FILE', '[required]'],
+                                    ['--temp FLOAT',
+                                     'Constant temperature (degC) for a thermal calibration when '
+                                     'the recording has no temperature column.'],
+                                    ['--extrapolate',
+                                     'Correct data outside the calibrated temperature range '
+                                     '(docs/thermal.md).'],
+                                    ['--json',
+                                     'Print {"output", "kind", "sha256", "warnings"} of the '
+                                     'written file as JSON on stdout and nothing else there.'],
+                                    ['-h, --help', 'Show this message and exit.']],
+                        'usage': ['[OPTIONS]', 'CAL', 'RAW']},
+              'batch': {'doc': 'Run PIPELINE over every INPUT (CSV, raw.h5, or a directory), like '
+                               'make.\n'
+                               '\n'
+                               '    Exit 0 all done, 1 some inputs failed, 5 a unit is out of '
+                               'tolerance.\n'
+                               '    ',
+                        'help': 'Run PIPELINE over every INPUT (CSV, raw.h5, or a directory), '
                                 'like make.',
                         'params': [{'argument': True,
                                     'name': 'pipeline',
@@ -53,8 +107,31 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                    {'name': 'tol_path',
                                     'opts': ['--tolerances'],
                                     'path': [True, False]},
-                                   {'name': 'scheduler', 'opts': ['--scheduler']}]},
-              'detect': {'help': 'Static-interval detection as `import` does it, without '
+                                   {'name': 'scheduler', 'opts': ['--scheduler']}],
+                        'records': [['--out DIRECTORY',
+                                     'Output directory (created; one sub-directory per input).  '
+                                     '[required]'],
+                                    ['--workers INTEGER RANGE',
+                                     'Local worker processes.  [default: 1; 1<=x<=256]'],
+                                    ['--force', 'Re-run every step, even when up to date.'],
+                                    ['--json', 'One JSON object on stdout.'],
+                                    ['--log FILE',
+                                     'Append a line per input (UTC timestamps) to this file.'],
+                                    ['--tolerances FILE',
+                                     'Tolerance file (TOML): pass/fail per unit, exit 5 on a '
+                                     'fail.'],
+                                    ['--scheduler tcp://HOST:PORT',
+                                     'Run on a Dask distributed cluster (extra calib-cli[dask]).'],
+                                    ['-h, --help', 'Show this message and exit.']],
+                        'usage': ['[OPTIONS]', 'PIPELINE', 'INPUTS...']},
+              'detect': {'doc': 'Static-interval detection as `import` does it, without '
+                                'importing: the\n'
+                                '    intervals, the noise floors, and how many intervals other '
+                                'thresholds find.\n'
+                                '    FILE is a raw.h5, a contract CSV, or a text log (with an '
+                                'optional GYRO file\n'
+                                '    and the reading options of `import text`; docs/import.md).',
+                         'help': 'Static-interval detection as `import` does it, without '
                                  'importing: the intervals, the noise floors, and how many '
                                  'intervals other thresholds find.',
                          'params': [{'argument': True,
@@ -71,6 +148,12 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                     {'choices': ['s', 'ms', 'us', 'ns', 'sample'],
                                      'name': 'time_unit',
                                      'opts': ['--time-unit']},
+                                    {'choices': ['count', 'm/s^2', 'g'],
+                                     'name': 'accel_units',
+                                     'opts': ['--accel-units']},
+                                    {'choices': ['count', 'rad/s', 'deg/s'],
+                                     'name': 'gyro_units',
+                                     'opts': ['--gyro-units']},
                                     {'name': 'window_s', 'opts': ['--window']},
                                     {'name': 'multiplier', 'opts': ['--threshold']},
                                     {'name': 'min_static_s', 'opts': ['--min-static']},
@@ -78,8 +161,37 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                     {'is_flag': True, 'name': 'as_json', 'opts': ['--json']},
                                     {'name': 'plot_path',
                                      'opts': ['--plot'],
-                                     'path': [True, False]}]},
-              'diagnose': {'help': 'Find the missing effect, name it, add it and show the gap '
+                                     'path': [True, False]}],
+                         'records': [['--columns TEXT',
+                                      'Text logs: column map, as for `import text`.'],
+                                     ['--gyro-columns TEXT',
+                                      'Text logs: column map of the GYRO file.'],
+                                     ['--rate FLOAT', 'Text logs: sample rate, Hz.'],
+                                     ['--time-unit [s|ms|us|ns|sample]',
+                                      'Text logs: unit of the time column.'],
+                                     ['--accel-units [count|m/s^2|g]',
+                                      'Text logs: units of the accelerometer columns (as `import '
+                                      'text`; m/s^2).'],
+                                     ['--gyro-units [count|rad/s|deg/s]',
+                                      'Text logs: units of the gyro columns (as `import text`; '
+                                      'rad/s).'],
+                                     ['--window FLOAT', 'Moving window, s.  [default: 1.0]'],
+                                     ['--threshold FLOAT',
+                                      'Multiple of the noise floor.  [default: 3.0]'],
+                                     ['--min-static FLOAT',
+                                      'Shortest static interval, s.  [default: 1.0]'],
+                                     ['--expect INTEGER',
+                                      'The number of static positions you expect: say which '
+                                      'threshold finds it.'],
+                                     ['--json', 'One JSON object on stdout.'],
+                                     ['--plot FILE',
+                                      'PNG of the signal with the detected intervals marked and '
+                                      "the detector's statistic against the threshold."],
+                                     ['-h, --help', 'Show this message and exit.']],
+                         'usage': ['[OPTIONS]', 'FILE', '[GYRO]']},
+              'diagnose': {'doc': 'Find the missing effect, name it, add it and show the gap '
+                                  'shrink.',
+                           'help': 'Find the missing effect, name it, add it and show the gap '
                                    'shrink.',
                            'params': [{'argument': True,
                                        'name': 'raw',
@@ -102,8 +214,39 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                        'path': [False, True]},
                                       {'name': 'cal_out',
                                        'opts': ['--calibration'],
-                                       'path': [True, False]}]},
-              'emulate': {'help': 'Emulate an IMU (and a turntable, a climatic chamber) on '
+                                       'path': [True, False]}],
+                           'records': [['--method [accel|gyro|align|rimu|turntable]',
+                                        "The method whose base model is diagnosed (its fit's own "
+                                        'model).  [required]'],
+                                       ['--out FILE', '[required]'],
+                                       ['--base [full|diagonal]',
+                                        'diagonal: start from diagonal scale factors '
+                                        '(misalignment becomes a candidate).  [default: full]'],
+                                       ['--alpha FLOAT',
+                                        'False-alarm probability per round (shared over its '
+                                        'candidates).  [default: 0.01]'],
+                                       ['--noise [auto|hf]',
+                                        'Noise floor: hf = white noise from the high-frequency '
+                                        'content; auto = the same, raised to the within-segment '
+                                        'scatter of 0.5 s means where that is significantly '
+                                        'larger (coloured or drifting noise).  [default: auto]'],
+                                       ['--json', 'One JSON object (docs/contract.md section 5).'],
+                                       ['--report DIRECTORY',
+                                        'Write PNG plots and summary.md to this directory.'],
+                                       ['--calibration FILE',
+                                        'Also write the final model as an ordinary calibration '
+                                        'file (DIAG.h5 holds the same calibration).'],
+                                       ['-h, --help', 'Show this message and exit.']],
+                           'usage': ['[OPTIONS]', 'RAW']},
+              'emulate': {'doc': 'Emulate an IMU (and a turntable, a climatic chamber) on '
+                                 'pseudo-terminals or a\n'
+                                 '    virtual CAN bus.\n'
+                                 '\n'
+                                 '    Prints one JSON line with the port paths on stdout, streams '
+                                 'until Ctrl-C\n'
+                                 '    or --duration, then prints one JSON line with the injected '
+                                 'faults.',
+                          'help': 'Emulate an IMU (and a turntable, a climatic chamber) on '
                                   'pseudo-terminals or a virtual CAN bus.',
                           'params': [{'name': 'imu', 'opts': ['--imu'], 'profile': 'imu'},
                                      {'name': 'table',
@@ -145,8 +288,80 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                      {'name': 'chamber_tau', 'opts': ['--chamber-tau']},
                                      {'name': 'chamber_ramp_dpm', 'opts': ['--chamber-ramp-dpm']},
                                      {'name': 'temp_start', 'opts': ['--temp-start']},
-                                     {'name': 'datagram', 'opts': ['--datagram']}]},
-              'export': {'help': 'Export the correction (K^-1, biases, D) for firmware and other '
+                                     {'name': 'datagram', 'opts': ['--datagram']}],
+                          'records': [['--imu TEXT',
+                                       'IMU profile: a .toml path or a profile name (`calib '
+                                       'profiles`).  [required]'],
+                                      ['--table TEXT', 'Turntable profile of the virtual table.'],
+                                      ['--truth FILE',
+                                       'Truth model TOML (docs/simulate.md); default: a random '
+                                       'unit (--seed).'],
+                                      ['--plan FILE',
+                                       "Take the site (and a redundant unit's geometry) from this "
+                                       'plan.'],
+                                      ['--rate FLOAT',
+                                       "Output rate, Hz (default: the profile's)."],
+                                      ['--seed INTEGER', '[default: 0]'],
+                                      ['--duration FLOAT',
+                                       'Stop after S seconds (default: Ctrl-C).'],
+                                      ['--attitude-deg FLOAT...',
+                                       'Initial attitude: roll pitch yaw.'],
+                                      ['--speed-dps FLOAT', 'Slew speed of the virtual table.'],
+                                      ['--corrupt FLOAT RANGE',
+                                       'Fraction of frames with a bad byte.  [0<=x<=1]'],
+                                      ['--corrupt-where [payload|anywhere]',
+                                       'payload: payload/checksum bytes; anywhere: any byte.  '
+                                       '[default: payload]'],
+                                      ['--drop FLOAT RANGE',
+                                       'Fraction of frames dropped.  [0<=x<=1]'],
+                                      ['--garbage FLOAT RANGE',
+                                       'Fraction of frames preceded by a burst of random bytes.  '
+                                       '[0<=x<=1]'],
+                                      ['--disconnect-at FLOAT',
+                                       'Close the port S seconds after start ...'],
+                                      ['--disconnect-for FLOAT',
+                                       '... for this long, then reopen it at the same path.  '
+                                       '[default: 1.0]'],
+                                      ['--fault-seed INTEGER', '[default: 1]'],
+                                      ['--link-dir DIRECTORY',
+                                       'Directory for the port symlinks (default: a new temporary '
+                                       'one).'],
+                                      ['--can-interface TEXT',
+                                       'python-can interface for CAN profiles (virtual: this '
+                                       'process only).  [default: virtual]'],
+                                      ['--can-channel TEXT', 'CAN channel name.'],
+                                      ['--truth-out FILE',
+                                       'Write the truth parameters as JSON here.'],
+                                      ['--chamber TEXT',
+                                       'Climatic chamber profile of a virtual chamber (SCPI or '
+                                       'Modbus RTU) whose temperature the unit follows '
+                                       '(docs/thermal.md).'],
+                                      ['--chamber-tau FLOAT RANGE',
+                                       "The unit's first-order thermal time constant to the "
+                                       'chamber air, s.  [default: 300.0; x>0]'],
+                                      ['--chamber-ramp-dpm FLOAT RANGE',
+                                       "The virtual chamber's ramp-rate limit, degC/min (default: "
+                                       "the profile's).  [x>0]"],
+                                      ['--temp-start FLOAT',
+                                       'Temperature of the unit (and chamber) at the start, '
+                                       'degC.  [default: 25.0]'],
+                                      ['--datagram ID',
+                                       'Profiles with [[datagram]] entries: the identifier (hex, '
+                                       'e.g. A5) of the datagram to send (default: the first).'],
+                                      ['-h, --help', 'Show this message and exit.']],
+                          'usage': ['[OPTIONS]']},
+              'export': {'doc': 'Export the correction (K^-1, biases, D) for firmware and other '
+                                'tools.\n'
+                                '\n'
+                                '    px4/ardupilot: a fit on data the firmware had already '
+                                'corrected (imported from\n'
+                                '    sensor_combined, IMU or ACC) is composed with the parameters '
+                                'in force into an\n'
+                                '    absolute calibration, or exits 4 saying why it cannot be '
+                                '(docs/export.md).\n'
+                                '    With --json (needs --out), the output object is printed '
+                                'instead of the export.',
+                         'help': 'Export the correction (K^-1, biases, D) for firmware and other '
                                  'tools.',
                          'params': [{'argument': True,
                                      'name': 'cal',
@@ -169,8 +384,44 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                     {'name': 'in_force_path',
                                      'opts': ['--in-force'],
                                      'path': [True, False]},
-                                    {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}]},
-              'fit': {'commands': {'accel': {'help': 'static multi-position accelerometer fit',
+                                    {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}],
+                         'records': [['--format [json|yaml|c-header|csv|kalibr|px4|ardupilot]',
+                                      'json | yaml | c-header | csv | kalibr | px4 | ardupilot '
+                                      '(docs/export.md).  [required]'],
+                                     ['--out FILE', 'Output file (default: stdout).'],
+                                     ['--float', 'c-header: float instead of double.'],
+                                     ['--prefix TEXT',
+                                      'c-header: prefix of the names (CALIB_ACCEL_KINV, '
+                                      'calib_correct_accel); a C identifier: a letter, then '
+                                      "letters, digits or '_', at most 32.  [default: calib]"],
+                                     ['--allan FILE',
+                                      "kalibr: noise densities and random walks from this 'allan' "
+                                      'file.'],
+                                     ['--raw FILE',
+                                      'kalibr without --allan: noise densities from this raw '
+                                      "file's static noise."],
+                                     ['--rostopic TEXT',
+                                      'kalibr: the IMU topic.  [default: /imu0]'],
+                                     ['--instance INTEGER',
+                                      'px4/ardupilot: the IMU instance the parameters are for '
+                                      '(PX4 CAL slot 0-3; ArduPilot 0-4 = IMUs 1-5); default: the '
+                                      'one in force in the log, else 0.'],
+                                     ['--residual',
+                                      'px4/ardupilot: write the fit of already corrected data as '
+                                      'it is (a residual on top of the parameters in force, '
+                                      'labelled so), not composed with them.'],
+                                     ['--in-force FILE',
+                                      'px4/ardupilot: the parameters in force when the data was '
+                                      'logged (a QGroundControl .params or Mission Planner .parm '
+                                      "file), instead of the log's."],
+                                     ['--json',
+                                      'Print {"output", "kind", "sha256", "warnings"} of the '
+                                      'written file as JSON on stdout and nothing else there.'],
+                                     ['-h, --help', 'Show this message and exit.']],
+                         'usage': ['[OPTIONS]', 'CAL']},
+              'fit': {'commands': {'accel': {'doc': 'Static multi-position accelerometer fit: A = '
+                                                    'b + K f.',
+                                             'help': 'static multi-position accelerometer fit',
                                              'params': [{'argument': True,
                                                          'name': 'raw',
                                                          'opts': ['raw'],
@@ -193,8 +444,47 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                          'opts': ['--noise-floor']},
                                                         {'is_flag': True,
                                                          'name': 'as_json',
-                                                         'opts': ['--json']}]},
-                                   'align': {'help': 'biases and attitude from two or more static '
+                                                         'opts': ['--json']}],
+                                             'records': [['--out FILE',
+                                                          'The calibration file to write (HDF5).'],
+                                                         ['--method [auto|vector|scalar]',
+                                                          'vector: known attitudes; scalar: |a| = '
+                                                          'g.  [default: auto]'],
+                                                         ['--with EFFECT[,EFFECT...]',
+                                                          'Add catalogue effects to the base '
+                                                          'model (contract names, optionally '
+                                                          'sensor-qualified: '
+                                                          'accel.temperature_drift).'],
+                                                         ['--list-effects',
+                                                          'List the effects --with accepts, one a '
+                                                          'line (with RAW: the ones this record '
+                                                          'can excite, and what to record for the '
+                                                          'others).'],
+                                                         ['--base [full|diagonal]',
+                                                          "With --with: the base model's scale "
+                                                          'factors (diagonal: needed by --with '
+                                                          'misalignment).  [default: full]'],
+                                                         ['--noise-floor [auto|hf]',
+                                                          'With --with: the noise floor, as '
+                                                          '`calib diagnose --noise` (auto: raised '
+                                                          "to the 0.5 s means' scatter where that "
+                                                          'is larger; hf: white).  [default: '
+                                                          'auto]'],
+                                                         ['--json',
+                                                          'Print the calibration as `calib show '
+                                                          '--json` does (docs/contract.md section '
+                                                          '5) on stdout and nothing else there '
+                                                          '(status stays on stderr).'],
+                                                         ['-h, --help',
+                                                          'Show this message and exit.']],
+                                             'short_help': 'static multi-position accelerometer '
+                                                           'fit',
+                                             'usage': ['[OPTIONS]', '[RAW]']},
+                                   'align': {'doc': 'Accelerometer and gyro biases and the '
+                                                    'attitude of the first position from two (or '
+                                                    'more) static positions related by a known '
+                                                    'rotation.',
+                                             'help': 'biases and attitude from two or more static '
                                                      'positions',
                                              'params': [{'argument': True,
                                                          'name': 'raw',
@@ -229,8 +519,77 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                          'opts': ['--noise-floor']},
                                                         {'is_flag': True,
                                                          'name': 'as_json',
-                                                         'opts': ['--json']}]},
-                                   'gyro': {'help': 'gyro bias, K (and D) from rotations between '
+                                                         'opts': ['--json']}],
+                                             'records': [['--out FILE',
+                                                          'The calibration file to write (HDF5).'],
+                                                         ['--method [two-position|classic|static]',
+                                                          'two-position: any rotation between the '
+                                                          'positions; classic: the 2- or '
+                                                          '4-position baseline (turns of 180 or '
+                                                          '90 deg about the vertical body z); '
+                                                          'static: static data only, the turn '
+                                                          'neither recorded nor stated (both '
+                                                          'attitudes and the biases from the '
+                                                          'twelve static equations).  [default: '
+                                                          'two-position]'],
+                                                         ['--rotation [auto|gyro|plan]',
+                                                          'Rotation between positions: gyros '
+                                                          'integrated through the recorded '
+                                                          "transition, or the plan's turn "
+                                                          'segments (auto: gyro when recorded).  '
+                                                          '[default: auto]'],
+                                                         ['--gyro [auto|use|ignore]',
+                                                          'Earth-rate equations: auto = grade '
+                                                          'check decides; use = fail (exit 4) '
+                                                          'when the gyros cannot resolve the '
+                                                          'earth rate; ignore = accelerometer '
+                                                          'biases and tilt only.  [default: '
+                                                          'auto]'],
+                                                         ['--gyro-k-ppm FLOAT',
+                                                          'Prior 1-sigma of the gyro '
+                                                          'scale-factor/misalignment entries '
+                                                          '(ppm, urad) that bend the integrated '
+                                                          'turn [default: 30, or 3000 without '
+                                                          'earth rate].'],
+                                                         ['--turn-sigma-deg FLOAT',
+                                                          '1-sigma error per axis of a '
+                                                          'plan-stated turn (with --rotation '
+                                                          'plan).  [default: 0.0]'],
+                                                         ['--with EFFECT[,EFFECT...]',
+                                                          'Add catalogue effects to the base '
+                                                          'model (contract names, optionally '
+                                                          'sensor-qualified: '
+                                                          'accel.temperature_drift).'],
+                                                         ['--list-effects',
+                                                          'List the effects --with accepts, one a '
+                                                          'line (with RAW: the ones this record '
+                                                          'can excite, and what to record for the '
+                                                          'others).'],
+                                                         ['--base [full|diagonal]',
+                                                          "With --with: the base model's scale "
+                                                          'factors (diagonal: needed by --with '
+                                                          'misalignment).  [default: full]'],
+                                                         ['--noise-floor [auto|hf]',
+                                                          'With --with: the noise floor, as '
+                                                          '`calib diagnose --noise` (auto: raised '
+                                                          "to the 0.5 s means' scatter where that "
+                                                          'is larger; hf: white).  [default: '
+                                                          'auto]'],
+                                                         ['--json',
+                                                          'Print the calibration as `calib show '
+                                                          '--json` does (docs/contract.md section '
+                                                          '5) on stdout and nothing else there '
+                                                          '(status stays on stderr).'],
+                                                         ['-h, --help',
+                                                          'Show this message and exit.']],
+                                             'short_help': 'biases and attitude from two or more '
+                                                           'static positions',
+                                             'usage': ['[OPTIONS]', '[RAW]']},
+                                   'gyro': {'doc': 'Gyro bias, scale factors and misalignments '
+                                                   '(and g-sensitivity) from the rotations '
+                                                   'between static positions and turns of known '
+                                                   'angle (docs/gyro.md).',
+                                            'help': 'gyro bias, K (and D) from rotations between '
                                                     'static positions',
                                             'params': [{'argument': True,
                                                         'name': 'raw',
@@ -257,8 +616,50 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                         'opts': ['--noise-floor']},
                                                        {'is_flag': True,
                                                         'name': 'as_json',
-                                                        'opts': ['--json']}]},
-                                   'rimu': {'help': 'redundant unit: b, ks, dEl, dAz per sensor',
+                                                        'opts': ['--json']}],
+                                            'records': [['--out FILE',
+                                                         'The calibration file to write (HDF5).'],
+                                                        ['--g-sensitivity [auto|on|off]',
+                                                         'Fit gyro_D (auto: when the static '
+                                                         'positions make it observable).  '
+                                                         '[default: auto]'],
+                                                        ['--accel ACCEL_CAL',
+                                                         'Accelerometer calibration to take the '
+                                                         'gravity directions from (default: fit '
+                                                         'it from RAW, `fit accel --method '
+                                                         'auto`).'],
+                                                        ['--with EFFECT[,EFFECT...]',
+                                                         'Add catalogue effects to the base model '
+                                                         '(contract names, optionally '
+                                                         'sensor-qualified: '
+                                                         'accel.temperature_drift).'],
+                                                        ['--list-effects',
+                                                         'List the effects --with accepts, one a '
+                                                         'line (with RAW: the ones this record '
+                                                         'can excite, and what to record for the '
+                                                         'others).'],
+                                                        ['--base [full|diagonal]',
+                                                         "With --with: the base model's scale "
+                                                         'factors (diagonal: needed by --with '
+                                                         'misalignment).  [default: full]'],
+                                                        ['--noise-floor [auto|hf]',
+                                                         'With --with: the noise floor, as `calib '
+                                                         'diagnose --noise` (auto: raised to the '
+                                                         "0.5 s means' scatter where that is "
+                                                         'larger; hf: white).  [default: auto]'],
+                                                        ['--json',
+                                                         'Print the calibration as `calib show '
+                                                         '--json` does (docs/contract.md section '
+                                                         '5) on stdout and nothing else there '
+                                                         '(status stays on stderr).'],
+                                                        ['-h, --help',
+                                                         'Show this message and exit.']],
+                                            'short_help': 'gyro bias, K (and D) from rotations '
+                                                          'between static positions',
+                                            'usage': ['[OPTIONS]', '[RAW]']},
+                                   'rimu': {'doc': 'Redundant unit: per sensor bias, scale error, '
+                                                   'dEl, dAz (docs/rimu.md).',
+                                            'help': 'redundant unit: b, ks, dEl, dAz per sensor',
                                             'params': [{'argument': True,
                                                         'name': 'raw',
                                                         'opts': ['raw'],
@@ -278,8 +679,43 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                         'opts': ['--noise-floor']},
                                                        {'is_flag': True,
                                                         'name': 'as_json',
-                                                        'opts': ['--json']}]},
-                                   'thermal': {'help': 'bias and scale factor polynomials in '
+                                                        'opts': ['--json']}],
+                                            'records': [['--out FILE',
+                                                         'The calibration file to write (HDF5).'],
+                                                        ['--with EFFECT[,EFFECT...]',
+                                                         'Add catalogue effects to the base model '
+                                                         '(contract names, optionally '
+                                                         'sensor-qualified: '
+                                                         'accel.temperature_drift).'],
+                                                        ['--list-effects',
+                                                         'List the effects --with accepts, one a '
+                                                         'line (with RAW: the ones this record '
+                                                         'can excite, and what to record for the '
+                                                         'others).'],
+                                                        ['--base [full|diagonal]',
+                                                         "With --with: the base model's scale "
+                                                         'factors (diagonal: needed by --with '
+                                                         'misalignment).  [default: full]'],
+                                                        ['--noise-floor [auto|hf]',
+                                                         'With --with: the noise floor, as `calib '
+                                                         'diagnose --noise` (auto: raised to the '
+                                                         "0.5 s means' scatter where that is "
+                                                         'larger; hf: white).  [default: auto]'],
+                                                        ['--json',
+                                                         'Print the calibration as `calib show '
+                                                         '--json` does (docs/contract.md section '
+                                                         '5) on stdout and nothing else there '
+                                                         '(status stays on stderr).'],
+                                                        ['-h, --help',
+                                                         'Show this message and exit.']],
+                                            'short_help': 'redundant unit: b, ks, dEl, dAz per '
+                                                          'sensor',
+                                            'usage': ['[OPTIONS]', '[RAW]']},
+                                   'thermal': {'doc': 'Bias and scale factor polynomial in '
+                                                      'temperature on top of the static model, '
+                                                      'from soak steps and/or ramps in known '
+                                                      'positions (docs/thermal.md).',
+                                               'help': 'bias and scale factor polynomials in '
                                                        'temperature',
                                                'params': [{'argument': True,
                                                            'name': 'raw',
@@ -301,8 +737,42 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                            'opts': ['--with']},
                                                           {'is_flag': True,
                                                            'name': 'as_json',
-                                                           'opts': ['--json']}]},
-                                   'turntable': {'help': 'rotating-table calibration with lever '
+                                                           'opts': ['--json']}],
+                                               'records': [['--out FILE',
+                                                            'The calibration file to write '
+                                                            '(HDF5).'],
+                                                           ['--order INTEGER',
+                                                            'Polynomial order in T - T_ref '
+                                                            '(default: by BIC over 1..3).'],
+                                                           ['--temp-ref FLOAT',
+                                                            'Reference temperature T_ref, degC.  '
+                                                            '[default: 25.0]'],
+                                                           ['--sensor [accel|gyro|both]',
+                                                            'The sensors whose temperature terms '
+                                                            'are fitted.  [default: both]'],
+                                                           ['--base CAL',
+                                                            'A room-temperature calibration whose '
+                                                            'K (and gyro G) are held.'],
+                                                           ['--with EFFECT[,EFFECT...]',
+                                                            'Extra catalogue effects: '
+                                                            'thermal_lag.'],
+                                                           ['--json',
+                                                            'Print the calibration as `calib show '
+                                                            '--json` does (docs/contract.md '
+                                                            'section 5) on stdout and nothing '
+                                                            'else there (status stays on '
+                                                            'stderr).'],
+                                                           ['-h, --help',
+                                                            'Show this message and exit.']],
+                                               'short_help': 'bias and scale factor polynomials '
+                                                             'in temperature',
+                                               'usage': ['[OPTIONS]', '[RAW]']},
+                                   'turntable': {'doc': 'Accelerometer b, K (lower triangular), '
+                                                        'gyro d, G, D, lever arms and proof-mass '
+                                                        'offsets from rotation cycles on a '
+                                                        'single-axis table of imprecise angle and '
+                                                        'rate.',
+                                                 'help': 'rotating-table calibration with lever '
                                                          'arms and proof masses',
                                                  'params': [{'argument': True,
                                                              'name': 'raw',
@@ -358,10 +828,120 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                              'opts': ['--json']},
                                                             {'name': 'plot',
                                                              'opts': ['--plot'],
-                                                             'path': [True, False]}]}},
+                                                             'path': [True, False]}],
+                                                 'records': [['--out FILE',
+                                                              'The calibration file to write '
+                                                              '(HDF5).'],
+                                                             ['--lever-arm [off|known|estimate]',
+                                                              'off: no centripetal terms; known: '
+                                                              "each cycle's lever_arm_m from the "
+                                                              'plan; estimate: two components per '
+                                                              'cycle (the axial one is '
+                                                              'unobservable).  [default: '
+                                                              'estimate]'],
+                                                             ['--proof-mass [auto|off|estimate]',
+                                                              'Proof-mass offsets p_ij (best with '
+                                                              'tilted cycles, docs/turntable.md). '
+                                                              'auto: estimated, entries the '
+                                                              'record cannot determine reported '
+                                                              'with sigma null; off: held at 0.  '
+                                                              '[default: auto]'],
+                                                             ['--tangential [on|off]',
+                                                              'dw/dt x r term from the '
+                                                              'differentiated gyros (off: blocks '
+                                                              'in which the table accelerates are '
+                                                              'left out of the accelerometer '
+                                                              'measurements).  [default: on]'],
+                                                             ['--block FLOAT',
+                                                              'Measurement block length (s): the '
+                                                              'data are averaged over blocks.  '
+                                                              '[default: 0.2]'],
+                                                             ['--axis-sigma-mrad TEXT',
+                                                              'How well the table axis stays '
+                                                              'fixed (per block, 1-sigma, mrad), '
+                                                              'or auto: estimated from the data '
+                                                              '(stats.table_axis_noise_mrad).  '
+                                                              '[default: auto]'],
+                                                             ['--runout-mrad FLOAT',
+                                                              'Prior 1-sigma of the table '
+                                                              "bearing's twice-per-revolution "
+                                                              'rocking of the axis (estimated per '
+                                                              'cycle); 0: none.  [default: 0.5]'],
+                                                             ['--table-tilt-deg FLOAT',
+                                                              "Prior 1-sigma of the table axis's "
+                                                              "tilt from the plan's direction "
+                                                              '(estimated, one per table axis); '
+                                                              "0: take the plan's axis as exact.  "
+                                                              '[default: 0.05]'],
+                                                             ['--grade [mems|tactical|navigation]',
+                                                              'Prior widths of the parameters for '
+                                                              'this grade of unit '
+                                                              '(docs/turntable.md).  [default: '
+                                                              'mems]'],
+                                                             ['--prior KEY=SIGMA',
+                                                              'Override one prior 1-sigma (SI), '
+                                                              'e.g. --prior lever_arm=0.1; keys: '
+                                                              'accel_bias accel_K gyro_bias '
+                                                              'gyro_K gyro_D lever_arm '
+                                                              'proof_mass_offsets.'],
+                                                             ['--noise accel=SIGMA,gyro=SIGMA',
+                                                              'Per-sample white noise (SI: m/s^2, '
+                                                              'rad/s) instead of the estimate '
+                                                              'from the data; one value for all '
+                                                              'axes of a sensor.'],
+                                                             ['--table-encoder '
+                                                              '[auto|off|angle|rate|both]',
+                                                              "The table's angle and/or rate "
+                                                              'channels as measurements (angle: '
+                                                              'zero, once-per-revolution error '
+                                                              'and clock offset estimated; rate: '
+                                                              'scale error and offset estimated): '
+                                                              'auto uses those the log has that '
+                                                              'pass the checks.  [default: auto]'],
+                                                             ['--with EFFECT[,EFFECT...]',
+                                                              'Add catalogue effects to the base '
+                                                              'model (contract names, optionally '
+                                                              'sensor-qualified: '
+                                                              'accel.temperature_drift).'],
+                                                             ['--list-effects',
+                                                              'List the effects --with accepts, '
+                                                              'one a line (with RAW: the ones '
+                                                              'this record can excite, and what '
+                                                              'to record for the others).'],
+                                                             ['--base [full|diagonal]',
+                                                              "With --with: the base model's "
+                                                              'scale factors (diagonal: needed by '
+                                                              '--with misalignment).  [default: '
+                                                              'full]'],
+                                                             ['--noise-floor [auto|hf]',
+                                                              'With --with: the noise floor, as '
+                                                              '`calib diagnose --noise` (auto: '
+                                                              "raised to the 0.5 s means' scatter "
+                                                              'where that is larger; hf: white).  '
+                                                              '[default: auto]'],
+                                                             ['--json',
+                                                              'Print the calibration as `calib '
+                                                              'show --json` does '
+                                                              '(docs/contract.md section 5) on '
+                                                              'stdout and nothing else there '
+                                                              '(status stays on stderr).'],
+                                                             ['--plot PNG',
+                                                              'Write the sigma history of the '
+                                                              'lever arms and proof-mass offsets '
+                                                              '(PNG).'],
+                                                             ['-h, --help',
+                                                              'Show this message and exit.']],
+                                                 'short_help': 'rotating-table calibration with '
+                                                               'lever arms and proof masses',
+                                                 'usage': ['[OPTIONS]', '[RAW]']}},
+                      'doc': 'Fit a calibration to a raw recording.',
                       'help': 'Fit a calibration to a raw recording.',
-                      'params': []},
-              'history': {'help': 'Each parameter of a unit over its calibrations found under '
+                      'params': [],
+                      'records': [['-h, --help', 'Show this message and exit.']],
+                      'usage': ['[OPTIONS]', 'COMMAND [ARGS]...']},
+              'history': {'doc': 'Each parameter of a unit over its calibrations found under '
+                                 'DIRECTORY.',
+                          'help': 'Each parameter of a unit over its calibrations found under '
                                   'DIRECTORY.',
                           'params': [{'argument': True,
                                       'name': 'directory',
@@ -371,8 +951,22 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                      {'name': 'plot_path',
                                       'opts': ['--plot'],
                                       'path': [True, False]},
-                                     {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}]},
-              'import': {'commands': {'bag': {'help': 'Import sensor_msgs/Imu from a ROS 1 .bag, '
+                                     {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}],
+                          'records': [['--unit TEXT',
+                                       "The unit's serial (from its plan).  [required]"],
+                                      ['--plot FILE',
+                                       "Write a PNG: each parameter's change over the "
+                                       'calibrations.'],
+                                      ['--json', 'One JSON object on stdout.'],
+                                      ['-h, --help', 'Show this message and exit.']],
+                          'usage': ['[OPTIONS]', 'DIRECTORY']},
+              'import': {'commands': {'bag': {'doc': 'Import sensor_msgs/Imu from a ROS 1 .bag, a '
+                                                     'ROS 2 bag folder (sqlite3 or\n'
+                                                     '    MCAP) or a bare .mcap file (needs '
+                                                     'calib-cli[ros]; docs/import.md).\n'
+                                                     '    Without --topic, list the IMU topics '
+                                                     'with their message counts and rates.',
+                                              'help': 'Import sensor_msgs/Imu from a ROS 1 .bag, '
                                                       'a ROS 2 bag folder (sqlite3 or MCAP) or a '
                                                       'bare .mcap file (needs calib-cli[ros]; '
                                                       'docs/import.md).',
@@ -398,8 +992,43 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                           'opts': ['--min-static']},
                                                          {'is_flag': True,
                                                           'name': 'as_json',
-                                                          'opts': ['--json']}]},
-                                      'csv': {'help': 'Import a CSV log (contract columns) with '
+                                                          'opts': ['--json']}],
+                                              'records': [['--topic TEXT',
+                                                           'The sensor_msgs/Imu topic; without '
+                                                           'it, list the IMU topics.'],
+                                                          ['--stamp [header|receive]',
+                                                           "Time: the messages' header stamps or "
+                                                           'the receive times.  [default: '
+                                                           'header]'],
+                                                          ['--plan FILE',
+                                                           'The experiment plan (TOML).'],
+                                                          ['--out FILE', 'raw.h5 to write.'],
+                                                          ['--window FLOAT',
+                                                           'Static detection: moving window, s.  '
+                                                           '[default: 1.0]'],
+                                                          ['--threshold FLOAT',
+                                                           'Static detection: multiple of the '
+                                                           'noise floor.  [default: 3.0]'],
+                                                          ['--min-static FLOAT',
+                                                           'Static detection: shortest static '
+                                                           'interval, s.  [default: 1.0]'],
+                                                          ['--json',
+                                                           'The listing as JSON; when importing, '
+                                                           '{"output", "kind", "sha256", '
+                                                           '"warnings"} of the written file on '
+                                                           'stdout and nothing else there.'],
+                                                          ['-h, --help',
+                                                           'Show this message and exit.']],
+                                              'usage': ['[OPTIONS]', 'PATH']},
+                                      'csv': {'doc': 'Import a CSV log (contract columns) with '
+                                                     'its plan.\n'
+                                                     '\n'
+                                                     '    Without a `segment` column, static '
+                                                     'intervals are detected and matched to\n'
+                                                     "    the plan's static segments in order "
+                                                     '(docs/import.md).\n'
+                                                     '    ',
+                                              'help': 'Import a CSV log (contract columns) with '
                                                       'its plan.',
                                               'params': [{'argument': True,
                                                           'name': 'log',
@@ -428,8 +1057,51 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                           'opts': ['--sample-kind']},
                                                          {'is_flag': True,
                                                           'name': 'as_json',
-                                                          'opts': ['--json']}]},
-                                      'dataflash': {'help': 'Import the IMU of an ArduPilot '
+                                                          'opts': ['--json']}],
+                                              'records': [['--plan FILE',
+                                                           'The experiment plan (TOML).  '
+                                                           '[required]'],
+                                                          ['--out FILE',
+                                                           'raw.h5 to write.  [required]'],
+                                                          ['--window FLOAT',
+                                                           'Static detection: moving window, s.  '
+                                                           '[default: 1.0]'],
+                                                          ['--threshold FLOAT',
+                                                           'Static detection: multiple of the '
+                                                           'noise floor.  [default: 3.0]'],
+                                                          ['--min-static FLOAT',
+                                                           'Static detection: shortest static '
+                                                           'interval, s.  [default: 1.0]'],
+                                                          ['--accel-units [count|m/s^2|g]',
+                                                           'Units of ax ay az (g: 9.80665 '
+                                                           'm/s^2).  [default: m/s^2]'],
+                                                          ['--gyro-units [count|rad/s|deg/s]',
+                                                           'Units of gx gy gz.  [default: rad/s]'],
+                                                          ['--sample-kind [instant|interval-mean]',
+                                                           'instant: each sample is the value at '
+                                                           'its time stamp; interval-mean: the '
+                                                           'mean over the sample period ending at '
+                                                           'the stamp (filtered MEMS output).  '
+                                                           '[default: instant]'],
+                                                          ['--json',
+                                                           'Print {"output", "kind", "sha256", '
+                                                           '"warnings"} of the written file as '
+                                                           'JSON on stdout and nothing else '
+                                                           'there.'],
+                                                          ['-h, --help',
+                                                           'Show this message and exit.']],
+                                              'usage': ['[OPTIONS]', 'LOG']},
+                                      'dataflash': {'doc': 'Import the IMU of an ArduPilot '
+                                                           'DataFlash .bin log (needs\n'
+                                                           '    docs/import.md; ArduPilot 4.1+ I '
+                                                           'field, or IMU/IMU2/IMU3 and ACC1..3 '
+                                                           'of older\n'
+                                                           '    logs); /source records the '
+                                                           'parameters in force. Without --plan, '
+                                                           'list the IMU\n'
+                                                           '    messages with their counts and '
+                                                           'rates.',
+                                                    'help': 'Import the IMU of an ArduPilot '
                                                             'DataFlash .bin log (needs '
                                                             'docs/import.md; ArduPilot 4.1+ I '
                                                             'field, or IMU/IMU2/IMU3 and ACC1..3 '
@@ -458,8 +1130,45 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                                 'opts': ['--min-static']},
                                                                {'is_flag': True,
                                                                 'name': 'as_json',
-                                                                'opts': ['--json']}]},
-                                      'text': {'help': 'Import a text log in another layout: '
+                                                                'opts': ['--json']}],
+                                                    'records': [['--message [IMU|ACC]',
+                                                                 'IMU (filtered, at the logging '
+                                                                 'rate) or ACC/GYR (unfiltered '
+                                                                 'samples).  [default: IMU]'],
+                                                                ['--instance INTEGER',
+                                                                 'IMU instance: field I, or 0-2 = '
+                                                                 'IMU/IMU2/IMU3 (ACC1..3) of '
+                                                                 'older logs.  [default: 0]'],
+                                                                ['--plan FILE',
+                                                                 'The experiment plan (TOML).'],
+                                                                ['--out FILE', 'raw.h5 to write.'],
+                                                                ['--window FLOAT',
+                                                                 'Static detection: moving '
+                                                                 'window, s.  [default: 1.0]'],
+                                                                ['--threshold FLOAT',
+                                                                 'Static detection: multiple of '
+                                                                 'the noise floor.  [default: '
+                                                                 '3.0]'],
+                                                                ['--min-static FLOAT',
+                                                                 'Static detection: shortest '
+                                                                 'static interval, s.  [default: '
+                                                                 '1.0]'],
+                                                                ['--json',
+                                                                 'The listing as JSON; when '
+                                                                 'importing, {"output", "kind", '
+                                                                 '"sha256", "warnings"} of the '
+                                                                 'written file on stdout and '
+                                                                 'nothing else there.'],
+                                                                ['-h, --help',
+                                                                 'Show this message and exit.']],
+                                                    'usage': ['[OPTIONS]', 'PATH']},
+                                      'text': {'doc': 'Import a text log in another layout: '
+                                                      'whitespace or CSV, with or without a\n'
+                                                      '    header, raw counts or other units, '
+                                                      'accelerometer and gyro in one file or in\n'
+                                                      '    two files sharing timestamps '
+                                                      '(docs/import.md).',
+                                               'help': 'Import a text log in another layout: '
                                                        'whitespace or CSV, with or without a '
                                                        'header, raw counts or other units, '
                                                        'accelerometer and gyro in one file or in '
@@ -519,8 +1228,76 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                            'opts': ['--sample-kind']},
                                                           {'is_flag': True,
                                                            'name': 'as_json',
-                                                           'opts': ['--json']}]},
-                                      'ulog': {'help': 'Import the IMU of a PX4 ULog file '
+                                                           'opts': ['--json']}],
+                                               'records': [['--plan FILE',
+                                                            'The experiment plan (TOML).  '
+                                                            '[required]'],
+                                                           ['--out FILE',
+                                                            'raw.h5 to write.  [required]'],
+                                                           ['--columns TEXT',
+                                                            'Column map of ACC: FIELD=COLUMN,... '
+                                                            'with fields time ax ay az (gx gy gz '
+                                                            'temp segment); COLUMN is a header '
+                                                            'name or a position counting from 1.'],
+                                                           ['--gyro-columns TEXT',
+                                                            'Column map of the GYRO file (time gx '
+                                                            'gy gz).'],
+                                                           ['--accel-units [count|m/s^2|g]',
+                                                            'Units of the accelerometer columns '
+                                                            '(g: 9.80665 m/s^2).  [default: '
+                                                            'm/s^2]'],
+                                                           ['--gyro-units [count|rad/s|deg/s]',
+                                                            'Units of the gyro columns.  '
+                                                            '[default: rad/s]'],
+                                                           ['--rate FLOAT',
+                                                            'Sample rate, Hz (no time column, or '
+                                                            'time in samples).'],
+                                                           ['--time-unit [s|ms|us|ns|sample]',
+                                                            'Unit of the time column.  [default: '
+                                                            's]'],
+                                                           ['--delimiter '
+                                                            '[auto|comma|semicolon|tab|whitespace]',
+                                                            '[default: auto]'],
+                                                           ['--header [auto|yes|no]',
+                                                            'Is the first non-comment line a '
+                                                            'header?  [default: auto]'],
+                                                           ['--sort',
+                                                            'Order the rows by time (files cut '
+                                                            'into parts).'],
+                                                           ['--segments FILE',
+                                                            'JSON {label: {start, end}} sample '
+                                                            "ranges of the plan's segments."],
+                                                           ['--window FLOAT',
+                                                            'Static detection: moving window, s.  '
+                                                            '[default: 1.0]'],
+                                                           ['--threshold FLOAT',
+                                                            'Static detection: multiple of the '
+                                                            'noise floor.  [default: 3.0]'],
+                                                           ['--min-static FLOAT',
+                                                            'Static detection: shortest static '
+                                                            'interval, s.  [default: 1.0]'],
+                                                           ['--sample-kind '
+                                                            '[instant|interval-mean]',
+                                                            'instant: each sample is the value at '
+                                                            'its time stamp; interval-mean: the '
+                                                            'mean over the sample period ending '
+                                                            'at the stamp (filtered MEMS '
+                                                            'output).  [default: instant]'],
+                                                           ['--json',
+                                                            'Print {"output", "kind", "sha256", '
+                                                            '"warnings"} of the written file as '
+                                                            'JSON on stdout and nothing else '
+                                                            'there.'],
+                                                           ['-h, --help',
+                                                            'Show this message and exit.']],
+                                               'usage': ['[OPTIONS]', 'ACC', '[GYRO]']},
+                                      'ulog': {'doc': 'Import the IMU of a PX4 ULog file '
+                                                      '(docs/import.md); /source of the raw file\n'
+                                                      '    records whether the samples are '
+                                                      'corrected and the parameters in force.\n'
+                                                      '    Without --plan, list the IMU topics '
+                                                      'with their message counts and rates.',
+                                               'help': 'Import the IMU of a PX4 ULog file '
                                                        '(docs/import.md); /source of the raw file '
                                                        'records whether the samples are corrected '
                                                        'and the parameters in force.',
@@ -548,10 +1325,46 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                            'opts': ['--min-static']},
                                                           {'is_flag': True,
                                                            'name': 'as_json',
-                                                           'opts': ['--json']}]}},
+                                                           'opts': ['--json']}],
+                                               'records': [['--source [sensor_combined|sensor]',
+                                                            "sensor_combined (corrected by PX4's "
+                                                            'calibration) or '
+                                                            'sensor_accel/sensor_gyro of one '
+                                                            'instance (before it).  [default: '
+                                                            'sensor_combined]'],
+                                                           ['--instance INTEGER',
+                                                            'Instance of sensor_accel/sensor_gyro '
+                                                            '(--source sensor).  [default: 0]'],
+                                                           ['--plan FILE',
+                                                            'The experiment plan (TOML).'],
+                                                           ['--out FILE', 'raw.h5 to write.'],
+                                                           ['--window FLOAT',
+                                                            'Static detection: moving window, s.  '
+                                                            '[default: 1.0]'],
+                                                           ['--threshold FLOAT',
+                                                            'Static detection: multiple of the '
+                                                            'noise floor.  [default: 3.0]'],
+                                                           ['--min-static FLOAT',
+                                                            'Static detection: shortest static '
+                                                            'interval, s.  [default: 1.0]'],
+                                                           ['--json',
+                                                            'The listing as JSON; when importing, '
+                                                            '{"output", "kind", "sha256", '
+                                                            '"warnings"} of the written file on '
+                                                            'stdout and nothing else there.'],
+                                                           ['-h, --help',
+                                                            'Show this message and exit.']],
+                                               'usage': ['[OPTIONS]', 'PATH']}},
+                         'doc': 'Bring logs from other sources into raw.h5.',
                          'help': 'Bring logs from other sources into raw.h5.',
-                         'params': []},
-              'plan': {'commands': {'check': {'help': 'Predict the 1-sigma of every parameter '
+                         'params': [],
+                         'records': [['-h, --help', 'Show this message and exit.']],
+                         'usage': ['[OPTIONS]', 'COMMAND [ARGS]...']},
+              'plan': {'commands': {'check': {'doc': 'Predict the 1-sigma of every parameter '
+                                                     "PLAN's fit will report, the\n"
+                                                     '    unobservable ones, and the additions '
+                                                     'that help most.',
+                                              'help': 'Predict the 1-sigma of every parameter '
                                                       "PLAN's fit will report, the unobservable "
                                                       'ones, and the additions that help most.',
                                               'params': [{'argument': True,
@@ -603,8 +1416,84 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                           'opts': ['--no-suggest']},
                                                          {'is_flag': True,
                                                           'name': 'as_json',
-                                                          'opts': ['--json']}]},
-                                    'make': {'help': "Write a plan of METHOD's family (its "
+                                                          'opts': ['--json']}],
+                                              'records': [['--like FILE',
+                                                           'Take the noise levels and the sample '
+                                                           'rate from this recording.'],
+                                                          ['--accel-noise TEXT',
+                                                           'Accelerometer noise, 1-sigma per '
+                                                           'sample (SI, or 8mg, 20ug).'],
+                                                          ['--gyro-noise TEXT',
+                                                           'Gyro noise, 1-sigma per sample (SI, '
+                                                           'or 0.05dps, 3dph).'],
+                                                          ['--rate FLOAT',
+                                                           "Sample rate, Hz (default: the plan's "
+                                                           'sample_rate_hz).'],
+                                                          ['--truth FILE',
+                                                           'Predict at this truth model (default: '
+                                                           'a neutral unit, K = I, biases 0).'],
+                                                          ['--method '
+                                                           '[auto|accel|vector|scalar|thermal|gyro|align|rimu|turntable]',
+                                                           'The fit to predict (auto: as fit '
+                                                           'would choose; a static plan with '
+                                                           'turns goes to fit gyro, one with '
+                                                           'chamber setpoints to fit thermal).  '
+                                                           '[default: auto]'],
+                                                          ['--g-sensitivity [auto|on|off]',
+                                                           'gyro: Fit gyro_D (auto: when the '
+                                                           'static positions make it observable). '
+                                                           "[fit's default: auto]"],
+                                                          ['--lever-arm [off|known|estimate]',
+                                                           'turntable: off: no centripetal terms; '
+                                                           "known: each cycle's lever_arm_m from "
+                                                           'the plan; estimate: two components '
+                                                           'per cycle (the axial one is '
+                                                           "unobservable). [fit's default: "
+                                                           'estimate]'],
+                                                          ['--proof-mass [auto|off|estimate]',
+                                                           'turntable: Proof-mass offsets p_ij '
+                                                           '(best with tilted cycles, '
+                                                           'docs/turntable.md). auto: estimated, '
+                                                           'entries the record cannot determine '
+                                                           'reported with sigma null; off: held '
+                                                           "at 0. [fit's default: auto]"],
+                                                          ['--tangential [on|off]',
+                                                           'turntable: dw/dt x r term from the '
+                                                           'differentiated gyros (off: blocks in '
+                                                           'which the table accelerates are left '
+                                                           'out of the accelerometer '
+                                                           "measurements). [fit's default: on]"],
+                                                          ['--grade [mems|tactical|navigation]',
+                                                           'turntable: Prior widths of the '
+                                                           'parameters for this grade of unit '
+                                                           "(docs/turntable.md). [fit's default: "
+                                                           'mems]'],
+                                                          ['--prior KEY=SIGMA',
+                                                           'turntable: Override one prior 1-sigma '
+                                                           '(SI), e.g. --prior lever_arm=0.1; '
+                                                           'keys: accel_bias accel_K gyro_bias '
+                                                           'gyro_K gyro_D lever_arm '
+                                                           "proof_mass_offsets. [fit's default: "
+                                                           'None]'],
+                                                          ['--table-encoder '
+                                                           '[auto|off|angle|rate|both]',
+                                                           "turntable: The table's angle and/or "
+                                                           'rate channels as measurements (angle: '
+                                                           'zero, once-per-revolution error and '
+                                                           'clock offset estimated; rate: scale '
+                                                           'error and offset estimated): auto '
+                                                           'uses those the log has that pass the '
+                                                           "checks. [fit's default: auto]"],
+                                                          ['--no-suggest',
+                                                           'Skip the ranked additions (faster).'],
+                                                          ['--json',
+                                                           'Print the prediction as JSON.'],
+                                                          ['-h, --help',
+                                                           'Show this message and exit.']],
+                                              'usage': ['[OPTIONS]', 'PLAN']},
+                                    'make': {'doc': "Write a plan of METHOD's family (its "
+                                                    'parameters in a [generator] table).',
+                                             'help': "Write a plan of METHOD's family (its "
                                                      'parameters in a [generator] table).',
                                              'params': [{'argument': True,
                                                          'choices': ['static', 'ferraris', 'align',
@@ -667,8 +1556,110 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                          'opts': ['--ramp-positions']},
                                                         {'choices': ['heat', 'heat-cool'],
                                                          'name': 'cycles',
-                                                         'opts': ['--cycles']}]},
-                                    'optimize': {'help': "The shortest plan of PLAN's family "
+                                                         'opts': ['--cycles']},
+                                                        {'is_flag': True,
+                                                         'name': 'as_json',
+                                                         'opts': ['--json']}],
+                                             'records': [['--out FILE', '[required]'],
+                                                         ['--positions [6|12|18|24]',
+                                                          'static: number of positions.  '
+                                                          '[default: 12]'],
+                                                         ['--fit [vector|scalar]',
+                                                          'static: known attitudes (vector) or '
+                                                          'spread unknown ones (scalar).  '
+                                                          '[default: vector]'],
+                                                         ['--duration FLOAT',
+                                                          'Seconds per position (static 10, '
+                                                          'ferraris 10, align 300, rimu 10, '
+                                                          'thermal soak 60, ramp 120) or per '
+                                                          'axial cycle (turntable 600).'],
+                                                         ['--rate FLOAT',
+                                                          'Sample rate, Hz (100; align 50; '
+                                                          'thermal 10).'],
+                                                         ['--turn-duration FLOAT',
+                                                          'ferraris: seconds per 360 deg turn.  '
+                                                          '[default: 10.0]'],
+                                                         ['--axis TEXT',
+                                                          'align: turn axis (body).  [default: '
+                                                          '0,0,1]'],
+                                                         ['--angle FLOAT',
+                                                          'align: turn angle, deg.  [default: '
+                                                          '120.0]'],
+                                                         ['--start TEXT',
+                                                          'align: attitude of position 1 '
+                                                          '(roll,pitch,yaw deg) for simulate.  '
+                                                          '[default: 0.8,-0.5,30]'],
+                                                         ['--latitude FLOAT',
+                                                          'align: site latitude, deg.  [default: '
+                                                          '32.0]'],
+                                                         ['--profile TEXT',
+                                                          'rimu: geometry profile.  [default: '
+                                                          'tetrahedron]'],
+                                                         ['--table-rate FLOAT',
+                                                          'rimu: table rate in each position, '
+                                                          'deg/s (0: static).  [default: 10.0]'],
+                                                         ['--tilted / --no-tilted',
+                                                          'turntable: add the 6 tilted cycles.'],
+                                                         ['--tilt FLOAT',
+                                                          'turntable: tilt of the tilted cycles, '
+                                                          'deg.  [default: 5.0]'],
+                                                         ['--tilted-duration FLOAT',
+                                                          'turntable: seconds per tilted cycle.  '
+                                                          '[default: 300.0]'],
+                                                         ['--max-rate FLOAT',
+                                                          "turntable: the table's max rate, "
+                                                          'deg/s.  [default: 200.0]'],
+                                                         ['--max-accel FLOAT',
+                                                          "turntable: the table's max angular "
+                                                          'acceleration, deg/s^2.  [default: '
+                                                          '200.0]'],
+                                                         ['--max-duration FLOAT',
+                                                          'turntable: the longest run, s.'],
+                                                         ['--rate-profile [steps|smooth]',
+                                                          'turntable: rate profile family.  '
+                                                          '[default: steps]'],
+                                                         ['--design [soak|ramp]',
+                                                          'thermal: soak steps, or a ramp in a '
+                                                          'few positions.  [default: soak]'],
+                                                         ['--temps INTEGER RANGE',
+                                                          'thermal soak: number of temperatures.  '
+                                                          '[default: 7; 5<=x<=7]'],
+                                                         ['--temp-range TEXT',
+                                                          'thermal: LO,HI degC.  [default: '
+                                                          '-40,85]'],
+                                                         ['--soak FLOAT',
+                                                          'thermal: seconds of the soak segment '
+                                                          'at each temperature (soak 1800; ramp 6 '
+                                                          'x --unit-tau).'],
+                                                         ['--ramp-dpm FLOAT',
+                                                          'thermal: chamber ramp rate, degC/min '
+                                                          '(soak 3, ramp 1).'],
+                                                         ['--unit-tau FLOAT',
+                                                          "thermal: the unit's thermal time "
+                                                          'constant for simulate, s (soak 300, '
+                                                          'ramp 120).'],
+                                                         ['--ramp-positions INTEGER RANGE',
+                                                          'thermal ramp: positions visited in '
+                                                          'turn.  [default: 6; 3<=x<=6]'],
+                                                         ['--cycles [heat|heat-cool]',
+                                                          'thermal ramp: heat only, or heat then '
+                                                          'cool.  [default: heat-cool]'],
+                                                         ['--json',
+                                                          'Print {"output", "kind", "sha256", '
+                                                          '"warnings"} of the written file as '
+                                                          'JSON on stdout and nothing else '
+                                                          'there.'],
+                                                         ['-h, --help',
+                                                          'Show this message and exit.']],
+                                             'usage': ['[OPTIONS]',
+                                                       '{static|ferraris|align|turntable|rimu|thermal}']},
+                                    'optimize': {'doc': "The shortest plan of PLAN's family "
+                                                        '(generated plans: number of positions\n'
+                                                        '    and durations; other plans: '
+                                                        'durations only) whose predicted sigma '
+                                                        'meets\n'
+                                                        '    every --target.',
+                                                 'help': "The shortest plan of PLAN's family "
                                                          '(generated plans: number of positions '
                                                          'and durations; other plans: durations '
                                                          'only) whose predicted sigma meets every '
@@ -729,19 +1720,129 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                                              'opts': ['--table-encoder']},
                                                             {'is_flag': True,
                                                              'name': 'as_json',
-                                                             'opts': ['--json']}]}},
+                                                             'opts': ['--json']}],
+                                                 'records': [['--target TEXT',
+                                                              'KEY[.diag|.offdiag]=SIGMA (SI), '
+                                                              'e.g. accel_K.diag=50e-6; '
+                                                              'repeatable.  [required]'],
+                                                             ['--max-duration FLOAT',
+                                                              'Refuse plans longer than this, s.'],
+                                                             ['--out FILE',
+                                                              'Write the optimized plan here.'],
+                                                             ['--like FILE',
+                                                              'Take the noise levels and the '
+                                                              'sample rate from this recording.'],
+                                                             ['--accel-noise TEXT',
+                                                              'Accelerometer noise, 1-sigma per '
+                                                              'sample (SI, or 8mg).'],
+                                                             ['--gyro-noise TEXT',
+                                                              'Gyro noise, 1-sigma per sample '
+                                                              '(SI, or 0.05dps).'],
+                                                             ['--rate FLOAT',
+                                                              'Sample rate, Hz (default: the '
+                                                              "plan's)."],
+                                                             ['--truth FILE',
+                                                              'Predict at this truth model '
+                                                              '(default: a neutral unit).'],
+                                                             ['--method '
+                                                              '[auto|accel|vector|scalar|thermal|gyro|align|rimu|turntable]',
+                                                              '[default: auto]'],
+                                                             ['--g-sensitivity [auto|on|off]',
+                                                              'gyro: Fit gyro_D (auto: when the '
+                                                              'static positions make it '
+                                                              "observable). [fit's default: "
+                                                              'auto]'],
+                                                             ['--lever-arm [off|known|estimate]',
+                                                              'turntable: off: no centripetal '
+                                                              "terms; known: each cycle's "
+                                                              'lever_arm_m from the plan; '
+                                                              'estimate: two components per cycle '
+                                                              '(the axial one is unobservable). '
+                                                              "[fit's default: estimate]"],
+                                                             ['--proof-mass [auto|off|estimate]',
+                                                              'turntable: Proof-mass offsets p_ij '
+                                                              '(best with tilted cycles, '
+                                                              'docs/turntable.md). auto: '
+                                                              'estimated, entries the record '
+                                                              'cannot determine reported with '
+                                                              "sigma null; off: held at 0. [fit's "
+                                                              'default: auto]'],
+                                                             ['--tangential [on|off]',
+                                                              'turntable: dw/dt x r term from the '
+                                                              'differentiated gyros (off: blocks '
+                                                              'in which the table accelerates are '
+                                                              'left out of the accelerometer '
+                                                              "measurements). [fit's default: "
+                                                              'on]'],
+                                                             ['--grade [mems|tactical|navigation]',
+                                                              'turntable: Prior widths of the '
+                                                              'parameters for this grade of unit '
+                                                              "(docs/turntable.md). [fit's "
+                                                              'default: mems]'],
+                                                             ['--prior KEY=SIGMA',
+                                                              'turntable: Override one prior '
+                                                              '1-sigma (SI), e.g. --prior '
+                                                              'lever_arm=0.1; keys: accel_bias '
+                                                              'accel_K gyro_bias gyro_K gyro_D '
+                                                              'lever_arm proof_mass_offsets. '
+                                                              "[fit's default: None]"],
+                                                             ['--table-encoder '
+                                                              '[auto|off|angle|rate|both]',
+                                                              "turntable: The table's angle "
+                                                              'and/or rate channels as '
+                                                              'measurements (angle: zero, '
+                                                              'once-per-revolution error and '
+                                                              'clock offset estimated; rate: '
+                                                              'scale error and offset estimated): '
+                                                              'auto uses those the log has that '
+                                                              "pass the checks. [fit's default: "
+                                                              'auto]'],
+                                                             ['--json',
+                                                              'Print the result as JSON.'],
+                                                             ['-h, --help',
+                                                              'Show this message and exit.']],
+                                                 'usage': ['[OPTIONS]', 'PLAN']}},
+                       'doc': 'Experiment design: predict what a plan delivers, make plans '
+                              '(docs/plan.md).',
                        'help': 'Experiment design: predict what a plan delivers, make plans '
                                '(docs/plan.md).',
-                       'params': []},
-              'profiles': {'help': 'List the shipped and user profiles with their one-line '
+                       'params': [],
+                       'records': [['-h, --help', 'Show this message and exit.']],
+                       'usage': ['[OPTIONS]', 'COMMAND [ARGS]...']},
+              'profiles': {'doc': 'List the shipped and user profiles with their one-line '
+                                  'descriptions.\n'
+                                  '\n'
+                                  '    A NAME is looked up in each directory of '
+                                  '$CALIB_PROFILE_PATH (separated by\n'
+                                  "    ':'), then ~/.config/calib/profiles, then the shipped "
+                                  'profiles; each holds\n'
+                                  '    imu/, turntable/, rimu/ and chamber/ subdirectories of '
+                                  'NAME.toml. The first match\n'
+                                  "    wins; a path (with '/' or ending in .toml) is used as it "
+                                  'is.',
+                           'help': 'List the shipped and user profiles with their one-line '
                                    'descriptions.',
                            'params': [{'choices': ['imu', 'turntable', 'rimu', 'chamber'],
                                        'name': 'kind',
                                        'opts': ['--kind']},
                                       {'is_flag': True, 'name': 'show_all', 'opts': ['--all']},
                                       {'is_flag': True, 'name': 'as_json', 'opts': ['--json']},
-                                      {'name': 'probe_port', 'opts': ['--probe']}]},
-              'record': {'help': 'Record an experiment plan (or a free-running log) from an IMU '
+                                      {'name': 'probe_port', 'opts': ['--probe']}],
+                           'records': [['--kind [imu|turntable|rimu|chamber]',
+                                        'Only this kind of profile.'],
+                                       ['--all',
+                                        'Also list profiles hidden by one of the same name '
+                                        'earlier in the path.'],
+                                       ['--json', 'A JSON list on stdout.'],
+                                       ['--probe PORT',
+                                        'Only find which known IMU protocol the unit on this '
+                                        'serial port speaks (listens first, then sends each '
+                                        "profile's identification request)."],
+                                       ['-h, --help', 'Show this message and exit.']],
+                           'usage': ['[OPTIONS]']},
+              'record': {'doc': 'Record an experiment plan (or a free-running log) from an IMU '
+                                'into raw.h5.',
+                         'help': 'Record an experiment plan (or a free-running log) from an IMU '
                                  'into raw.h5.',
                          'params': [{'name': 'imu', 'opts': ['--imu'], 'profile': 'imu'},
                                     {'name': 'port', 'opts': ['--port']},
@@ -774,14 +1875,94 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                     {'name': 'chamber',
                                      'opts': ['--chamber'],
                                      'profile': 'chamber'},
-                                    {'name': 'chamber_port', 'opts': ['--chamber-port']}]},
-              'recover': {'help': 'Turn a recording journal into raw.h5.',
+                                    {'name': 'chamber_port', 'opts': ['--chamber-port']},
+                                    {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}],
+                         'records': [['--imu TEXT',
+                                      'IMU profile: a .toml path, a profile name (`calib '
+                                      'profiles`), or auto (find the protocol on --port).  '
+                                      '[required]'],
+                                     ['--port TEXT', 'Serial port of the IMU (serial profiles).'],
+                                     ['--can-interface TEXT',
+                                      "python-can interface (default: the profile's)."],
+                                     ['--can-channel TEXT',
+                                      "CAN channel (default: the profile's)."],
+                                     ['--table TEXT',
+                                      "Turntable profile (path, shipped name, or 'manual')."],
+                                     ['--table-port TEXT', 'Serial port of the turntable.'],
+                                     ['--plan FILE', 'Experiment plan.'],
+                                     ['--duration FLOAT',
+                                      'Free-running log of S seconds (no plan); without --plan '
+                                      'and --duration: until Ctrl-C.'],
+                                     ['--rate FLOAT',
+                                      "The device's output rate, Hz, when it is configured "
+                                      "otherwise than the profile's rate_hz (time from the "
+                                      'sequence counter uses it).'],
+                                     ['--out FILE', 'raw.h5 to write.  [required]'],
+                                     ['--journal FILE',
+                                      'Append-only journal (default: OUT.journal).'],
+                                     ['--keep-journal', 'Keep the journal after a clean end.'],
+                                     ['--settle-window FLOAT',
+                                      'Stillness window, s.  [default: 0.5]'],
+                                     ['--accel-still FLOAT RANGE',
+                                      "Stillness: max accel std, m/s^2 (default: 5x the profile's "
+                                      '[noise] accel_std, else 5x the std measured in the first '
+                                      'second; at least 0.05).  [x>0]'],
+                                     ['--gyro-still FLOAT RANGE',
+                                      "Stillness: max gyro std, rad/s (default: 5x the profile's "
+                                      '[noise] gyro_std, else 5x the std measured in the first '
+                                      'second; at least 0.01).  [x>0]'],
+                                     ['--settle-timeout FLOAT',
+                                      'Give up when the unit has not settled after S seconds.  '
+                                      '[default: 120.0]'],
+                                     ['--segment-duration FLOAT',
+                                      'Duration of plan segments without duration_s, s.  '
+                                      '[default: 10.0]'],
+                                     ['--reconnect-timeout FLOAT',
+                                      'How long to wait for a disconnected device, s.  [default: '
+                                      '30.0]'],
+                                     ['--gravity-tolerance FLOAT RANGE',
+                                      'Refuse a position whose measured gravity direction is '
+                                      'further than this (deg) from the one its attitude_deg '
+                                      'implies, and ask again (0: no check).  [default: 10.0; '
+                                      'x>=0]'],
+                                     ['--no-data-timeout FLOAT RANGE',
+                                      'Stop when no valid frame arrives within S seconds of the '
+                                      'start.  [default: 3.0; x>=0]'],
+                                     ['--force',
+                                      'Replace an existing recording at --out, and set an '
+                                      'existing journal aside (renamed, never deleted).'],
+                                     ['--no-check', 'Skip the plan check before recording.'],
+                                     ['--chamber TEXT',
+                                      "Climatic chamber profile (path, shipped name, or 'manual') "
+                                      'for plans with chamber_temp_degC (docs/thermal.md).'],
+                                     ['--chamber-port TEXT', 'Serial port of the chamber.'],
+                                     ['--json',
+                                      'Print {"output", "kind", "sha256", "warnings"} of the '
+                                      'written file as JSON on stdout and nothing else there.'],
+                                     ['-h, --help', 'Show this message and exit.']],
+                         'usage': ['[OPTIONS]']},
+              'recover': {'doc': 'Turn a recording journal into raw.h5.',
+                          'help': 'Turn a recording journal into raw.h5.',
                           'params': [{'argument': True,
                                       'name': 'journal',
                                       'opts': ['journal'],
                                       'path': [True, False]},
-                                     {'name': 'out', 'opts': ['--out'], 'path': [True, False]}]},
-              'report': {'help': 'Markdown and self-contained HTML report of a calibration, with '
+                                     {'name': 'out', 'opts': ['--out'], 'path': [True, False]},
+                                     {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}],
+                          'records': [['--out FILE', '[required]'],
+                                      ['--json',
+                                       'Print {"output", "kind", "sha256", "warnings"} of the '
+                                       'written file as JSON on stdout and nothing else there.'],
+                                      ['-h, --help', 'Show this message and exit.']],
+                          'usage': ['[OPTIONS]', 'JOURNAL']},
+              'report': {'doc': 'Markdown and self-contained HTML report of a calibration, with '
+                                'plots.\n'
+                                '\n'
+                                "    RAW (optional): a free-running raw record (or an 'allan' "
+                                'file) adds the\n'
+                                '    Allan deviation; method sections may also use it '
+                                '(docs/report.md).',
+                         'help': 'Markdown and self-contained HTML report of a calibration, with '
                                  'plots.',
                          'params': [{'argument': True,
                                      'name': 'cal',
@@ -798,8 +1979,32 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                     {'name': 'history_dir',
                                      'opts': ['--history'],
                                      'path': [False, True]},
-                                    {'is_flag': True, 'name': 'pdf', 'opts': ['--pdf']}]},
-              'rimu-check': {'help': 'Parity-space fault detection and isolation; exit 6 when a '
+                                    {'is_flag': True, 'name': 'pdf', 'opts': ['--pdf']},
+                                    {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}],
+                         'records': [['--out DIRECTORY',
+                                      'Directory for report.md, report.html, the PNG figures '
+                                      '(created).  [required]'],
+                                     ['--tolerances FILE',
+                                      'Tolerance file (as for `calib batch`): the verdict checks '
+                                      'the parameters against it instead of against the noise '
+                                      'floor.'],
+                                     ['--history DIRECTORY',
+                                      "The directory of the unit's earlier calibrations (a `calib "
+                                      "batch` output directory): the tolerances' max_change_sigma "
+                                      'compares with the last of them, as the batch does. Without '
+                                      'it that rule is not evaluated and the verdict says so.'],
+                                     ['--pdf',
+                                      'Also write the same report as report.pdf (A4, '
+                                      'matplotlib).'],
+                                     ['--json',
+                                      'Print {"output", "kind", "html", "markdown", "pdf", '
+                                      '"verdict", "figures"} as JSON on stdout and nothing else '
+                                      'there.'],
+                                     ['-h, --help', 'Show this message and exit.']],
+                         'usage': ['[OPTIONS]', 'CAL', '[RAW]']},
+              'rimu-check': {'doc': 'Parity-space fault detection and isolation; exit 6 when a '
+                                    'fault is found.',
+                             'help': 'Parity-space fault detection and isolation; exit 6 when a '
                                      'fault is found.',
                              'params': [{'argument': True,
                                          'name': 'raw',
@@ -818,8 +2023,28 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                          'name': 'cal_uncertainty',
                                          'opts': ['--cal-uncertainty'],
                                          'secondary_opts': ['--no-cal-uncertainty']},
-                                        {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}]},
-              'rimu-geometry': {'help': 'Figures of merit of a redundant layout: accuracy gain '
+                                        {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}],
+                             'records': [['--window FLOAT',
+                                          'Test window, s (non-overlapping averages).  [default: '
+                                          '0.5]'],
+                                         ['--false-alarm-rate FLOAT',
+                                          'Stated false-alarm rate per hour of fault-free data.  '
+                                          '[default: 0.1]'],
+                                         ['--sensor [both|accel|gyro]', '[default: both]'],
+                                         ['--cal-uncertainty / --no-cal-uncertainty',
+                                          "Add the calibration's own uncertainty at each window's "
+                                          'motion to the noise covariance.  [default: '
+                                          'cal-uncertainty]'],
+                                         ['--json', 'One JSON object on stdout.'],
+                                         ['-h, --help', 'Show this message and exit.']],
+                             'usage': ['[OPTIONS]', 'RAW', 'CAL']},
+              'rimu-geometry': {'doc': 'Figures of merit of a redundant layout: accuracy gain '
+                                       'against one triad,\n'
+                                       '    subsets that span 3-D, tolerated/isolable faults, '
+                                       'parity-test power.\n'
+                                       '    PROFILE: a shipped profile name, a profile file, or a '
+                                       'plan of kind rimu.',
+                                'help': 'Figures of merit of a redundant layout: accuracy gain '
                                         'against one triad, subsets that span 3-D, '
                                         'tolerated/isolable faults, parity-test power.',
                                 'params': [{'argument': True,
@@ -829,8 +2054,24 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                            {'name': 'alpha', 'opts': ['--alpha']},
                                            {'is_flag': True,
                                             'name': 'as_json',
-                                            'opts': ['--json']}]},
-              'show': {'help': 'Summarise a calib HDF5 file (raw, calibration, corrected, ...).',
+                                            'opts': ['--json']}],
+                                'records': [['--fault FLOAT',
+                                             'Fault size for the detection power, in noise sigmas '
+                                             'of the tested quantity (e.g. a window mean).  '
+                                             '[default: 5.0]'],
+                                            ['--alpha FLOAT',
+                                             'False-alarm probability of the parity test (per '
+                                             'test).  [default: 0.001]'],
+                                            ['--json', 'Print one JSON object.'],
+                                            ['-h, --help', 'Show this message and exit.']],
+                                'usage': ['[OPTIONS]', 'PROFILE']},
+              'show': {'doc': 'Summarise a calib HDF5 file (raw, calibration, corrected, ...).\n'
+                              '\n'
+                              '    With two calibration files A B: the parameter differences B - '
+                              'A in units\n'
+                              '    of their combined sigma (e.g. one unit calibrated on two '
+                              'dates).',
+                       'help': 'Summarise a calib HDF5 file (raw, calibration, corrected, ...).',
                        'params': [{'argument': True,
                                    'name': 'files',
                                    'nargs': -1,
@@ -839,8 +2080,14 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                   {'is_flag': True, 'name': 'as_json', 'opts': ['--json']},
                                   {'is_flag': True,
                                    'name': 'covariance',
-                                   'opts': ['--covariance']}]},
-              'simulate': {'help': 'Simulate the experiment of PLAN from a truth model, with '
+                                   'opts': ['--covariance']}],
+                       'records': [['--json', 'One JSON object (docs/contract.md section 5).'],
+                                   ['--covariance', 'Include the covariance matrix.'],
+                                   ['-h, --help', 'Show this message and exit.']],
+                       'usage': ['[OPTIONS]', 'FILES...']},
+              'simulate': {'doc': 'Simulate the experiment of PLAN from a truth model, with '
+                                  'noise.',
+                           'help': 'Simulate the experiment of PLAN from a truth model, with '
                                    'noise.',
                            'params': [{'argument': True,
                                        'name': 'plan',
@@ -854,8 +2101,38 @@ TREE = {'commands': {'allan': {'help': 'Allan deviation and noise terms (IEEE St
                                       {'name': 'in_force_path',
                                        'opts': ['--in-force'],
                                        'path': [True, False]},
-                                      {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}]}},
+                                      {'is_flag': True, 'name': 'as_json', 'opts': ['--json']}],
+                           'records': [['--out FILE',
+                                        "raw.h5, a .csv log in the contract's columns, or a "
+                                        'flight-controller or ROS log: .ulg (PX4), .bin '
+                                        '(ArduPilot), .mcap, .bag (docs/simulate.md).  '
+                                        '[required]'],
+                                       ['--seed INTEGER', 'Random seed.  [default: 0]'],
+                                       ['--truth FILE',
+                                        'Truth model TOML (docs/simulate.md); default: a random '
+                                        'MEMS unit.'],
+                                       ['--in-force FILE',
+                                        '.ulg/.bin: the calibration parameters the firmware '
+                                        'applies before logging (a QGroundControl .params or '
+                                        "Mission Planner .parm file; default: the plan's "
+                                        '[autopilot] table, else none).'],
+                                       ['--json',
+                                        'Print {"output", "kind", "sha256", "warnings"} of the '
+                                        'written file as JSON on stdout and nothing else there.'],
+                                       ['-h, --help', 'Show this message and exit.']],
+                           'usage': ['[OPTIONS]', 'PLAN']}},
+ 'doc': 'calib: bench calibration of inertial measurement units.\n'
+        '\n'
+        '    Steps are chained through HDF5 files: import/simulate/record -> raw.h5 ->\n'
+        '    fit -> cal.h5 -> apply/show/report. See docs/commands.md.\n'
+        '    ',
  'help': 'calib: bench calibration of inertial measurement units.',
  'params': [{'is_flag': True, 'name': 'version', 'opts': ['--version']},
             {'is_flag': True, 'name': 'debug', 'opts': ['--debug']},
-            {'is_flag': True, 'name': 'quiet', 'opts': ['--quiet', '-q']}]}
+            {'is_flag': True, 'name': 'quiet', 'opts': ['--quiet', '-q']}],
+ 'records': [['--version', 'Show the version and exit.'],
+             ['--debug', 'Show tracebacks on errors.'],
+             ['-q, --quiet', 'No progress or status output.'],
+             ['-h, --help', 'Show this message and exit.']],
+ 'showers': {'allan': 'calib_cli.cli.cmd_allan', 'diagnosis': 'calib_cli.cli.cmd_diagnose'},
+ 'usage': ['[OPTIONS]', 'COMMAND [ARGS]...']}

@@ -12,7 +12,9 @@ from rich.table import Table
 from calib_cli.cli.common import Ctx, info, out_console, print_json, to_jsonable
 from calib_cli.cli.main import cli
 from calib_cli.io.h5 import read_raw
-from calib_cli.methods.registry import diagnosable
+from calib_cli.methods.registry import diagnosable, method_of_plan_kind
+
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
 
 
 def _render(j: dict) -> None:
@@ -77,10 +79,18 @@ def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir, cal_
                                    "the calibration already)")
     rec = read_raw(raw)
     from calib_cli.cli.progress import bar
+    from calib_cli.errors import CalibError
 
     own = FITS[method].diagnose != "engine"  # the gyro fit's own equations, not bins
     with bar("diagnose"):
-        d = run_diagnose(method, rec, base=base, alpha=alpha, noise=noise)
+        try:
+            d = run_diagnose(method, rec, base=base, alpha=alpha, noise=noise)
+        except CalibError as exc:  # the core does not know the file: name it, and the
+            exc.path = exc.path or raw  # method the recording's plan is for
+            right = method_of_plan_kind(rec.plan_kind)
+            if right and right != method and f"--method {right}" not in exc.message:
+                exc.message += f" (a {rec.plan_kind} plan: --method {right})"
+            raise
     if own and noise != "auto":
         info(f"--noise does not apply to --method {method} (the {method} fit's own noise "
              "estimate)")

@@ -13,7 +13,15 @@ import click
 from rich.live import Live
 from rich.table import Table
 
-from calib_cli.cli.common import Ctx, complete_profile, err_console, info, interactive
+from calib_cli.cli.common import (
+    Ctx,
+    complete_profile,
+    err_console,
+    info,
+    interactive,
+    json_output_option,
+    output_json,
+)
 from calib_cli.cli.main import cli
 from calib_cli.errors import InputError
 
@@ -125,10 +133,11 @@ def _raise_interrupt(*_):
               help="Climatic chamber profile (path, shipped name, or 'manual') for plans with "
               "chamber_temp_degC (docs/thermal.md).")
 @click.option("--chamber-port", help="Serial port of the chamber.")
+@json_output_option
 def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_path, duration,
                rate, out, journal_path, keep_journal, settle_window, accel_still, gyro_still,
                settle_timeout, segment_duration, reconnect_timeout, gravity_tolerance,
-               no_data_timeout, force, no_check, chamber, chamber_port):
+               no_data_timeout, force, no_check, chamber, chamber_port, as_json=False):
     """Record an experiment plan (or a free-running log) from an IMU into raw.h5."""
     from calib_cli.acquire.profile import load_imu_profile
     from calib_cli.acquire.session import free_run_plan
@@ -190,10 +199,13 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
             aside = f"{journal_path}.{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}.old"
             os.replace(journal_path, aside)
             info(f"the earlier journal was set aside as {aside}")
-        return _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
-                       duration, out, journal_path, keep_journal, settle_window, accel_still,
-                       gyro_still, settle_timeout, segment_duration, reconnect_timeout,
-                       gravity_tolerance, no_data_timeout, prof, plan, cprof, chamber_port)
+        rv = _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
+                     duration, out, journal_path, keep_journal, settle_window, accel_still,
+                     gyro_still, settle_timeout, segment_duration, reconnect_timeout,
+                     gravity_tolerance, no_data_timeout, prof, plan, cprof, chamber_port)
+        if as_json and rv == 0:
+            output_json(out, "raw")
+        return rv
 
 
 def _source(prof, transport) -> str:

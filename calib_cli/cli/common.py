@@ -21,9 +21,24 @@ def __getattr__(name):
         if name not in _CONSOLES:
             from rich.console import Console
 
-            _CONSOLES[name] = Console(stderr=name == "err_console", highlight=False)
+            stream = sys.stderr if name == "err_console" else sys.stdout
+            # a pipe or a log file (CI): tables at their full width, never cut to 80
+            # columns ("accel_K[0,…"); a terminal: its own width
+            width = None if _isatty(stream) else FULL_WIDTH
+            _CONSOLES[name] = Console(stderr=name == "err_console", highlight=False,
+                                      width=width)
         return _CONSOLES[name]
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+FULL_WIDTH = 1000  # columns of a console whose stream is not a terminal
+
+
+def _isatty(stream) -> bool:
+    try:
+        return stream.isatty()
+    except (AttributeError, ValueError):
+        return False
 
 
 class Ctx:

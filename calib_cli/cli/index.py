@@ -1,10 +1,11 @@
 """A static description of the click tree, for answers that must be fast.
 
-`calib --help` (the list of commands) and shell completion answer from
-``cli/_tree.py`` -- names, one-line helps, options, choices and which options
+`calib --help` (the list of commands), every `calib X --help` and shell
+completion answer from ``cli/_tree.py`` -- names, help texts, usage lines,
+the options' help records as click renders them, choices and which options
 complete profile names -- without importing the commands' modules (numpy,
-SciPy, h5py: seconds on a loaded machine). Target: < 0.3 s, measured by
-``benchmarks/bench_cli.py`` (``make bench``).
+SciPy, h5py: seconds on a loaded machine). Target: <= 0.5 s (0.3 s for the
+list and completion), measured by ``benchmarks/bench_cli.py`` (``make bench``).
 
 ``_tree.py`` is generated from the real tree:
 
@@ -48,13 +49,27 @@ def _param_entry(p: click.Parameter) -> dict:
     return d
 
 
-def describe(cmd: click.Command, name: str) -> dict:
-    d = {"help": cmd.get_short_help_str(limit=10_000), "params": [_param_entry(p) for p in cmd.params]}
+def describe(cmd: click.Command, name: str, parent: click.Context | None = None) -> dict:
+    """The command's names, options and choices (completion) and what its `--help`
+    prints: the full help text, the usage line's pieces and each option's help record
+    (as click renders them), so `calib X --help` needs no command module."""
+    ctx = click.Context(cmd, info_name=name, parent=parent, **cmd.context_settings)
+    # the option rows click's format_options writes (arguments have none)
+    records = [p.get_help_record(ctx) for p in cmd.get_params(ctx)
+               if not isinstance(p, click.Argument)]
+    d = {"help": cmd.get_short_help_str(limit=10_000), "params": [_param_entry(p) for p in cmd.params],
+         "doc": cmd.help or "", "usage": cmd.collect_usage_pieces(ctx),
+         "records": [list(r) for r in records if r is not None]}
+    for key in ("short_help", "epilog"):
+        if getattr(cmd, key, None):
+            d[key] = getattr(cmd, key)
     if cmd.hidden:
         d["hidden"] = True
+    if cmd.deprecated:
+        d["deprecated"] = True
     if isinstance(cmd, click.Group):
-        ctx = click.Context(cmd, info_name=name)
-        d["commands"] = {n: describe(cmd.get_command(ctx, n), n) for n in cmd.list_commands(ctx)}
+        d["commands"] = {n: describe(cmd.get_command(ctx, n), n, ctx)
+                         for n in cmd.list_commands(ctx)}
     return d
 
 
@@ -63,7 +78,13 @@ def full_tree() -> dict:
     from calib_cli.cli import main
 
     main.register_all()
-    return describe(main.cli, "calib")
+    from calib_cli.cli.cmd_show import SHOWERS
+
+    d = describe(main.cli, "calib")
+    # which module shows each file kind other modules register with `calib show`: the
+    # show command imports that one alone
+    d["showers"] = {kind: fn.__module__ for kind, fn in sorted(SHOWERS.items())}
+    return d
 
 
 def render(tree: dict) -> str:

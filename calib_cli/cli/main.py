@@ -170,7 +170,8 @@ def main(argv=None) -> None:
         _err().print("calib: interrupted", markup=False)
         sys.exit(130)
     except click.UsageError as exc:  # one line, with where to look for help
-        msg = exc.format_message()
+        # click lists a Choice's values one per line ("Choose from:\n\taccel,\n\t...")
+        msg = " ".join(exc.format_message().split())
         if isinstance(exc, click.BadParameter) and "is a directory" in msg:
             # a directory where a file is expected: bad input (exit 3)
             _err().print(f"calib: error: {msg}", markup=False, soft_wrap=True)

@@ -26,6 +26,7 @@ from calib_cli.io.log_segments import (  # noqa: F401  (re-exported: the CSV's s
     segments_from_detection,
 )
 from calib_cli.io.plan import Plan
+from calib_cli.io.sniff import not_a_text_log
 from calib_cli.methods.static_detect import detect_static
 from calib_cli.plan import plan_layout
 
@@ -39,7 +40,9 @@ def _read_table(path: str):
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
         raise InputError("no such file", path) from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        raise InputError(not_a_text_log(path, exc), path) from None
+    except OSError as exc:
         raise InputError(f"cannot read: {exc}", path) from None
     lines = text.splitlines()
     body_start, header = None, None
@@ -191,7 +194,7 @@ def _stream_header(path: str):
             try:
                 s = raw.decode("utf-8").strip()
             except UnicodeDecodeError as exc:
-                raise InputError(f"cannot read: {exc}", path) from None
+                raise InputError(not_a_text_log(path, exc), path) from None
             if not s or s.startswith("#"):
                 continue
             header = [c.strip() for c in s.split(",")]
@@ -559,7 +562,7 @@ def _text_chunks(path, header, cols_or_error, hasher=None):
                             or isinstance(cols_or_error, InputError)):
                         yield _chunk([data[:, j] for j in range(k)], cols_or_error)
         except UnicodeDecodeError as exc:
-            raise InputError(f"cannot read: {exc}", path) from None
+            raise InputError(not_a_text_log(path, exc), path) from None
         if rows:
             data = block(rows)
             if not (nonfinite or time_err or seg_err or isinstance(cols_or_error, InputError)):

@@ -70,6 +70,8 @@ def kalibr_from_allan(res, rostopic: str = "/imu0") -> dict:
 
 
 def kalibr_dict(acc_nd, acc_rw, gyr_nd, gyr_rw, rostopic, rate) -> dict:
+    if rate is not None:  # 100 Hz, not the 100.00000000000213 of float time stamps
+        rate = float(f"{float(rate):.10g}")
     vals = (acc_nd, acc_rw, gyr_nd, gyr_rw, str(rostopic), rate)
     return {k: (v if k == "rostopic" else _num(v)) for k, v in zip(KALIBR_KEYS, vals)}
 

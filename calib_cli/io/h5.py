@@ -134,11 +134,9 @@ def open_checked(path, kinds) -> h5py.File:
     try:
         h5 = h5py.File(p, "r")
     except OSError:
-        hint = ""
-        if Path(p).suffix.lower() in (".csv", ".txt", ".log", ".dat", ".tsv"):
-            hint = ("; a text log is imported first: calib import csv FILE --plan PLAN.toml "
-                    "--out raw.h5 (or calib import text, docs/import.md)")
-        raise InputError(f"not an HDF5 file (or damaged){hint}", p) from None
+        from calib_cli.io.sniff import hint_for_non_hdf5
+
+        raise InputError(f"not an HDF5 file (or damaged){hint_for_non_hdf5(p)}", p) from None
     kind = _attr_str(h5, "kind")
     if kind not in kinds:
         h5.close()

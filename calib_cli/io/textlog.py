@@ -144,7 +144,11 @@ def read_text(path: str, delimiter: str = "auto", header: str = "auto", fast: bo
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
         raise InputError("no such file", path) from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        from calib_cli.io.sniff import not_a_text_log
+
+        raise InputError(not_a_text_log(path, exc), path) from None
+    except OSError as exc:
         raise InputError(f"cannot read: {exc}", path) from None
     lines = [(i + 1, ln.strip()) for i, ln in enumerate(text.splitlines())]
     lines = [(i, ln) for i, ln in lines if ln and not ln.startswith(("#", "%"))]

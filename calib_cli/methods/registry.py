@@ -138,6 +138,11 @@ def check_recording(method: str, rec: Recording, path: str | None = None) -> Non
     if n_static < req.min_static:
         from calib_cli.methods.static_detect import too_few_hint
 
+        right = method_of_plan_kind(rec.plan_kind)
+        if right and right != method and n_static == 0:  # the wrong fit for this plan
+            raise EstimationError(f"`calib fit {method}` needs >= {req.min_static} static "
+                                  f"position{'s' if req.min_static > 1 else ''}; this is a "
+                                  f"{rec.plan_kind} recording: use `calib fit {right}`", path)
         raise EstimationError(f"`calib fit {method}` needs >= {req.min_static} static "
                               f"position{'s' if req.min_static > 1 else ''}; the recording "
                               f"has {n_static}{req.advice}{too_few_hint(rec, req.min_static)}",
