@@ -23,9 +23,10 @@ demo-all: $(STAMP)
 	PATH=$(CURDIR)/$(BIN):$$PATH bash sample_data/demo_all.sh
 
 test: $(STAMP)
-	MPLBACKEND=Agg $(BIN)/python -m pytest -q
+	MPLBACKEND=Agg $(BIN)/python -m pytest -q -n 2 --dist loadfile
 
-# the HTML report of every method rendered by headless Chromium -> docs/figures/report-*.png;
+# the HTML report of every method, --with effect and diagnosis rendered by headless
+# Chromium -> docs/figures/report-*.png (calib_cli/validation/report_cases.py);
 # installs the distribution's chromium package where it is missing (needs root or sudo)
 screenshots: $(STAMP)
 	command -v chromium >/dev/null 2>&1 || command -v chromium-browser >/dev/null 2>&1 || \

@@ -1,12 +1,17 @@
 """Issue 18: fitted / true of a wander case over the test seeds (3000 + 11 k) and the share inside
 the Allan 95 % interval.  python benchmarks/allan18_rows.py CASE N_SEEDS N_GRID[,N_GRID...]
 (PYTHONPATH=<worktree> so the worktree's calib_cli is imported)."""
-import sys, numpy as np
+import sys
 from pathlib import Path
+
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from test_fit_with_slow import allan_interval
+
 from calib_cli.methods import diagnose_stoch as ds
 from calib_cli.validation import diagnose_validate as V
+
 case = sys.argv[1]; n = int(sys.argv[2]); grids = [int(g) for g in sys.argv[3].split(",")]
 f = ds.fit_process
 res = {}

@@ -25,7 +25,7 @@ import numpy as np
 from calib_cli.methods.blas_threads import one_blas_thread
 from calib_cli.methods.diagnose_gyro import WANDER_MARGIN
 from calib_cli.methods.diagnose_gyro_wander import KEYS, WanderLikelihood, unit_of
-from calib_cli.methods.fit_with import _accel_of
+from calib_cli.methods.fit_with import accel_of
 from calib_cli.methods.gyro import fit_gyro
 from calib_cli.sim.simulate import simulate
 from calib_cli.validation import diagnose_cases as C
@@ -41,7 +41,7 @@ def main() -> None:
     rec = simulate(C.plan_of("gyro"), C.hidden_effect_truth(case, np.random.default_rng(seed)),
                    seed=seed + 1)
     with one_blas_thread():
-        acc = _accel_of(rec)
+        acc = accel_of(rec)
         res = fit_gyro(rec, acc, "off", False, extra=[], structure="full")
         W = WanderLikelihood(rec, acc, "full")
         _, A, _ = W.linear([], res)

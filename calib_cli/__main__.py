@@ -29,9 +29,13 @@ def run() -> None:
         pkg.GC_DEFERRED = True
 
     if "_CALIB_COMPLETE" in os.environ:  # shell completion: from the static tree, < 0.3 s
-        from calib_cli.cli.index import stub
+        from calib_cli.cli.tree import stub
 
         stub().main(prog_name="calib")
+        return
+    from calib_cli.cli.tree import help_from_tree
+
+    if help_from_tree(sys.argv[1:]):  # `calib X --help`: from the static tree, < 0.5 s
         return
     pkg.LAZY_COMMANDS = True
     from calib_cli.cli.main import main

@@ -28,21 +28,23 @@ from calib_cli.io.apply_file import apply_file
 from calib_cli.io.h5 import read_calibration, read_raw, write_calibration, write_raw
 from calib_cli.io.plan import load_plan, parse_plan
 from calib_cli.io.truth import load_truth
+from calib_cli.methods import registry
 from calib_cli.methods.registry import (
     FITS,
     AccelOptions,
     AlignOptions,
     GyroOptions,
     RimuOptions,
+    ThermalOptions,
     TurntableFitOptions,
     check_recording,
     options_from,
 )
-from calib_cli.methods.registry import run as _run
 from calib_cli.sim.simulate import simulate
 
 __all__ = [
-    "FITS", "AccelOptions", "AlignOptions", "GyroOptions", "RimuOptions", "TurntableFitOptions",
+    "FITS", "AccelOptions", "AlignOptions", "GyroOptions", "RimuOptions", "ThermalOptions",
+    "TurntableFitOptions",
     "CalibrationResult", "Recording", "Segment",
     "CalibError", "InputError", "EstimationError", "FaultDetected", "OutputError",
     "apply", "apply_file", "check_recording", "fit", "load_plan", "load_truth", "options_from",
@@ -50,17 +52,32 @@ __all__ = [
 ]
 
 
-def fit(method: str, rec: Recording, options=None, **option_values) -> CalibrationResult:
-    """Fit METHOD ("accel", "gyro", "align", "rimu", "turntable") to a recording.
+def fit(method: str, rec: Recording, options=None, *, with_=None, base: str = "full",
+        noise_floor: str = "auto", **option_values) -> CalibrationResult:
+    """Fit METHOD (any name of ``FITS``: "accel", "gyro", "align", "rimu", "turntable",
+    "thermal", ...) to a recording.
 
     ``options``: the method's options dataclass (``AccelOptions(...)``, ...) or None;
-    or give the command line's option names as keywords (``table_tilt_deg=0.1``).
-    The same requirement checks, gross-error screen and result as ``calib fit``."""
+    or give the command line's option names as keywords (``table_tilt_deg=0.1``). A
+    calibration option (gyro's ``accel``, thermal's ``base``) is a CalibrationResult or
+    a calibration file's path. ``with_``: catalogue effects as ``calib fit --with`` takes
+    them ("lever_arm,accel.temperature_drift" or a list of names), with ``base`` and
+    ``noise_floor`` as ``--base`` and ``--noise-floor``. The same requirement checks,
+    gross-error screen and result as ``calib fit``."""
     if option_values:
         if options is not None:
             raise TypeError("give options or keyword option values, not both")
-        options = options_from(method, option_values)
-    return _run(method, rec, options)
+        from calib_cli.io.fit_inputs import read_file_options
+
+        options = options_from(method, read_file_options(method, option_values)[0])
+    req = None
+    if with_:
+        text = with_ if isinstance(with_, str) else ",".join(with_)
+        try:
+            req = registry.parse_with(method, text, base, noise_floor)
+        except ValueError as exc:
+            raise InputError(f"--with: {exc}") from None
+    return registry.run(method, rec, options, with_=req)
 
 
 def apply(cal: CalibrationResult, rec: Recording) -> Recording:

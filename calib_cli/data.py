@@ -79,8 +79,11 @@ class Recording:
 
     @property
     def sample_rate(self) -> float:
-        """Median sample rate, Hz."""
-        return 1.0 / float(np.median(np.diff(self.time))) if len(self.time) > 1 else 0.0
+        """Median sample rate, Hz, to 10 significant digits (100 Hz, not the
+        100.00000000000213 of float time stamps)."""
+        if len(self.time) < 2:
+            return 0.0
+        return float(f"{1.0 / float(np.median(np.diff(self.time))):.10g}")
 
     def static_segments(self) -> list[Segment]:
         return [s for s in self.segments if s.kind == "static"]

@@ -28,8 +28,6 @@ from calib_cli.model.truth import DEFAULT_NOISE, Truth, default_truth
 from calib_cli.plan import Plan, PlanSegment
 
 D2R = np.pi / 180.0
-METHODS = ("auto", "vector", "scalar", "gyro", "align", "rimu", "thermal", "turntable")
-THERMAL_ORDER = 2  # plan check predicts the thermal fit at this polynomial order
 WEAK_TYPICAL = 0.3  # sigma above 0.3 x the catalogue's typical size of the entry: weak
 WEAK_SPREAD = 3.0  # ... or above 3 x the median sigma of the same key
 N_SUGGEST = 5
@@ -70,33 +68,53 @@ class Prediction:
 # inputs
 
 
-def resolve_method(plan: Plan, method: str = "auto") -> str:
-    """The fit a plan's record goes to: align and rimu plans by kind; a static
-    plan goes to the gyro fit when it has turns of known angle (Ferraris),
-    else to ``fit accel --method auto`` (vector with attitudes, else scalar)."""
-    if method not in METHODS:
-        raise InputError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}",
-                         plan.path)
-    if plan.kind in ("align", "rimu", "turntable"):
-        if method not in ("auto", plan.kind):
-            raise InputError(f"a plan of kind {plan.kind!r} goes to the {plan.kind} fit, "
-                             f"not {method!r}", plan.path)
-        return plan.kind
-    if method in ("align", "rimu", "turntable"):
-        raise InputError(f"a static plan cannot be checked as {method!r}", plan.path)
-    from calib_cli.sim.chamber import has_chamber
+def method_of(name: str):
+    """(Method, options) of a ``plan check --method`` name (a variant sets options);
+    KeyError for an unknown name."""
+    from calib_cli.methods.registry import FITS
 
-    if method == "thermal" or (method == "auto" and has_chamber(plan)):  # issue 21
-        if not has_chamber(plan):
-            raise InputError("a thermal check needs chamber_temp_degC on the plan's segments",
-                             plan.path)
-        return "thermal"
-    if method != "auto":
-        return method
-    if any(s.kind == "turn" for s in plan.segments):
-        return "gyro"
-    statics = [s for s in plan.segments if s.kind == "static"]
-    return "vector" if statics and all(s.attitude is not None for s in statics) else "scalar"
+    for m in FITS.values():
+        if name == m.name:
+            return m, {}
+        if name in m.variants:
+            return m, dict(m.variants[name])
+    raise KeyError(name)
+
+
+def _claims(m, plan: Plan) -> bool:
+    from calib_cli.methods.method import resolve
+
+    return m.claims is not None and bool(resolve(m.claims)(plan))
+
+
+def resolve_method(plan: Plan, method: str = "auto") -> str:
+    """The fit a plan's record goes to, as the table says (methods/registry.py): a
+    method whose ``claims`` takes the plan (a static plan with chamber setpoints goes to
+    the thermal fit, one with turns of known angle to the gyro fit), else the method of
+    the plan's kind; where the method has variants, the one its ``variant_of`` names (the
+    accelerometer fit: vector with attitudes, else scalar, as ``fit accel --method auto``)."""
+    from calib_cli.methods.registry import FITS, method_of_plan_kind, plan_method_names
+
+    names = plan_method_names()
+    if method not in names:
+        raise InputError(f"unknown method {method!r}; expected one of {', '.join(names)}",
+                         plan.path)
+    default = method_of_plan_kind(plan.kind)
+    if default is None:
+        raise InputError(f"no method takes plans of kind {plan.kind!r}", plan.path)
+    if method == "auto":
+        m = next((m for m in FITS.values() if plan.kind in m.plan_kinds and _claims(m, plan)),
+                 FITS[default])
+    else:
+        m = method_of(method)[0]
+        if plan.kind not in m.plan_kinds:
+            raise InputError(f"a plan of kind {plan.kind!r} goes to the {default} fit, not "
+                             f"{method!r}", plan.path)
+        if m.name != method:  # a variant named explicitly
+            return method
+    from calib_cli.methods.method import resolve
+
+    return resolve(m.variant_of)(plan) if m.variant_of else m.name
 
 
 def default_noise(plan: Plan, rate: float | None = None, truth: Truth | None = None) -> Noise:
@@ -135,14 +153,16 @@ def noise_like(rec: Recording, path: str = "<raw>") -> Noise:
     rot = [s for s in rec.segments if s.kind == "rotating"]
     if (rot and not rec.layout.redundant and rec.accel is not None and rec.gyro is not None
             and (rec.plan_kind == "turntable" or not rec.static_segments())):
-        # a turntable record: the fit's own estimate (third differences over its cycles)
-        from calib_cli.methods.turntable import _third_diff_sigma
+        # a turntable record: the fit's own estimate (third differences over its cycles,
+        # robust to the corners: methods/noise.py, as methods/turntable.py)
+        from calib_cli.methods.noise import difference_sigma
 
         if rec.in_counts("accel") or rec.in_counts("gyro"):
             raise InputError("the recording is in raw counts: give --accel-noise/--gyro-noise "
                              "in SI instead", path)
         on = np.concatenate([np.arange(s.start, s.stop) for s in rot])
-        return Noise(_third_diff_sigma(rec.accel[on]), _third_diff_sigma(rec.gyro[on]),
+        return Noise(difference_sigma(rec.accel[on], 3, robust="mad"),
+                     difference_sigma(rec.gyro[on], 3, robust="mad"),
                      rec.sample_rate, f"like {path}", rec)
     out = {}
     for sensor in ("accel", "gyro"):
@@ -164,7 +184,7 @@ def noise_like(rec: Recording, path: str = "<raw>") -> Noise:
     if rec.in_counts("accel") or rec.in_counts("gyro"):
         raise InputError("the recording is in raw counts: give --accel-noise/--gyro-noise "
                          "in SI instead", path)
-    return Noise(out["accel"], out["gyro"], rec.sample_rate, f"like {path}")
+    return Noise(out["accel"], out["gyro"], rec.sample_rate, f"like {path}", rec)
 
 
 def nominal_truth(plan: Plan, truth: Truth | None = None) -> Truth:
@@ -220,31 +240,25 @@ def _turntable_nominal(plan: Plan) -> Truth:
 
 
 def _fit(method: str, rec: Recording, noise: Noise, options: dict) -> CalibrationResult:
-    nz = noise.as_dict()
-    if method in ("vector", "scalar"):
-        from calib_cli.methods.accel_lsq import fit_accel
+    """The method's information at this noise (methods/registry.information): its fit's
+    covariance on the noise-free record, with the options the prediction was given
+    (those the method does not take are left out: plan check offers the options of
+    every method)."""
+    from calib_cli.methods.registry import information
 
-        return fit_accel(rec, method, noise=nz["accel"], strict=False)
-    if method == "gyro":
-        from calib_cli.methods.gyro import fit_gyro
+    m, variant = method_of(method)
+    names = {o.name for o in m.options}
+    opts = {k: v for k, v in {**options, **variant}.items() if k in names and v is not None}
+    return information(m.name, rec, opts, noise.as_dict(), noise.like)
 
-        return fit_gyro(rec, None, options.get("g_sensitivity", "auto"), noise=nz, strict=False)
-    if method == "align":
-        from calib_cli.methods.align import fit_align
 
-        return fit_align(rec, options.get("rotation", "auto"), options.get("gyro", "auto"),
-                         noise=nz)
-    if method == "rimu":
-        from calib_cli.methods.rimu import fit_rimu
-
-        return fit_rimu(rec, noise=nz, strict=False)
-    if method == "turntable":
-        return _turntable_prediction(rec, noise, options)
-    if method == "thermal":
-        from calib_cli.methods.thermal import fit_thermal
-
-        return fit_thermal(rec, order=int(options.get("temp_order", THERMAL_ORDER)), noise=nz)
-    raise ValueError(method)
+def turntable_information(rec: Recording, o, noise: dict, like: Recording | None = None
+                          ) -> CalibrationResult:
+    """The turntable method's information hook (methods/registry.py): the prediction of
+    ``_turntable_prediction`` (issue 32 moves it into methods/turntable.py)."""
+    nz = Noise(np.asarray(noise["accel"], float), np.asarray(noise["gyro"], float), 0.0,
+               like=like)
+    return _turntable_prediction(rec, nz, {f: getattr(o, f) for f in TURNTABLE_OPTIONS})
 
 
 TURNTABLE_OPTIONS = ("lever_arm", "proof_mass", "tangential", "block_s", "axis_sigma_mrad",
@@ -297,6 +311,34 @@ def _channels_like(rec: Recording, like: Recording, topt) -> Recording:
     return rec.with_(table_angle=ang, table_rate=rt)
 
 
+def attitudes_like(plan: Plan, like: Recording) -> Plan:
+    """The plan with the attitudes it leaves unknown taken from the recording ``--like``
+    names: each static position without attitude_deg is simulated at the attitude the
+    recording's mean specific force (and, where its gyros resolve the earth rate, its
+    mean rate) shows at that position. The information of a fit depends on the
+    positions' directions; a plan that does not state them would otherwise be predicted
+    at random ones (the simulator's) instead of the recorded ones."""
+    if like.accel is None or like.layout.redundant or like.in_counts("accel"):
+        return plan
+    from calib_cli.model.earth import EARTH_RATE
+    from calib_cli.model.frames import attitude_from_static
+
+    seen = {}
+    for s in like.segments:
+        if s.kind == "static" and s.plan_index >= 0 and s.plan_index not in seen and s.n > 0:
+            w = None
+            if like.gyro is not None and not like.in_counts("gyro"):
+                w = like.gyro[s.slice].mean(axis=0)
+            seen[s.plan_index] = attitude_from_static(like.accel[s.slice].mean(axis=0), w,
+                                                      EARTH_RATE, like.site.latitude)
+    segs = list(plan.segments)
+    for i, seg in enumerate(segs):
+        if seg.kind == "static" and seg.attitude is None and i in seen:
+            att = [float(x) for x in np.degrees(seen[i])]
+            segs[i] = replace(seg, extra={**seg.extra, "sim_attitude_deg": att})
+    return replace(plan, segments=tuple(segs))
+
+
 def _with_rate(plan: Plan, rate: float) -> Plan:
     return replace(plan, extra={**plan.extra, "sample_rate_hz": float(rate)})
 
@@ -315,6 +357,8 @@ def predict_result(plan: Plan, method: str, noise: Noise, truth: Truth | None = 
 
     check_plannable(plan)
     p = _with_rate(plan, noise.rate)
+    if noise.like is not None:
+        p = attitudes_like(p, noise.like)
     rec = simulate(p, nominal_truth(plan, truth), seed=0)
     try:
         return _fit(method, rec, noise, options or {}), rec
@@ -338,6 +382,44 @@ def condition_number(res: CalibrationResult) -> float:
     s = np.sqrt(np.diag(C))
     R = C / np.outer(s, s)
     return float(np.linalg.cond(R))
+
+
+def condition_details(res: CalibrationResult, exact: float = 1e-9) -> dict:
+    """The correlation matrix of the determined entries, explained: its condition
+    number; the exact linear dependencies in it (eigenvalues below ``exact`` times
+    the size: combinations the model itself fixes, e.g. a cycle's lever arm, two
+    free components written in three body axes, not something the plan could
+    determine) with the keys they involve; the condition number without them; the
+    most correlated pair of entries."""
+    C = np.asarray(res.covariance, float)
+    d = np.diag(C) if C.size else np.zeros(0)
+    ok = np.isfinite(d) & (d > 0)
+    out = {"condition": condition_number(res), "condition_determined": float("inf"),
+           "dependencies": 0, "dependent_keys": [], "most_correlated": None}
+    if ok.sum() < 2:
+        return out
+    names = []
+    for k, flat in np.asarray(res.cov_order, dtype=object)[ok]:
+        k = k.decode() if isinstance(k, bytes) else str(k)
+        shape = np.shape(res.params.get(k, 0))
+        idx = np.unravel_index(int(flat), shape) if shape else ()
+        names.append((k, f"{k}[{','.join(map(str, idx))}]" if idx else k))
+    C = C[np.ix_(ok, ok)]
+    s = np.sqrt(np.diag(C))
+    R = C / np.outer(s, s)
+    w, V = np.linalg.eigh((R + R.T) / 2)
+    null = w < exact * len(w)
+    keys = sorted({names[j][0] for i in np.flatnonzero(null)
+                   for j in np.flatnonzero(np.abs(V[:, i]) > 1e-6)})
+    kept = w[~null]
+    out.update(dependencies=int(null.sum()), dependent_keys=keys,
+               condition_determined=float(kept.max() / kept.min()) if len(kept) else
+               float("inf"))
+    off = np.abs(R - np.diag(np.diag(R)))
+    off[off > 1.0 - 1e-9] = 0.0  # pairs of an exact dependency
+    i, j = np.unravel_index(int(np.argmax(off)), off.shape)
+    out["most_correlated"] = [names[i][1], names[j][1], float(R[i, j])]
+    return out
 
 
 # the catalogue's typical sizes (model/effects.py) of the keys plan check ranks
@@ -447,53 +529,79 @@ def _median_duration(plan: Plan, kind: str = "static") -> float:
 
 
 def candidates(plan: Plan, method: str) -> list[tuple[str, tuple]]:
-    """Candidate additions: (description, segments to append)."""
+    """Candidate additions: (description, segments to append), from the method's
+    ``plan_candidates`` hook (methods/registry.py); none where it has none."""
+    from calib_cli.methods.method import resolve
+
+    m = method_of(method)[0]
+    return list(resolve(m.plan_candidates)(plan, method)) if m.plan_candidates else []
+
+
+def position_candidates(plan: Plan, method: str, axes_only: bool = False
+                        ) -> list[tuple[str, tuple]]:
+    """A static position with each of 26 body directions up (the faces only with
+    ``axes_only``): the accelerometer and RIMU fits' candidates (a RIMU plan on a
+    turning table gets them on the turning table; the scalar fit's carry their
+    attitude for the simulation only)."""
     out = []
     dur = _median_duration(plan)
-    if method in ("vector", "scalar", "rimu", "gyro"):
-        # a RIMU plan on a turning table gets positions on the turning table
-        spin = next((s for s in plan.segments if s.kind == "rotating"), None)
-        if method != "rimu":
-            spin = None
-        dirs = candidate_directions()
-        if method == "gyro":
-            dirs = [d for d in dirs if np.count_nonzero(d[1]) == 1]
-        for lab, u in dirs:
-            att = _attitude_up(u)
-            name = f"add-{lab.replace(' ', '-')}"
-            if method == "scalar":  # unknown attitude: only the simulation needs it
-                seg = PlanSegment(label=name, duration=dur,
-                                  extra={"sim_attitude_deg": att, "duration_s": dur})
-            else:
-                seg = PlanSegment(label=name, attitude=np.array(att) * D2R, duration=dur,
-                                  extra={"attitude_deg": att, "duration_s": dur})
-            if spin is not None:
-                seg = replace(seg, table_axis_enu=spin.table_axis_enu, table_rate=spin.table_rate)
-            out.append((f"add a static position with body {lab} ({dur:g} s)", (seg,)))
-    if method == "gyro":
-        last = next((s for s in reversed(plan.segments) if s.kind == "static"
-                     and s.attitude is not None), None)
-        att = last.attitude if last is not None else np.zeros(3)
-        tdur = _median_duration(plan, "turn")
-        for i, ax in enumerate("xyz"):
-            axis = np.eye(3)[i]
-            turn = PlanSegment(label=f"add-turn-{ax}", attitude=att, rotation_axis_body=axis,
-                               rotation_angle=2 * np.pi, duration=tdur)
-            hold = PlanSegment(label=f"add-after-turn-{ax}", attitude=att, duration=dur)
-            out.append((f"add a 360 deg turn about body {ax} ({tdur:g} s) and a position after "
-                        "it", (turn, hold)))
-    if method == "turntable":
-        out += _tilted_cycles(plan)
-    if method == "align":
-        dur_a = _median_duration(plan)
-        for i, ax in enumerate("xyz"):
-            axis = np.eye(3)[i]
-            turn = PlanSegment(label=f"add-turn-{ax}", rotation_axis_body=axis,
-                               rotation_angle=np.pi / 2, duration=10.0)
-            hold = PlanSegment(label=f"add-position-{ax}", duration=dur_a)
-            out.append((f"add a third position after a 90 deg turn about body {ax}",
-                        (turn, hold)))
+    scalar = method == "scalar"
+    spin = next((s for s in plan.segments if s.kind == "rotating"), None)
+    if method != "rimu":
+        spin = None
+    dirs = candidate_directions()
+    if axes_only:
+        dirs = [d for d in dirs if np.count_nonzero(d[1]) == 1]
+    for lab, u in dirs:
+        att = _attitude_up(u)
+        name = f"add-{lab.replace(' ', '-')}"
+        if scalar:  # unknown attitude: only the simulation needs it
+            seg = PlanSegment(label=name, duration=dur,
+                              extra={"sim_attitude_deg": att, "duration_s": dur})
+        else:
+            seg = PlanSegment(label=name, attitude=np.array(att) * D2R, duration=dur,
+                              extra={"attitude_deg": att, "duration_s": dur})
+        if spin is not None:
+            seg = replace(seg, table_axis_enu=spin.table_axis_enu, table_rate=spin.table_rate)
+        out.append((f"add a static position with body {lab} ({dur:g} s)", (seg,)))
     return out
+
+
+def gyro_candidates(plan: Plan, method: str) -> list[tuple[str, tuple]]:
+    """The gyro fit's: a position with a body axis up, or a 360 deg turn about a body
+    axis and a position after it."""
+    out = position_candidates(plan, method, axes_only=True)
+    dur = _median_duration(plan)
+    last = next((s for s in reversed(plan.segments) if s.kind == "static"
+                 and s.attitude is not None), None)
+    att = last.attitude if last is not None else np.zeros(3)
+    tdur = _median_duration(plan, "turn")
+    for i, ax in enumerate("xyz"):
+        axis = np.eye(3)[i]
+        turn = PlanSegment(label=f"add-turn-{ax}", attitude=att, rotation_axis_body=axis,
+                           rotation_angle=2 * np.pi, duration=tdur)
+        hold = PlanSegment(label=f"add-after-turn-{ax}", attitude=att, duration=dur)
+        out.append((f"add a 360 deg turn about body {ax} ({tdur:g} s) and a position after "
+                    "it", (turn, hold)))
+    return out
+
+
+def align_candidates(plan: Plan, method: str) -> list[tuple[str, tuple]]:
+    """The alignment's: a third position after a 90 deg turn about a body axis."""
+    out = []
+    dur_a = _median_duration(plan)
+    for i, ax in enumerate("xyz"):
+        axis = np.eye(3)[i]
+        turn = PlanSegment(label=f"add-turn-{ax}", rotation_axis_body=axis,
+                           rotation_angle=np.pi / 2, duration=10.0)
+        hold = PlanSegment(label=f"add-position-{ax}", duration=dur_a)
+        out.append((f"add a third position after a 90 deg turn about body {ax}", (turn, hold)))
+    return out
+
+
+def turntable_candidates(plan: Plan, method: str) -> list[tuple[str, tuple]]:
+    """The turntable fit's candidate additions (methods/registry.py): tilted cycles."""
+    return _tilted_cycles(plan)
 
 
 def _tilted_cycles(plan: Plan) -> list[tuple[str, tuple]]:
@@ -571,7 +679,7 @@ def suggest(plan: Plan, method: str, noise: Noise, base: CalibrationResult,
     before = {t: _sigma_of(base, t) for t in targets}
     trials = [(desc, segs, replace(plan, segments=plan.segments + segs))
               for desc, segs in candidates(plan, method)]
-    if method != "turntable":
+    if any(s.kind == "static" for s in plan.segments):
         trials.append(("double the duration of every static position", (), _scaled(plan, 2.0)))
     ranked = []
     for desc, segs, p in trials:
@@ -610,8 +718,9 @@ def check(plan: Plan, method: str = "auto", noise: Noise | None = None,
     res, rec = predict_result(plan, m, noise, truth, options)
     weak = weak_entries(res)
     targets = list(res.stats.get("unobservable", [])) + weak
+    # no candidate additions where the method has none (thermal, yet)
     sug = suggest(plan, m, noise, res, targets, truth, options) \
-        if suggestions and m != "thermal" else []  # no candidate additions for thermal yet
+        if suggestions and method_of(m)[0].plan_candidates else []
     return Prediction(res.method, res, noise, plan_duration(rec), condition_number(res), weak,
                       sug)
 

@@ -34,17 +34,3 @@ def split_suffix(key: str) -> tuple[str, float]:
             return key[: -len(suf)], SUFFIXES[suf]
     return key, 1.0
 
-
-def g_figures_line(st: dict) -> str | None:
-    """Avrutov et al.'s figures (std of |g| over positions, |mean |g| - g|),
-    before and after correction, in mg; None when the fit has none."""
-    if st.get("g_norm_std_after") is None:
-        return None
-
-    def mg(v):
-        return "n/a" if v is None else f"{v * 1e3 / 9.80665:.4f}"
-
-    return (f"|g| over the positions: std {mg(st.get('g_norm_std_before'))} -> "
-            f"{mg(st['g_norm_std_after'])} mg, |mean - g| "
-            f"{mg(st.get('g_mean_error_before'))} -> {mg(st.get('g_mean_error_after'))} mg "
-            "(before -> after correction)")

@@ -7,12 +7,12 @@ cd "$(dirname "$0")/.."
 out=demo_out/all
 plans=sample_data/plans
 mkdir -p "$out"
-run() {  # run METHOD PLAN FIT-ARGS...: simulate, fit, report
+run() {  # run METHOD PLAN FIT-ARGS...: simulate (with $TRUTH if set), fit, report
     local m=$1 plan=$2; shift 2
     local d="$out/$m"
     rm -rf "$d"; mkdir -p "$d"
     echo "== $m: $plan"
-    calib simulate "$plan" --out "$d/raw.h5" --seed 7
+    calib simulate "$plan" ${TRUTH:+--truth "$TRUTH"} --out "$d/raw.h5" --seed 7
     calib fit "$@" "$d/raw.h5" --out "$d/cal.h5"
     calib report "$d/cal.h5" "$d/raw.h5" --out "$d/report"
 }
@@ -27,4 +27,5 @@ run align "$plans/align.toml" align
 run rimu "$plans/rimu.toml" rimu
 run turntable-3 "$plans/turntable_3cycle.toml" turntable
 run turntable-9 "$plans/turntable_9cycle.toml" turntable
+TRUTH="$plans/thermal_truth.toml" run thermal "$plans/thermal.toml" thermal
 echo "== done: reports in $out/*/report/report.html (and report.md)"

@@ -7,6 +7,7 @@ import contextlib
 import io
 import json
 import os
+import re
 from pathlib import Path
 
 import h5py
@@ -157,6 +158,48 @@ def test_tolerances_range_and_change(arch, tmp_path):
     code, so, se = run_cli("batch", arch["pipeline"], *good, drift / "rec-99.csv", "--out",
                            tmp_path / "o1", "--tolerances", tol)
     assert code == 5 and "calib: tolerance: " in se and "SN-0002 fail" in se
+    # one evaluator (io/tolerance.py): `calib report --tolerances --history OUT` gives every
+    # unit's latest calibration the verdict the batch gave the unit, the drifting one too
+    _report_agrees(obj, tol, tmp_path / "o1", tmp_path / "rep")
+    tol_range = tmp_path / "range.toml"  # a range failure on every unit
+    tol_range.write_text("[param.accel_K]\nmin = 0.9\nmax = 1.1\n")
+    code, obj2, _ = batch_json(arch["pipeline"], [*good, drift / "rec-99.csv"], tmp_path / "o1",
+                               "--tolerances", tol_range)
+    assert code == 5 and set(obj2["units"].values()) == {"fail"}
+    _report_agrees(obj2, tol_range, tmp_path / "o1", tmp_path / "rep2")
+    # without the history the report cannot evaluate max_change_sigma and says so: not PASS
+    last = _latest_calibrations(obj, tmp_path / "o1")["SN-0002"]
+    code, _, se = run_cli("report", last, "--out", tmp_path / "nohist", "--tolerances", tol)
+    md = (tmp_path / "nohist" / "report.md").read_text()
+    assert code == 0 and re.search(r"^Verdict: INCOMPLETE against the tolerances", md, re.M)
+    assert "param.accel_bias.max_change_sigma" in md and "--history" in md
+
+
+def _latest_calibrations(obj, out) -> dict:
+    """serial -> the last calibration (in history order) the batch checked of that unit."""
+    from calib_cli.io.history import scan
+
+    made = {c["file"] for r in obj["inputs"] for c in r.get("tolerance_checks", [])}
+    latest = {}
+    for e in scan(out):
+        if e.rel in made:
+            latest[e.serial] = e.path
+    return latest
+
+
+def _report_agrees(obj, tol, out, rep):
+    """Each unit's latest calibration: the report's verdict is the batch's unit verdict."""
+    words = {"pass": "PASS", "fail": "FAIL", "incomplete": "INCOMPLETE"}
+    rep.mkdir(parents=True, exist_ok=True)
+    latest = _latest_calibrations(obj, out)
+    assert set(latest) == set(obj["units"])
+    for serial, cal in latest.items():
+        code, _, se = run_cli("report", cal, "--out", rep / serial, "--tolerances", tol,
+                              "--history", out)
+        assert code == 0, se
+        md = (rep / serial / "report.md").read_text()
+        want = words[obj["units"][serial]]
+        assert re.search(rf"^Verdict: {want} against the tolerances", md, re.M), (serial, md)
 
 
 def test_history_table_json_plot(arch, tmp_path):

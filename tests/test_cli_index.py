@@ -9,7 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from calib_cli.cli import index
+from calib_cli.cli import index, tree
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -65,7 +65,7 @@ def test_completion_from_the_static_tree():
 def test_stub_tree_mirrors_every_command():
     from calib_cli.cli import main
 
-    main._register()
+    main.register_all()
 
     def names(cmd, prefix=()):
         import click
@@ -77,4 +77,47 @@ def test_stub_tree_mirrors_every_command():
                 out |= names(cmd.get_command(ctx, n), prefix + (n,))
         return out
 
-    assert names(index.stub()) == names(main.cli)
+    assert names(tree.stub()) == names(main.cli)
+
+
+def _paths(cmd, prefix=()):
+    import click
+
+    out = [prefix]
+    if isinstance(cmd, click.Group):
+        ctx = click.Context(cmd)
+        for n in cmd.list_commands(ctx):
+            out += _paths(cmd.get_command(ctx, n), prefix + (n,))
+    return out
+
+
+def test_every_subcommand_help_from_the_static_tree_equals_the_real_one():
+    """`calib X [Y] --help` answers from the static tree (no command module loaded),
+    word for word what the real command prints."""
+    from click.testing import CliRunner
+
+    from calib_cli.cli import main
+
+    main.register_all()
+    runner = CliRunner()
+    paths = [p for p in _paths(main.cli) if p]
+    assert len(paths) > 30
+    for path in paths:
+        real = runner.invoke(main.cli, [*path, "--help"], prog_name="calib", terminal_width=80)
+        fast = runner.invoke(tree.stub(), [*path, "--help"], prog_name="calib",
+                             terminal_width=80)
+        assert real.exit_code == fast.exit_code == 0, path
+        assert fast.output == real.output, path
+
+
+def test_subcommand_help_loads_no_command_module():
+    for args in (["show", "--help"], ["fit", "accel", "-h"], ["plan", "check", "--help"],
+                 ["-q", "fit", "turntable", "raw.h5", "--help"]):
+        r = subprocess.run([sys.executable, "-c", ENTRY, *args], capture_output=True, text=True,
+                           timeout=120, cwd=ROOT)
+        assert r.returncode == 0 and "Usage: calib " in r.stdout, (args, r.stderr)
+        assert "LOADED []" in r.stderr, args
+    # `-h` as an option's value is not a help request: the real command answers
+    r = subprocess.run([sys.executable, "-c", ENTRY, "fit", "accel", "nothere.h5", "--out", "-h"],
+                       capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert "nothere.h5" in r.stderr and "Usage:" not in r.stdout

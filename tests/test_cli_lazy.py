@@ -10,7 +10,7 @@ import pkgutil
 import click
 
 import calib_cli.cli as pkg
-from calib_cli.cli.main import _register, cli
+from calib_cli.cli.main import cli, register_all
 
 
 def _callback_modules(cmd, acc):
@@ -23,7 +23,7 @@ def _callback_modules(cmd, acc):
 
 
 def test_complete_commands_hold_all_their_subcommands():
-    _register()
+    register_all()
     complete = []
     for info in pkgutil.iter_modules(pkg.__path__):
         if not info.name.startswith("cmd_"):
@@ -34,6 +34,14 @@ def test_complete_commands_hold_all_their_subcommands():
             assert name in cli.commands, f"{info.name} declares COMPLETE_COMMAND but no {name!r}"
             assert _callback_modules(cli.commands[name], set()) == {mod.__name__}, info.name
             complete.append(name)
-    assert {"import", "allan", "report"} <= set(complete)
-    # `calib show` takes the file kinds other modules register (SHOWERS): it loads them all
-    assert "show" not in complete
+    assert {"import", "allan", "report", "show", "plan", "diagnose"} <= set(complete)
+
+
+def test_show_finds_the_module_of_each_file_kind():
+    """`calib show` loads alone; the file kinds other modules register (SHOWERS) are
+    found through the static tree's "showers" map."""
+    from calib_cli.cli import tree as index
+    from calib_cli.cli.cmd_show import SHOWERS
+
+    register_all()
+    assert set(index.tree()["showers"]) == set(SHOWERS) >= {"allan", "diagnosis"}

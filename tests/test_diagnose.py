@@ -370,14 +370,14 @@ def test_gyro_within_static_contrasts_are_white_and_bias_free():
     carry nothing of a constant bias, are unit white on white noise (their chi^2 near
     their count), and respond to a bias held over one piece as the response J says."""
     from calib_cli.methods.diagnose_gyro_wander import PIECE_S, SubMeans
-    from calib_cli.methods.fit_with import _accel_of
-    from calib_cli.methods.gyro import _Problem, gyro_model
+    from calib_cli.methods.fit_with import accel_of
+    from calib_cli.methods.gyro import GyroProblem, gyro_model
 
     case = "gyro: gyro scale_asymmetry"
     truth = C.hidden_effect_truth(case, np.random.default_rng(5))
     rec = simulate(C.plan_of("gyro"), truth, seed=6)
-    acc = _accel_of(rec)
-    prob = _Problem(rec, acc)
+    acc = accel_of(rec)
+    prob = GyroProblem(rec, acc)
     sub = SubMeans(prob, rec)
     model = gyro_model(False)
     p = model.neutral_params()

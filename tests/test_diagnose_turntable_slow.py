@@ -39,7 +39,7 @@ def _truth(case: str, rng):
             ok = np.isfinite(sig) & (sig > 0)
             mag = rng.uniform(5.0, 10.0, size=sig.shape) * rng.choice([-1.0, 1.0], size=sig.shape)
             p[key] = np.where(ok, mag * np.where(ok, sig, 0.0), 0.0)
-        t = Truth(ImuModel(t.model.effects + (C._effect(method, name, sensor),),
+        t = Truth(ImuModel(t.model.effects + (C.effect_of(method, name, sensor),),
                            t.model.layout), p, t.noise)
     return t
 

@@ -205,7 +205,7 @@ def test_plan_layout_same_as_simulator():
     from pathlib import Path
 
     from calib_cli.io.plan import load_plan
-    from calib_cli.io.stream_import import plan_layout
+    from calib_cli.plan import plan_layout
     from calib_cli.sim import simulate
 
     root = Path(__file__).resolve().parents[1] / "sample_data"

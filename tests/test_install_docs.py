@@ -22,7 +22,7 @@ DOC_REF = re.compile(r"docs/[A-Za-z0-9_.-]+\.md")
 def _help_refs() -> set[str]:
     from calib_cli.cli import main
 
-    main._register()
+    main.register_all()
     refs = set()
 
     def walk(cmd, ctx):

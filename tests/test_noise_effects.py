@@ -59,7 +59,7 @@ def test_emulator_stream_is_simulate_bit_for_bit():
 
 def test_noise_terms_are_effects_and_never_calibration_params():
     from calib_cli.model.effects import CATALOGUE, STOCHASTIC, make_effect
-    from calib_cli.model.truth import _key_owner
+    from calib_cli.model.truth import key_owner
     from calib_cli.plan import plan_layout
 
     for name in ("white_noise", "bias_random_walk", "bias_instability"):
@@ -69,7 +69,7 @@ def test_noise_terms_are_effects_and_never_calibration_params():
     assert {e.name for e in model.effects} >= {"white_noise", "bias_random_walk",
                                                "bias_instability"}
     assert "accel_white_density" in params and "accel_white" not in truth.params
-    assert "accel_white" not in _key_owner(model.layout, {})  # the truth's [noise] table
+    assert "accel_white" not in key_owner(model.layout, {})  # the truth's [noise] table
 
 
 def test_random_params_is_the_truth_draw():

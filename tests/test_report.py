@@ -98,14 +98,16 @@ def test_unknown_method_gets_generic_report_and_registry_dispatch(sample, tmp_pa
     write_calibration(tmp_path / "m.h5", c)
     _report(tmp_path / "m.h5", "--out", tmp_path / "r")
     md = (tmp_path / "r" / "report.md").read_text()
-    assert "No method-specific section is registered for method 'mystery'" in md
+    # the generic section: built from params, sigma and units, with its figure
+    assert "## mystery fit" in md and "not registered" not in md
+    assert "![parameters]" in md
     assert "gyro_D[2,2]" in md
     # a method section registered by another module is used
     register("mystery")(lambda ctx: Section("Mystery section", text=["hello"]))
     try:
         _report(tmp_path / "m.h5", "--out", tmp_path / "r2")
         md = (tmp_path / "r2" / "report.md").read_text()
-        assert "## Mystery section" in md and "No method-specific" not in md
+        assert "## Mystery section" in md and "## mystery fit" not in md
     finally:
         SECTIONS.pop("mystery", None)
 

@@ -167,6 +167,26 @@ def thermal_files(tmp_path_factory):
     return d
 
 
+def test_thermal_in_the_batch_and_the_api(thermal_files):
+    """fit thermal is a method of the table like the others (issue 33): the batch step and
+    the API give the command line's calibration."""
+    import json
+
+    from calib_cli import api
+    from calib_cli.io.h5 import read_calibration, read_raw
+
+    d = thermal_files
+    (d / "pipe.toml").write_text('[[step]]\nstep = "fit"\nmethod = "thermal"\norder = 2\n')
+    r = _cli("batch", d / "pipe.toml", d / "raw.h5", "--out", d / "out", "--json")
+    out = d / "out" / json.loads(r.output)["inputs"][0]["outputs"]["calibration"]
+    cli, bat = read_calibration(d / "cal.h5"), read_calibration(out)
+    res = api.fit("thermal", read_raw(d / "raw.h5"), order=2)
+    assert sorted(cli.params) == sorted(bat.params) == sorted(res.params)
+    for k in cli.params:
+        assert np.allclose(cli.params[k], bat.params[k], rtol=1e-12, atol=0)
+        assert np.allclose(cli.params[k], res.params[k], rtol=1e-12, atol=0)
+
+
 def test_cli_fit_show_apply(thermal_files):
     d = thermal_files
     obj = json.loads(_cli("show", d / "cal.h5", "--json").stdout)

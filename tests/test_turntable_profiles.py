@@ -15,9 +15,15 @@ from calib_cli.sim.simulate import simulate
 from tests.turntable_profiles import normalized_errors, profile_plan_text, profile_record
 
 
+@pytest.mark.slow
+@pytest.mark.part("turntable")
 def test_trapezoid_reproducer_within_sigma():
     """The issue's reproducer: trapezoidal profile at 100 deg/s^2, 30-45 s holds, 3 x 600 s,
-    instantaneous samples; gyro_K was 24-26 sigma off (G_yy) before the fix."""
+    instantaneous samples; gyro_K was 24-26 sigma off (G_yy) before the fix. In `make
+    validate K=turntable` (issue 33: the same physics as the trapezoid-100 family of
+    test_turntable_profiles_slow.py, pooled over its seeds, and as the seed-12 regression
+    of test_turntable_gyro_scale.py that `make test` keeps; about a fifth of `make test`'s
+    CPU on its own)."""
     plan = parse_plan(profile_plan_text(11, "trapezoid-100", wobble_dps=0.0))
     rec = simulate(plan, None, 11)
     res = fit_turntable(rec, TurntableOptions())

@@ -23,6 +23,7 @@ NAMED_CRCS = {
     "crc-16/modbus": (16, 0x8005, 0xFFFF, True, True, 0x0000, 0x4B37),
     "crc-32": (32, 0x04C11DB7, 0xFFFFFFFF, True, True, 0xFFFFFFFF, 0xCBF43926),
     "crc-32c": (32, 0x1EDC6F41, 0xFFFFFFFF, True, True, 0xFFFFFFFF, 0xE3069283),
+    "crc-32/mpeg-2": (32, 0x04C11DB7, 0xFFFFFFFF, False, False, 0x00000000, 0x0376E6E7),
 }
 
 

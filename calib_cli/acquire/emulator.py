@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calib_cli.acquire.profile import ImuProfile, TableProfile
+from calib_cli.acquire.profile import TYPE_SIZE, ImuProfile, TableProfile
 from calib_cli.errors import InputError
 from calib_cli.model import kinematics as kn
 from calib_cli.model.earth import Site
@@ -39,7 +39,8 @@ from calib_cli.model.frames import attitude_to_rotation, rotation_to_attitude
 from calib_cli.model.truth import Truth, default_truth
 
 D2R = np.pi / 180.0
-NP_TYPES = {"u8": "u1", "i8": "i1", "u16": "u2", "i16": "i2", "u32": "u4", "i32": "i4",
+NP_TYPES = {"u8": "u1", "i8": "i1", "u16": "u2", "i16": "i2", "u24": "i4", "i24": "i4",
+            "u32": "u4", "i32": "i4",
             "u64": "u8", "i64": "i8", "f32": "f4", "f64": "f8"}
 FIFO_LIMIT = 1 << 20  # bytes the virtual device buffers before it drops frames
 STALL_S = 1.0  # no byte taken for this long: nobody listens, the queue is discarded
@@ -66,41 +67,74 @@ class Faults:
 
 
 class BinaryEncoder:
-    def __init__(self, prof: ImuProfile):
+    """Frames of one layout (``layout``: its index; datagrams of a STIM300 profile),
+    built as a byte matrix column by column with numpy (record fields, 24-bit
+    integers, tagged records with their constant headers)."""
+
+    def __init__(self, prof: ImuProfile, layout: int = 0):
         self.prof = prof
-        bo = "<" if prof.byte_order == "little" else ">"
-        self.dtype = np.dtype([(f.name, bo + NP_TYPES[f.type]) for f in prof.fields])
+        self.lay = lay = prof.layouts[layout]
         self.cs = prof.checksum
-        psize = self.dtype.itemsize
-        if prof.length_type:
-            n = psize + (self.cs.nbytes if prof.length_covers != "payload" else 0)
-            self.len_bytes = n.to_bytes(1 if prof.length_type == "u8" else 2, prof.byte_order)
+        self.bo = "<" if prof.byte_order == "little" else ">"
+        if lay.tagged is None:
+            self.parts = [(f, None) for f in lay.fields]
+        else:
+            tg = lay.tagged
+            self.parts = []
+            sizes = lay.tag_sizes()
+            for tag, size in sizes.items():
+                n = size + (tg.header_size if tg.length_includes_header else 0)
+                idb = tag.to_bytes(TYPE_SIZE[tg.id_type], tg.byte_order)
+                lnb = n.to_bytes(TYPE_SIZE[tg.length_type], tg.byte_order)
+                head = idb + lnb if tg.order == "id-length" else lnb + idb
+                self.parts.append((None, head))
+                flds = sorted((f for f in lay.fields if f.tag == tag), key=lambda f: f.offset)
+                pos = 0
+                for f in flds:
+                    if f.offset > pos:
+                        self.parts.append((None, bytes(f.offset - pos)))
+                    self.parts.append((f, None))
+                    pos = f.offset + TYPE_SIZE[f.type]
+                if size > pos:
+                    self.parts.append((None, bytes(size - pos)))
+        psize = lay.payload_size
+        if lay.length_type:
+            n = psize + (self.cs.nbytes if lay.length_covers != "payload" else 0)
+            self.len_bytes = n.to_bytes(TYPE_SIZE[lay.length_type], lay.length_order)
         else:
             self.len_bytes = b""
-        self.payload_offset = len(prof.sync) + len(self.len_bytes)
-        self.psize = psize
+        self.payload_offset = len(lay.sync) + len(self.len_bytes)
+        self.cs_start = self.cs.start(len(lay.sync), self.payload_offset)
+
+    def _column(self, f, values, k: int) -> np.ndarray:
+        x = _to_type(values.get(f.name, np.zeros(k)), f.type)
+        size = TYPE_SIZE[f.type]
+        if size == 3:  # 24-bit two's complement: the low three bytes of an int32
+            b = x.astype(self.bo + "i4").view(np.uint8).reshape(k, 4)
+            return b[:, :3] if self.bo == "<" else b[:, 1:]
+        return np.ascontiguousarray(x.astype(self.bo + NP_TYPES[f.type])).view(
+            np.uint8).reshape(k, size)
 
     def encode(self, values: dict) -> list[bytes]:
         """values: field name -> raw numbers (k,). Returns k whole frames."""
         k = len(next(iter(values.values())))
-        rec = np.zeros(k, dtype=self.dtype)
-        for f in self.prof.fields:
-            rec[f.name] = _to_type(values.get(f.name, np.zeros(k)), f.type)
-        blob = rec.tobytes()
+        cols = [np.frombuffer(self.lay.sync + self.len_bytes, np.uint8)[None, :].repeat(k, 0)]
+        for f, const in self.parts:
+            cols.append(np.frombuffer(const, np.uint8)[None, :].repeat(k, 0) if f is None
+                        else self._column(f, values, k))
+        blob = np.concatenate(cols, axis=1) if k else np.empty((0, 0), np.uint8)
         out = []
-        head = self.prof.sync + self.len_bytes
+        cs, a, end = self.cs, self.cs_start, self.lay.end
         for i in range(k):
-            frame = head + blob[i * self.psize:(i + 1) * self.psize]
-            if self.cs.nbytes:
-                cov = {"all": frame, "after_sync": frame[len(self.prof.sync):],
-                       "payload": frame[self.payload_offset:]}[self.cs.covers]
-                frame += self.cs.compute(cov).to_bytes(self.cs.nbytes, self.cs.byte_order)
-            out.append(frame)
+            frame = blob[i].tobytes()
+            if cs.nbytes:
+                frame += cs.compute(frame[a:]).to_bytes(cs.nbytes, cs.byte_order)
+            out.append(frame + end)
         return out
 
     def payload_span(self, frame: bytes) -> tuple[int, int]:
         """[a, b): the payload and checksum bytes of a frame."""
-        return self.payload_offset, len(frame)
+        return self.payload_offset, len(frame) - len(self.lay.end)
 
 
 class AsciiEncoder:
@@ -138,12 +172,18 @@ class CanEncoder:
     def __init__(self, prof: ImuProfile):
         self.prof = prof
 
+    def _dbc(self, m, values: dict, i: int) -> bytes:
+        return _dbc_encode(self.prof, m, values, i)
+
     def encode(self, values: dict) -> list[list[tuple[int, bool, bytes]]]:
         k = len(next(iter(values.values())))
         out = []
         for i in range(k):
             msgs = []
             for m in self.prof.messages:
+                if m.dbc_name is not None:
+                    msgs.append((m.can_id, m.extended, self._dbc(m, values, i)))
+                    continue
                 data = bytearray(m.length)
                 for f in m.fields:
                     v = _to_type(np.asarray([values[f.name][i]]), f.type)[0]
@@ -163,16 +203,42 @@ class CanEncoder:
         return out
 
 
+def _dbc_encode(prof, m, values: dict, i: int) -> bytes:
+    """A DBC message by cantools: the profile's fields in the DBC's units, every
+    other signal at zero (clipped to its range)."""
+    msg = prof.dbc.get_message_by_frame_id(m.can_id)
+    sig = {}
+    for s in msg.signals:
+        lo = s.minimum if s.minimum is not None else 0.0
+        hi = s.maximum if s.maximum is not None else 0.0
+        sig[s.name] = min(max(0.0, lo), hi) if hi >= lo else 0.0
+    for f in m.fields:
+        s = msg.get_signal_by_name(f.literal)
+        v = float(values[f.name][i])
+        step = s.scale or 1.0  # whole raw steps, within the signal's range
+        v = s.offset + round((v - s.offset) / step) * step
+        lo = s.minimum if s.minimum is not None else -np.inf
+        hi = s.maximum if s.maximum is not None else np.inf
+        sig[f.literal] = min(max(v, lo), hi)
+    return msg.encode(sig, scaling=True, strict=False)
+
+
 def _to_type(x, typ: str) -> np.ndarray:
     x = np.asarray(x, dtype=float)
     if typ.startswith("f"):
         return x
-    info = np.iinfo(NP_TYPES[typ])
-    return np.clip(np.rint(x), info.min, info.max).astype(np.int64)
+    if typ in ("u24", "i24"):
+        lo, hi = (0, 2**24 - 1) if typ == "u24" else (-2**23, 2**23 - 1)
+    else:
+        info = np.iinfo(NP_TYPES[typ])
+        lo, hi = info.min, info.max
+    return np.clip(np.rint(x), lo, hi).astype(np.int64)
 
 
-def make_encoder(prof: ImuProfile):
-    return {"binary": BinaryEncoder, "ascii": AsciiEncoder, "can": CanEncoder}[prof.format](prof)
+def make_encoder(prof: ImuProfile, layout: int = 0):
+    if prof.format == "binary":
+        return BinaryEncoder(prof, layout)
+    return {"ascii": AsciiEncoder, "can": CanEncoder}[prof.format](prof)
 
 
 # ---------------------------------------------------------------------------
@@ -537,7 +603,8 @@ class Emulator:
                  faults: Faults | None = None, seed: int = 0, layout: Layout | None = None,
                  attitude_deg=(0.0, 0.0, 0.0), temp_c: float = 25.0, link_dir: str | None = None,
                  can_interface: str = "virtual", can_channel: str | None = None,
-                 chunk_s: float = 0.005, chamber=None, chamber_tau: float = 300.0):
+                 chunk_s: float = 0.005, chamber=None, chamber_tau: float = 300.0,
+                 datagram: int = 0):
         site = site or Site()
         layout = layout or Layout()
         self.prof, self.site = prof, site
@@ -550,7 +617,13 @@ class Emulator:
         self.frng = np.random.default_rng(self.faults.seed)
         self.temp_c = temp_c
         self.chunk_s = chunk_s
-        self.encoder = make_encoder(prof)
+        self.encoder = make_encoder(prof, datagram)
+        self.responder = None
+        if prof.format != "can" and (prof.configure or prof.start_steps or prof.stop_steps
+                                     or prof.identify):
+            from calib_cli.acquire.device import Responder
+
+            self.responder = Responder(prof, self.fs)
         self.unit = VirtualUnit(site, self.fs, np.asarray(attitude_deg, float) * D2R,
                                 table.speed_dps if table else 90.0)
         self.table = VirtualTable(table, self.unit) if table and table.kind == "serial" else None
@@ -628,12 +701,17 @@ class Emulator:
         if "temp" in names:
             vals["temp"] = temp
         fields = {f.name: f for f in p.all_fields()}
-        raw = {c: vals[c] / fields[c].factor for c in names}
+        raw = {c: (vals[c] / fields[c].unit_factor - fields[c].add) / fields[c].scale
+               for c in names}
         ks = k0 + np.arange(n)
         if p.seq_field:
-            raw[p.seq_field] = ks % (1 << p.seq_bits)
+            raw[p.seq_field] = np.rint(ks * (p.seq_per_s / self.fs if p.seq_per_s else 1.0)) \
+                % p.seq_modulus
         if p.time_field:
-            raw[p.time_field] = np.rint(ks / self.fs / p.time_scale) % (1 << p.time_bits)
+            t = ks / self.fs / p.time_scale
+            if not fields[p.time_field].type.startswith("f"):
+                t = np.rint(t)
+            raw[p.time_field] = t % p.time_modulus
         return raw
 
     def _corrupt(self, frame: bytes) -> bytes:
@@ -723,7 +801,17 @@ class Emulator:
                     self.imu_port.close()
                 elif self._disc and self.imu_port.master is None and self.k >= self._disc[1]:
                     self.imu_port.open()
+            if self.responder is not None and self.imu_port is not None:
+                data = self.imu_port.read()
+                if data:  # the configuration exchange (acquire/device.py)
+                    rep = self.responder.feed(data)
+                    if rep:
+                        self.imu_port.write(rep)
             due = int(now * self.fs) - self.k
+            if due > 0 and self.responder is not None and not self.responder.streaming:
+                self._values(self.k, due)  # stopped (configuration mode): nothing is sent
+                self.k += due
+                due = 0
             if due <= 0:
                 if self.imu_port is not None:
                     self.imu_port.pump()

@@ -103,6 +103,7 @@ class Session:
         # climatic chamber (issue 21, acquire/chamber.py); the CLI sets them
         self.chamber = None
         self.chamber_profile = None
+        self.device_info: dict = {}  # the configuration exchange (acquire/device.py)
 
     # -- reader thread -------------------------------------------------------
     def _read_loop(self) -> None:
@@ -309,8 +310,39 @@ class Session:
         self.state = "done"
 
     # -- the plan ----------------------------------------------------------
+    def configure_device(self) -> None:
+        """The profile's configuration and go-to-measurement steps
+        (acquire/device.py); their log and read-back go to ``device_info``."""
+        prof = self.prof
+        if prof.format == "can" or not (prof.configure or prof.start_steps):
+            return
+        from calib_cli.acquire.device import run_steps
+
+        log: list[str] = []
+        readback = run_steps(self.transport, prof, prof.configure, prof.rate_hz, "configure",
+                             log)
+        readback.update(run_steps(self.transport, prof, prof.start_steps, prof.rate_hz,
+                                  "start", log))
+        self.device_info = {"rate_hz": prof.rate_hz, "exchange": log, "readback": readback}
+
+    def stop_device(self) -> None:
+        """The profile's stop steps on exit (best effort: a unit that does not
+        answer is left as it is, with a warning)."""
+        prof = self.prof
+        if prof.format == "can" or not prof.stop_steps or self.transport is None:
+            return
+        from calib_cli.acquire.device import run_steps
+        from calib_cli.errors import warn
+
+        log = self.device_info.setdefault("exchange", []) if self.device_info else []
+        try:
+            run_steps(self.transport, prof, prof.stop_steps, prof.rate_hz, "stop", log)
+        except Exception as exc:  # noqa: BLE001 - closing must go on
+            warn(f"the unit did not acknowledge the stop: {exc}")
+
     def start(self) -> None:
         self.transport.open()
+        self.configure_device()
         self._t_open = time.monotonic()
         self._reader = threading.Thread(target=self._read_loop, daemon=True)
         self._reader.start()
@@ -424,6 +456,8 @@ class Session:
             self.pump(0.0)
         except InputError:
             pass
+        if self._t_open is not None:
+            self.stop_device()
         self.transport.close()
         counts = self.counts()
         counts["plan_finished"] = int(self.finished)
@@ -436,6 +470,12 @@ def journal_to_recording(path: str) -> Recording:
     header, rows, counters, complete = read_journal(path)
     # rows a damaged journal cannot vouch for: non-finite values, time going back
     n0 = len(rows)
+    chans = header["channels"]
+    if "temp" in chans and len(rows):  # a unit that never sent its temperature
+        k = 3 + list(chans).index("temp")
+        if not np.isfinite(rows[:, k]).any():
+            rows = np.delete(rows, k, axis=1)
+            chans = [c for c in chans if c != "temp"]
     rows = rows[np.all(np.isfinite(rows), axis=1)]
     if len(rows):
         keep = np.ones(len(rows), bool)
@@ -445,7 +485,6 @@ def journal_to_recording(path: str) -> Recording:
     if not len(rows):
         raise InputError("the journal holds no samples", str(path))
     plan = parse_plan(header.get("plan_text", ""), header.get("plan_path", str(path)))
-    chans = header["channels"]
     n = sum(1 for c in chans if c != "temp") // 2
     data = rows[:, 3:]
     seg = rows[:, 2].astype(int)

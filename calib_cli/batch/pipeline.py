@@ -69,7 +69,7 @@ class Pipeline:
 
     def sha256(self) -> str:
         """Hash of what the pipeline does (steps and options) and the tool version."""
-        return _digest({"tool_version": __version__,
+        return digest({"tool_version": __version__,
                         "steps": [s.spec() for s in self.steps]})
 
     def to_dict(self) -> dict:
@@ -86,7 +86,7 @@ class Pipeline:
                    d["base_dir"], d["path"])
 
 
-def _digest(obj) -> str:
+def digest(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":"))
                           .encode()).hexdigest()
 
@@ -154,6 +154,8 @@ def parse_pipeline(text: str, path: str = "<pipeline>") -> Pipeline:
                                  f"{', '.join(bad)}; accepted: "
                                  f"{', '.join(d.options) or 'none'}", path)
         for fo in d.file_options:
+            if fo not in opts and fo in d.optional_files:
+                continue
             if fo not in opts or not isinstance(opts[fo], str):
                 raise InputError(f"{where} ({d.label}): needs {fo} = \"FILE\"", path)
         out = e.get("output") or (f"cal-{method}" if name == "fit" else

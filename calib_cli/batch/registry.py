@@ -9,9 +9,11 @@ A step is a StepDef: the artifacts it needs, the artifact it makes, the file
 suffix of its output, the options it accepts, and a function run(StepRun)
 that writes ``run.out``. Functions are named by "module:attribute" strings
 and imported only when a step runs, so registering a method costs nothing
-and never creates import cycles. Fit methods register with one line:
+and never creates import cycles. Every method of the method table
+(methods/registry.py) is a fit step by itself, its keys the method's options; a fit
+from outside the table registers with one line:
 
-    register_fit("gyro", "calib_cli.methods.gyro:fit_gyro", options=("accel",))
+    register_fit("mine", "my_package.fits:fit_mine", options=("accel",))
 
 where the function is ``fit(rec: Recording, **options) -> CalibrationResult``.
 """
@@ -23,6 +25,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from calib_cli.errors import InputError
+from calib_cli.methods.registry import FITS as METHOD_TABLE
 
 
 @dataclass
@@ -48,6 +51,7 @@ class StepDef:
     target: str | Callable  # "module:function" or a callable taking StepRun
     options: tuple | None = None  # accepted option names (None: any)
     file_options: tuple = ()  # options naming files: their content is hashed
+    optional_files: tuple = ()  # those of file_options a step may leave out
     method: str | None = None  # fit method name, for "fit" steps
     applies_to_raw_input: bool = True  # False: skipped when the input already is a raw.h5
 
@@ -74,7 +78,7 @@ def register_step(name: str, target, *, needs=(), makes: str, suffix: str = ".h5
                           applies_to_raw_input=applies_to_raw_input)
 
 
-def register_fit(method: str, target, *, options=(), needs=("raw",)) -> None:
+def register_fit(method: str, target, *, options=(), needs=("raw",), file_options=()) -> None:
     """Register a fit method ``[[step]] step = "fit", method = METHOD``.
 
     ``target`` is "module:function" with ``function(rec, **options) ->
@@ -83,13 +87,12 @@ def register_fit(method: str, target, *, options=(), needs=("raw",)) -> None:
     argument ``<artifact>_path``.
     """
     FITS[method] = StepDef("fit", tuple(needs), "calibration", ".h5", target,
-                           tuple(options), method=method)
+                           tuple(options), tuple(file_options), tuple(file_options),
+                           method=method)
 
 
 def lookup(name: str, method: str | None, where: str, path: str) -> StepDef:
     """The StepDef for a pipeline entry; unknown names are an InputError."""
-    from calib_cli.batch import steps as _builtin  # noqa: F401  (registers the built-ins)
-
     if name == "fit":
         if not method:
             raise InputError(f"{where}: a fit step needs method = \"...\" (known: "
@@ -102,3 +105,32 @@ def lookup(name: str, method: str | None, where: str, path: str) -> StepDef:
         raise InputError(f"{where}: unknown step {name!r}; known: "
                          f"{', '.join(sorted([*STEPS, 'fit']))}", path)
     return STEPS[name]
+
+
+# the built-in steps (batch/steps.py, imported when a step runs)
+register_step("import", "calib_cli.batch.steps:import_step", needs=("source",), makes="raw",
+              options=("plan", "window_s", "threshold", "min_static_s"), file_options=("plan",),
+              applies_to_raw_input=False)
+register_step("apply", "calib_cli.batch.steps:apply_step", needs=("calibration", "raw"),
+              makes="corrected")
+register_step("export", "calib_cli.batch.steps:export_step", needs=("calibration",),
+              makes="export", suffix=".json", options=("covariance",))
+
+# the batch keys of --with (`calib fit METHOD --with E --base B --noise-floor N`)
+WITH_KEYS = ("with", "with_base", "with_noise_floor")
+
+
+def _register_fits() -> None:
+    """A fit step per method of the method table (methods/registry.py), its keys the
+    method's options, and "auto" (the method of the recording's plan kind)."""
+    names = set()
+    for name, m in METHOD_TABLE.items():
+        register_fit(name, "calib_cli.batch.steps:registry_fit",
+                     options=m.option_names() + WITH_KEYS, file_options=m.file_option_names())
+        names |= set(m.option_names())
+    # any option name is passed on: the chosen fit checks it
+    register_fit("auto", "calib_cli.batch.steps:fit_auto",
+                 options=tuple(sorted(names)) + WITH_KEYS)
+
+
+_register_fits()

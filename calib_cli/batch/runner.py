@@ -27,7 +27,7 @@ from pathlib import Path
 
 from calib_cli import __version__
 from calib_cli.batch.paths import inside
-from calib_cli.batch.pipeline import Pipeline, _digest, fill_placeholders
+from calib_cli.batch.pipeline import Pipeline, digest, fill_placeholders
 from calib_cli.batch.registry import StepRun
 from calib_cli.errors import CalibError, InputError, OutputError
 
@@ -139,6 +139,8 @@ def run_chain(task: dict) -> dict:
                 opts = dict(s.options)
                 files = {}
                 for fo in d.file_options:
+                    if fo not in opts:  # an optional file not given
+                        continue
                     v = fill_placeholders(opts[fo], src, f"step {s.index + 1}", pipe.path)
                     v = str(Path(pipe.base_dir, v)) if not Path(v).is_absolute() else v
                     if not Path(v).is_file():
@@ -146,7 +148,7 @@ def run_chain(task: dict) -> dict:
                     opts[fo] = v
                     files[fo] = sha256_file(v)
                 inputs = {n: art[n] for n in d.needs}
-                fp = _digest({"tool_version": __version__, "step": s.spec(), "files": files,
+                fp = digest({"tool_version": __version__, "step": s.spec(), "files": files,
                               "inputs": {n: sha256_file(p) for n, p in inputs.items()}})
                 out = inside(out_dir, key, s.output_name)
                 rel = os.path.relpath(out, out_dir)
@@ -170,7 +172,7 @@ def run_chain(task: dict) -> dict:
                     if d.name == "fit":
                         from calib_cli.batch.steps import fit_step
 
-                        fit_step(run, d.function())
+                        fit_step(run, d)
                     else:
                         d.function()(run)
                     if d.suffix == ".h5":

@@ -32,6 +32,7 @@ def apply_cmd(cal, raw, out, temp_c=None, extrapolate=False, as_json=False):
     range by more than 5 degC unless --extrapolate (docs/thermal.md)."""
     from calib_cli.cli.progress import bar
 
+    _check_order(cal, raw)
     with bar("apply") as cb:
         n, chans = apply_file(cal, raw, out, temp_c, extrapolate, progress=cb)
     info(f"corrected {n} samples ({', '.join(chans)}) -> {out}")
@@ -47,3 +48,21 @@ def corrected_norms(path):
     rec = read_raw(path, kinds=("corrected",))
     return {s.label: float(np.linalg.norm(rec.accel[s.slice].mean(0)))
             for s in rec.static_segments()}
+
+
+def _check_order(cal: str, raw: str) -> None:
+    """CAL first, then RAW: say so when the two are the other way round."""
+    from pathlib import Path
+
+    from calib_cli.errors import InputError
+    from calib_cli.io.h5 import file_kind
+
+    def kind(p):
+        try:
+            return file_kind(p) if Path(p).is_file() else None
+        except Exception:  # noqa: BLE001 - not a calib file: apply's own check says so
+            return None
+
+    if kind(cal) in ("raw", "corrected") and kind(raw) in ("calibration", "diagnosis"):
+        raise InputError(f"a recording where the calibration belongs: the calibration comes "
+                         f"first: calib apply {raw} {cal} --out CORRECTED.h5", cal)

@@ -59,8 +59,8 @@ def _summary_line(s: dict) -> str:
 
 def _check_tolerances(out: str, results: list[dict], tols) -> dict:
     """Pass/fail per calibration made (or confirmed) by this run, and per unit."""
-    from calib_cli.batch.history import scan
-    from calib_cli.batch.tolerance import check
+    from calib_cli.io.history import scan
+    from calib_cli.io.tolerance import check
 
     entries = scan(out)
     by_rel = {e.rel: e for e in entries}
@@ -74,13 +74,17 @@ def _check_tolerances(out: str, results: list[dict], tols) -> dict:
             if st["step"].startswith("fit") and e is not None:
                 c = check(e, entries, tols)
                 checks.append({"file": e.rel, **c})
-        r["tolerance"] = ("fail" if any(c["status"] == "fail" for c in checks)
-                          else "pass" if checks else "n/a")
+        r["tolerance"] = _worst([c["status"] for c in checks]) if checks else "n/a"
         r["tolerance_checks"] = checks
         if checks:
             u = r.get("serial") or "(no serial)"
-            units[u] = "fail" if r["tolerance"] == "fail" or units.get(u) == "fail" else "pass"
+            units[u] = _worst([r["tolerance"], units.get(u, "pass")])
     return dict(sorted(units.items()))
+
+
+def _worst(statuses) -> str:
+    """fail over incomplete (a rule not evaluated) over pass."""
+    return next((s for s in ("fail", "incomplete") if s in statuses), "pass")
 
 
 def _render(results, summary, units, tty: bool) -> None:
@@ -113,6 +117,9 @@ def _render(results, summary, units, tty: bool) -> None:
             for line in c["failures"]:
                 con.print(f"calib: tolerance: {c['file']}: {line}", markup=False,
                           soft_wrap=True)
+            for line in c.get("not_evaluated", []):
+                con.print(f"calib: tolerance: {c['file']}: not evaluated: {line}",
+                          markup=False, soft_wrap=True)
     if has_tol and units:
         con.print("units: " + ", ".join(f"{u} {v}" for u, v in units.items()), markup=False)
     con.print(_summary_line(summary), markup=False, soft_wrap=True)
@@ -141,8 +148,8 @@ def batch_cmd(pipeline, inputs, out, workers, force, as_json, log_path, tol_path
     from calib_cli.batch.paths import discover, vanished
     from calib_cli.batch.pipeline import load_pipeline
     from calib_cli.batch.runner import output_lock, run_tasks
-    from calib_cli.batch.tolerance import load_tolerances
     from calib_cli.io.outpath import drop_if_empty
+    from calib_cli.io.tolerance import load_tolerances
 
     pipe = load_pipeline(pipeline)
     tols = load_tolerances(tol_path) if tol_path else None

@@ -12,6 +12,9 @@ from rich.table import Table
 from calib_cli.cli.common import Ctx, info, out_console, print_json, to_jsonable
 from calib_cli.cli.main import cli
 from calib_cli.io.h5 import read_raw
+from calib_cli.methods.registry import diagnosable, method_of_plan_kind
+
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
 
 
 def _render(j: dict) -> None:
@@ -42,8 +45,8 @@ def _render(j: dict) -> None:
 
 @cli.command("diagnose")
 @click.argument("raw", type=click.Path(dir_okay=False))
-@click.option("--method", required=True,
-              type=click.Choice(["accel", "gyro", "align", "turntable", "rimu"]))
+@click.option("--method", required=True, type=click.Choice(diagnosable()),
+              help="The method whose base model is diagnosed (its fit's own model).")
 @click.option("--out", required=True, type=click.Path(dir_okay=False))
 @click.option("--base", type=click.Choice(["full", "diagonal"]), default="full",
               show_default=True, help="diagonal: start from diagonal scale factors "
@@ -63,7 +66,8 @@ def _render(j: dict) -> None:
 def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir, cal_out):
     """Find the missing effect, name it, add it and show the gap shrink."""
     from calib_cli.io.diag_h5 import write_diagnosis
-    from calib_cli.methods.diagnose import diagnose
+    from calib_cli.methods.registry import FITS
+    from calib_cli.methods.registry import diagnose as run_diagnose
 
     if not 0 < alpha < 1:
         raise click.BadParameter("--alpha must be in (0, 1)")
@@ -77,21 +81,25 @@ def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir, cal_
     if method != "gyro":  # static positions that do not see gravity: exit 3 (issue 37)
         __import__("calib_cli.methods.segstats").methods.segstats.check_gravity_seen(rec, raw)
     from calib_cli.cli.progress import bar
+    from calib_cli.errors import CalibError
 
+    own = FITS[method].diagnose != "engine"  # the gyro fit's own equations, not bins
     with bar("diagnose"):
-        if method == "gyro":
-            from calib_cli.methods.diagnose_gyro import diagnose_gyro
-
-            d = diagnose_gyro(rec, base=base, alpha=alpha)
-            if noise != "auto":
-                info("--noise does not apply to --method gyro (the gyro fit's own noise "
-                     "estimate)")
-        else:
-            d = diagnose(rec, method, base=base, alpha=alpha, noise=noise)
+        try:
+            d = run_diagnose(method, rec, base=base, alpha=alpha, noise=noise)
+        except CalibError as exc:  # the core does not know the file: name it, and the
+            exc.path = exc.path or raw  # method the recording's plan is for
+            right = method_of_plan_kind(rec.plan_kind)
+            if right and right != method and f"--method {right}" not in exc.message:
+                exc.message += f" (a {rec.plan_kind} plan: --method {right})"
+            raise
+    if own and noise != "auto":
+        info(f"--noise does not apply to --method {method} (the {method} fit's own noise "
+             "estimate)")
     j = to_jsonable(d.to_json())
     j["fit_command"] = d.fit_command(str(raw), str(cal_out or "CAL.h5"))
     cal = d.calibration(rec)
-    if method == "gyro":
+    if own:
         residuals = {("initial" if i == 0 else f"step{i}"):
                      {k: np.asarray(v, float).reshape(-1, 1) for k, v in r.residuals.items()}
                      for i, r in enumerate(d.results)}
@@ -114,7 +122,7 @@ def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir, cal_
         from calib_cli.report.diagnose_report import write_gyro_report, write_report
 
         with atomic_dir(report_dir) as tmp:
-            (write_gyro_report if method == "gyro" else write_report)(d, tmp, source=str(raw))
+            (write_gyro_report if own else write_report)(d, tmp, source=str(raw))
         info(f"report -> {report_dir}")
     if as_json:
         print_json(j)

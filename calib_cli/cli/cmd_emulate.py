@@ -59,10 +59,13 @@ COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.p
               help="The virtual chamber's ramp-rate limit, degC/min (default: the profile's).")
 @click.option("--temp-start", default=25.0, show_default=True, type=float,
               help="Temperature of the unit (and chamber) at the start, degC.")
+@click.option("--datagram", metavar="ID",
+              help="Profiles with [[datagram]] entries: the identifier (hex, e.g. A5) of the "
+              "datagram to send (default: the first).")
 def emulate_cmd(imu, table, truth_path, plan_path, rate, seed, duration, attitude_deg, speed_dps,
                 corrupt, corrupt_where, drop, garbage, disconnect_at, disconnect_for, fault_seed,
                 link_dir, can_interface, can_channel, truth_out, chamber, chamber_tau,
-                chamber_ramp_dpm, temp_start):
+                chamber_ramp_dpm, temp_start, datagram):
     """Emulate an IMU (and a turntable, a climatic chamber) on pseudo-terminals or a
     virtual CAN bus.
 
@@ -119,12 +122,19 @@ def emulate_cmd(imu, table, truth_path, plan_path, rate, seed, duration, attitud
             from calib_cli.sim.thermal_unit import thermal_truth
 
             truth = thermal_truth(np.random.default_rng(seed))
+    dg = 0
+    if datagram is not None:
+        ids = [lay.name for lay in prof.layouts] if prof.format == "binary" else []
+        if datagram.upper() not in ids or len(ids) < 2:
+            raise click.UsageError(f"--datagram: profile {prof.name!r} has "
+                                   f"{'datagrams ' + ', '.join(ids) if len(ids) > 1 else 'no datagrams'}")
+        dg = ids.index(datagram.upper())
     faults = Faults(corrupt=corrupt, corrupt_where=corrupt_where, drop=drop, garbage=garbage,
                     disconnect_at=disconnect_at, disconnect_for=disconnect_for, seed=fault_seed)
     em = Emulator(prof, tprof, truth=truth, site=site, rate=rate, faults=faults, seed=seed,
                   layout=layout, attitude_deg=attitude_deg, link_dir=link_dir,
                   can_interface=can_interface, can_channel=can_channel, chamber=cprof,
-                  chamber_tau=chamber_tau, temp_c=temp_start)
+                  chamber_tau=chamber_tau, temp_c=temp_start, datagram=dg)
     if truth_out:
         with open(truth_out, "w") as fh:
             json.dump(to_jsonable({k: np.asarray(v) for k, v in em.truth.params.items()}), fh)
@@ -144,6 +154,9 @@ def emulate_cmd(imu, table, truth_path, plan_path, rate, seed, duration, attitud
     summary = {"frames": inj.frames, "samples": inj.samples, "corrupted": inj.corrupted,
                "dropped": inj.dropped, "garbage_bursts": inj.garbage_bursts,
                "disconnect_frames": inj.disconnect_frames, "overflow": inj.overflow}
+    if em.responder is not None:  # the configuration exchange (acquire/device.py)
+        summary["commands"] = len(em.responder.log)
+        summary["rate_requests_hz"] = sorted(set(em.responder.rate_requests))
     sys.stdout.write(json.dumps(summary) + "\n")
     sys.stdout.flush()
     info("emulator stopped: " + ", ".join(f"{k} {v}" for k, v in summary.items()))

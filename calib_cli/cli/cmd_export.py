@@ -39,13 +39,23 @@ class PrefixError(click.ClickException):
 @click.option("--raw", "raw_path", type=click.Path(dir_okay=False),
               help="kalibr without --allan: noise densities from this raw file's static noise.")
 @click.option("--rostopic", default="/imu0", show_default=True, help="kalibr: the IMU topic.")
-@click.option("--instance", default=0, show_default=True, type=int,
-              help="px4/ardupilot: IMU instance the parameters are for.")
+@click.option("--instance", type=int,
+              help="px4/ardupilot: the IMU instance the parameters are for (PX4 CAL slot 0-3; "
+                   "ArduPilot 0-4 = IMUs 1-5); default: the one in force in the log, else 0.")
+@click.option("--residual", is_flag=True,
+              help="px4/ardupilot: write the fit of already corrected data as it is (a residual "
+                   "on top of the parameters in force, labelled so), not composed with them.")
+@click.option("--in-force", "in_force_path", type=click.Path(dir_okay=False),
+              help="px4/ardupilot: the parameters in force when the data was logged (a "
+                   "QGroundControl .params or Mission Planner .parm file), instead of the log's.")
 @json_output_option
 def export_cmd(cal, fmt, out, single, prefix, allan_path, raw_path, rostopic, instance,
-               as_json=False):
+               residual, in_force_path, as_json=False):
     """Export the correction (K^-1, biases, D) for firmware and other tools.
 
+    px4/ardupilot: a fit on data the firmware had already corrected (imported from
+    sensor_combined, IMU or ACC) is composed with the parameters in force into an
+    absolute calibration, or exits 4 saying why it cannot be (docs/export.md).
     With --json (needs --out), the output object is printed instead of the export."""
     if as_json and not out:
         raise click.UsageError("--json needs --out (without it the export itself goes to stdout)")
@@ -60,9 +70,23 @@ def export_cmd(cal, fmt, out, single, prefix, allan_path, raw_path, rostopic, in
     prov = provenance(cal)
     prov["sha256"] = sha256_file(cal)
     source = Path(cal).name
+    meta: dict = {}
+    if fmt not in ("px4", "ardupilot") and (residual or in_force_path or instance is not None):
+        raise click.UsageError("--instance, --residual and --in-force are for --format px4 "
+                               "and ardupilot")
     if fmt in ("kalibr", "px4", "ardupilot"):
         from calib_cli.io.export_autopilot import export_for_tool
+        from calib_cli.io.h5 import read_source
 
+        in_force = None
+        if in_force_path:
+            from calib_cli.io.fc_params import read_params_file
+
+            fw, in_force = read_params_file(in_force_path)
+            if fw is not None and fw != fmt:
+                from calib_cli.errors import InputError
+
+                raise InputError(f"holds {fw} parameters, not {fmt} ones", in_force_path)
         allan = raw = None
         if allan_path:
             from calib_cli.io.allan_h5 import read_allan
@@ -72,8 +96,16 @@ def export_cmd(cal, fmt, out, single, prefix, allan_path, raw_path, rostopic, in
             from calib_cli.io.h5 import read_raw
 
             raw = read_raw(raw_path)
-        text, warnings = export_for_tool(c, fmt, source, cal, allan, raw, rostopic, instance)
+        text, warnings, meta = export_for_tool(c, fmt, source, cal, allan, raw, rostopic,
+                                               instance, data_source=read_source(cal),
+                                               residual=residual, in_force=in_force)
         warnings = list(warnings)
+        if meta.get("mode") == "composed":
+            info(f"composed with the {fmt} parameters in force "
+                 f"({len(meta['in_force'])} read) into an absolute calibration")
+        elif meta.get("mode") == "residual":
+            info("warning: --residual: the values are a residual on top of the parameters "
+                 "in force, not an absolute calibration")
         for w in warnings:
             info(f"warning: {w}")
     else:
@@ -88,7 +120,7 @@ def export_cmd(cal, fmt, out, single, prefix, allan_path, raw_path, rostopic, in
             fh.write(text)
         info(f"-> {out}")
         if as_json:
-            output_json(out, fmt, warnings)
+            output_json(out, fmt, warnings, {"export": meta} if meta else None)
     else:
         sys.stdout.write(text)
     return 0

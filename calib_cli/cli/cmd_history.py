@@ -8,9 +8,9 @@ from rich.table import Table
 
 from calib_cli.cli.common import out_console, print_json
 from calib_cli.cli.main import cli
-from calib_cli.cli.render import display_of
 from calib_cli.errors import InputError
 from calib_cli.io.escape import mpl_text, term_text
+from calib_cli.model.display import display_of, sigma_entries
 
 COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
 
@@ -37,8 +37,8 @@ def _plot(entries, keys, path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from calib_cli.batch.history import element_names
     from calib_cli.io.h5 import atomic_path
+    from calib_cli.io.history import element_names
     from calib_cli.report.figures import use_palette
 
     use_palette()  # the Okabe-Ito colour-blind-safe cycle of every calib figure
@@ -67,15 +67,26 @@ def _plot(entries, keys, path) -> None:
         ax.legend(fontsize=6, ncol=3, loc="best")
     # the date of each calibration (its record's, else the fit's; UTC); the serial comes
     # from the archive: shown through the escaper
-    axes[-1, 0].set_xticks(x, [mpl_text(_when(e)) for e in entries], rotation=60, ha="right",
-                           fontsize=6)
-    axes[-1, 0].set_xlabel("calibration, date recorded (UTC), oldest first")
+    # numbered: two calibrations of one minute stay apart
+    axes[-1, 0].set_xticks(x, [f"#{i + 1} " + mpl_text(_when(e)) for i, e in enumerate(entries)],
+                           rotation=60, ha="right", fontsize=6)
+    recorded = sum(bool(e.recorded_utc) for e in entries)
+    what = ("date recorded" if recorded == len(entries) else
+            "date fitted (the records carry no date)" if not recorded else
+            "date recorded, else fitted")
+    axes[-1, 0].set_xlabel(f"calibration #, {what} (UTC), oldest first")
     fig.suptitle(f"unit {mpl_text(entries[0].serial)}: change since its first calibration "
                  "(1 sigma bars)")
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)
     plt.close(fig)
+
+
+def _cell(e) -> str:
+    if e.sigma in ("fixed", "unobservable"):
+        return f"{e.value} ({e.sigma})"
+    return f"{e.value} +- {e.sigma}"
 
 
 @cli.command("history")
@@ -86,7 +97,7 @@ def _plot(entries, keys, path) -> None:
 @click.option("--json", "as_json", is_flag=True, help="One JSON object on stdout.")
 def history_cmd(directory, serial, plot_path, as_json):
     """Each parameter of a unit over its calibrations found under DIRECTORY."""
-    from calib_cli.batch.history import element_names, scan
+    from calib_cli.io.history import scan
 
     entries = scan(directory, serial)
     if not entries:
@@ -109,25 +120,24 @@ def history_cmd(directory, serial, plot_path, as_json):
     out_console.print(legend)
     for key in keys:
         first = next(e for e in entries if key in e.params)
-        factor, unit = display_of(key, first.units.get(key, ""))
-        t = Table(title=term_text(f"{key} [{unit or '-'}], value ±1 sigma"))
+        t = Table(title=term_text(f"{key}: value +- 1 sigma (display units)"))
         t.add_column("entry")
+        t.add_column("unit")
         have = [(i, e) for i, e in enumerate(entries) if key in e.params]
         for i, _ in have:
             t.add_column(f"#{i + 1}", justify="right")
-        names = element_names(key, np.shape(first.params[key]))
-        for j, n in enumerate(names):
-            cells = []
-            for _, e in have:
-                v = np.ravel(e.params[key])
-                s = np.ravel(e.sigma.get(key, np.full(v.size, np.nan)))
-                if j >= v.size:
-                    cells.append("-")
-                    continue
-                sig = ("±?" if not np.isfinite(s[j]) else "" if s[j] == 0
-                       else f"±{s[j] * factor:.2g}")
-                cells.append(f"{v[j] * factor:.7g}{sig}")
-            t.add_row(term_text(n), *cells)
+        # every calibration's entries formatted as show and fit print them
+        cols = []
+        for _, e in have:
+            v = np.asarray(e.params[key], float)
+            sg = np.asarray(e.sigma.get(key, np.full(v.shape, np.nan)), float)
+            cols.append(sigma_entries(key, v, sg if sg.shape == v.shape else
+                                      np.full(v.shape, np.nan), e.units.get(key, "")))
+        unit_rows = sigma_entries(key, None, np.zeros(np.shape(first.params[key])),
+                                  first.units.get(key, ""))
+        for j, row in enumerate(unit_rows):
+            cells = [_cell(c[j]) if j < len(c) else "-" for c in cols]
+            t.add_row(term_text(row.name), term_text(row.unit), *cells)
         out_console.print(t)
     if plot_path:
         out_console.print(f"-> {plot_path}")

@@ -185,12 +185,13 @@ def _import_stream(path, stream, plan_path, out, window_s, multiplier, min_stati
     plan = load_plan(plan_path)
     if Path(path).is_dir():  # a ROS 2 bag folder: hash every file in it
         inputs = sorted(str(p) for p in Path(path).rglob("*") if p.is_file())
-    counters = {"source_stream": stream.name}
-    counters.update({k: v for k, v in stream.info.items() if isinstance(v, (str, int, float))})
+    # filled in while the log is read (dropouts, device ids, parameter changes)
+    counters = stream.info
+    counters["source_stream"] = stream.name
     res = import_to_raw(out, track(stream_chunks(path, stream), f"import {stream.name}"), plan,
                         path, inputs + [plan_path],
                         window_s, multiplier, min_static_s, counters=counters,
-                        check=gap_check(path, stream.name))
+                        check=gap_check(path, stream.name), provenance=stream.source)
     n_static = sum(1 for s in res.segments if s.kind == "static")
     gaps = res.counters.get("gaps", 0)
     gap_txt = (f", {gaps} short gap{'s' * (gaps != 1)} (longest "
@@ -199,8 +200,21 @@ def _import_stream(path, stream, plan_path, out, window_s, multiplier, min_stati
 
     info(f"imported {res.n} samples of {term_text(stream.name)}, {len(res.segments)} segments "
          f"({n_static} static){gap_txt} -> {out}")
+    warnings = [gap_txt[2:]] if gaps else []
+    src = stream.source
+    if src.get("samples") == "corrected":
+        n_par = len(src.get("parameters") or {})
+        info(f"the samples are already corrected by the firmware ({n_par} calibration "
+             "parameters in force recorded): `calib export --format "
+             f"{src.get('firmware')}` composes the fit with them (docs/export.md)")
+    if src.get("parameters_changed"):
+        w = ("calibration parameters changed during the log: "
+             + ", ".join(src["parameters_changed"][:6])
+             + ("..." if len(src["parameters_changed"]) > 6 else ""))
+        info(f"[yellow]warning:[/] {term_text(w)}")
+        warnings.append(w)
     if as_json:
-        output_json(out, "raw", [gap_txt[2:]] if gaps else [])
+        output_json(out, "raw", warnings)
 
 
 def _need_plan(plan_path, out, what):
@@ -243,7 +257,8 @@ def import_bag_cmd(path, topic, stamp, plan_path, out, window_s, multiplier, min
 @_detection_options
 def import_ulog_cmd(path, source, instance, plan_path, out, window_s, multiplier, min_static_s,
                     as_json):
-    """Import the IMU of a PX4 ULog file (needs calib-cli[px4]; docs/import.md).
+    """Import the IMU of a PX4 ULog file (docs/import.md); /source of the raw file
+    records whether the samples are corrected and the parameters in force.
     Without --plan, list the IMU topics with their message counts and rates."""
     from calib_cli.io.imu_logs import list_ulog_streams, ulog_stream
 
@@ -261,12 +276,14 @@ def import_ulog_cmd(path, source, instance, plan_path, out, window_s, multiplier
 @click.argument("path", type=click.Path(dir_okay=False))
 @click.option("--message", type=click.Choice(["IMU", "ACC"]), default="IMU", show_default=True,
               help="IMU (filtered, at the logging rate) or ACC/GYR (unfiltered samples).")
-@click.option("--instance", default=0, show_default=True, type=int, help="IMU instance (field I).")
+@click.option("--instance", default=0, show_default=True, type=int,
+              help="IMU instance: field I, or 0-2 = IMU/IMU2/IMU3 (ACC1..3) of older logs.")
 @_detection_options
 def import_dataflash_cmd(path, message, instance, plan_path, out, window_s, multiplier,
                          min_static_s, as_json):
     """Import the IMU of an ArduPilot DataFlash .bin log (needs
-    calib-cli[ardupilot]; docs/import.md). Without --plan, list the IMU
+    docs/import.md; ArduPilot 4.1+ I field, or IMU/IMU2/IMU3 and ACC1..3 of older
+    logs); /source records the parameters in force. Without --plan, list the IMU
     messages with their counts and rates."""
     from calib_cli.io.imu_logs import dataflash_stream, list_dataflash_streams
 

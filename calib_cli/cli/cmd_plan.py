@@ -7,10 +7,14 @@ import re
 import click
 import numpy as np
 
-from calib_cli.cli.common import err_console, info, print_json
+from calib_cli.cli.common import err_console, info, json_output_option, output_json, print_json
 from calib_cli.cli.main import cli
+from calib_cli.cli.method_options import plan_option_values, plan_options
 from calib_cli.errors import InputError
+from calib_cli.methods.registry import plan_method_names
 from calib_cli.units import SUFFIXES
+
+COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
 
 _NOISE_RE = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([A-Za-z/^0-9]*)\s*$")
 _ACCEL_UNITS = {"": 1.0, "m/s^2": 1.0, "mps2": 1.0, "g": 9.80665, "mg": SUFFIXES["_mg"],
@@ -63,26 +67,34 @@ def _noise(plan, like, accel_noise, gyro_noise, rate, truth=None):
     return Noise(a, g, d.rate, "stated")
 
 
-def _fmt(v: float) -> str:
-    return "null" if not np.isfinite(v) else f"{v:.3g}"
-
-
 def render_check(pr, plan_path: str) -> None:
+    """The predicted 1-sigma of every entry as `calib fit` prints its result (display
+    units, "fixed", "unobservable"), the noise assumed, and the correlation of the
+    determined entries explained."""
     from rich.table import Table
 
+    from calib_cli.design import condition_details
+    from calib_cli.io.escape import term_text
+    from calib_cli.model.display import DPH, MG, num, sigma_entries
+
     res = pr.result
-    t = Table(title=f"plan check {plan_path}: method {pr.method}, {pr.duration:.0f} s recorded",
-              show_lines=False)
-    for c in ("key", "unit", "predicted 1-sigma per entry"):
+    t = Table(title=term_text(f"plan check {plan_path}: method {pr.method}, {pr.duration:.0f} s "
+                              "recorded"), show_lines=False)
+    for c in ("parameter", "predicted 1 sigma", "unit"):
         t.add_column(c)
     for k, s in res.sigma.items():
-        s = np.atleast_1d(np.asarray(s, float))
-        t.add_row(k, res.units.get(k, ""), " ".join(_fmt(x) for x in s.ravel()))
+        s = np.asarray(s, float)
+        for e in sigma_entries(k, None, s, res.units.get(k, "")):
+            mat = e.sigma.endswith(" ppm")
+            t.add_row(term_text(e.name), e.sigma[:-4] if mat else e.sigma,
+                      "ppm" if mat else term_text(e.unit))
     err_console.print(t)
     nz = pr.noise
     info(f"noise per sample at {nz.rate:g} Hz ({nz.source}): accel "
-         f"{_fmt(float(np.mean(nz.accel)))} m/s^2, gyro {_fmt(float(np.mean(nz.gyro)))} rad/s")
-    info(f"condition number (correlation of the determined entries): {pr.condition:.3g}")
+         f"{num(float(np.mean(nz.accel)) * MG, 3)} mg, gyro "
+         f"{num(float(np.mean(nz.gyro)) * DPH, 3)} deg/h")
+    cd = condition_details(res)
+    info(condition_line(cd))
     if pr.unobservable:
         info(f"[yellow]unobservable:[/] {', '.join(pr.unobservable)}")
     if pr.weak:
@@ -92,50 +104,46 @@ def render_check(pr, plan_path: str) -> None:
         info(f"suggestion {i}: {s['add']}{fx}")
 
 
+WEAK_CONDITION = 1e4  # above: some combinations of the entries are poorly separated
+
+
+def condition_line(cd: dict) -> str:
+    """The condition number of the correlation of the determined entries, in words."""
+    from calib_cli.model.display import num
+
+    c = cd["condition_determined"]
+    line = (f"correlation of the determined entries: condition number {num(c, 3)} (1: "
+            f"independent; above {WEAK_CONDITION:.0e} some combinations are poorly separated")
+    line += (")" if c <= WEAK_CONDITION else "): [yellow]poorly separated[/]")
+    if cd["dependencies"]:
+        line += (f"; {cd['dependencies']} exact linear dependencies among "
+                 f"{', '.join(cd['dependent_keys'])} left out (combinations the model fixes by "
+                 "construction, e.g. a lever arm's two free components written in three body "
+                 "axes; not a weakness of the plan)")
+    mc = cd.get("most_correlated")
+    if mc:
+        line += f"; most correlated: {mc[0]} and {mc[1]} (r = {mc[2]:+.2f})"
+    return line + "."
+
+
 def check_json(pr) -> dict:
     res = pr.result
     return {"method": pr.method, "params": res.params, "sigma": res.sigma,
             "unobservable": pr.unobservable,
             "suggestions": [{k: v for k, v in s.items() if k != "score"} for s in pr.suggestions],
             "weak": pr.weak, "condition": pr.condition, "units": res.units,
+            "condition_details": _condition_json(res),
             "duration_s": pr.duration,
             "noise": {"accel": pr.noise.accel, "gyro": pr.noise.gyro,
                       "sample_rate_hz": pr.noise.rate, "source": pr.noise.source}}
 
 
-def turntable_fit_options(f):
-    """The turntable fit's options plan check and optimize predict with (as `calib fit
-    turntable`'s; default: the fit's defaults)."""
-    f = click.option("--prior", "priors", multiple=True, metavar="KEY=SIGMA",
-                     help="turntable: override one prior 1-sigma (SI), as fit turntable.")(f)
-    f = click.option("--grade", type=click.Choice(["mems", "tactical", "navigation"]),
-                     help="turntable: prior widths for this grade of unit (fit's default "
-                          "mems).")(f)
-    f = click.option("--table-encoder", "table_encoder",
-                     type=click.Choice(["auto", "off", "angle", "rate", "both"]),
-                     help="turntable: the table's channels as measurements (fit's default "
-                          "auto).")(f)
-    f = click.option("--tangential", type=click.Choice(["on", "off"]),
-                     help="turntable: the dw/dt x r term (fit's default on).")(f)
-    f = click.option("--proof-mass", "proof_mass", type=click.Choice(["auto", "off", "estimate"]),
-                     help="turntable: proof-mass offsets (fit's default auto).")(f)
-    f = click.option("--lever-arm", "lever_arm", type=click.Choice(["off", "known", "estimate"]),
-                     help="turntable: lever arms (fit's default estimate).")(f)
-    return f
+def _condition_json(res) -> dict:
+    from calib_cli.design import condition_details
 
-
-def _turntable_options(plan, lever_arm, proof_mass, tangential, table_encoder, grade,
-                       priors) -> dict:
-    from calib_cli.cli.cmd_turntable import _key_values
-
-    d = {"lever_arm": lever_arm, "proof_mass": proof_mass, "tangential": tangential,
-         "table_encoder": table_encoder, "grade": grade,
-         "prior": _key_values(priors, "--prior") if priors else None}
-    d = {k: v for k, v in d.items() if v is not None}
-    if d and plan.kind != "turntable":
-        raise click.UsageError(f"--{next(iter(d)).replace('_', '-')} applies to turntable "
-                               "plans only")
-    return d
+    cd = condition_details(res)
+    return {k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+            for k, v in cd.items()}
 
 
 @plan_group.command("check")
@@ -147,22 +155,18 @@ def _turntable_options(plan, lever_arm, proof_mass, tangential, table_encoder, g
 @click.option("--rate", type=float, help="Sample rate, Hz (default: the plan's sample_rate_hz).")
 @click.option("--truth", "truth_path", type=click.Path(dir_okay=False),
               help="Predict at this truth model (default: a neutral unit, K = I, biases 0).")
-@click.option("--method", type=click.Choice(["auto", "vector", "scalar", "gyro", "align",
-                                             "rimu", "thermal", "turntable"]), default="auto",
+@click.option("--method", type=click.Choice(plan_method_names()), default="auto",
               show_default=True,
               help="The fit to predict (auto: as fit would choose; a static plan with turns "
                    "goes to fit gyro, one with chamber setpoints to fit thermal).")
-@click.option("--g-sensitivity", type=click.Choice(["auto", "on", "off"]), default="auto",
-              show_default=True, help="fit gyro's option.")
-@turntable_fit_options
+@plan_options
 @click.option("--no-suggest", is_flag=True, help="Skip the ranked additions (faster).")
 @click.option("--json", "as_json", is_flag=True, help="Print the prediction as JSON.")
-def plan_check_cmd(plan, like, accel_noise, gyro_noise, rate, truth_path, method, g_sensitivity,
-                   lever_arm, proof_mass, tangential, table_encoder, grade, priors, no_suggest,
-                   as_json):
+def plan_check_cmd(plan, like, accel_noise, gyro_noise, rate, truth_path, method, no_suggest,
+                   as_json, **method_options):
     """Predict the 1-sigma of every parameter PLAN's fit will report, the
     unobservable ones, and the additions that help most."""
-    from calib_cli.design import check
+    from calib_cli.design import check, resolve_method
     from calib_cli.io.plan import load_plan
     from calib_cli.io.truth import load_truth
     from calib_cli.plan import plan_layout
@@ -170,15 +174,13 @@ def plan_check_cmd(plan, like, accel_noise, gyro_noise, rate, truth_path, method
     if rate is not None and rate <= 0:
         raise click.BadParameter("--rate must be positive")
     p = load_plan(plan)
-    topts = _turntable_options(p, lever_arm, proof_mass, tangential, table_encoder, grade,
-                               priors)
+    opts = plan_option_values(resolve_method(p, method), method_options)
     truth = load_truth(truth_path, plan_layout(p)) if truth_path else None
     nz = _noise(p, like, accel_noise, gyro_noise, rate, truth)
     from calib_cli.cli.progress import bar
 
     with bar("plan check"):
-        pr = check(p, method, nz, truth, {"g_sensitivity": g_sensitivity, **topts},
-                   suggestions=not no_suggest)
+        pr = check(p, method, nz, truth, opts, suggestions=not no_suggest)
     if as_json:
         print_json(check_json(pr))
     else:
@@ -250,10 +252,12 @@ def _vec(text, n, name):
               help="thermal ramp: positions visited in turn.")
 @click.option("--cycles", type=click.Choice(["heat", "heat-cool"]), default="heat-cool",
               show_default=True, help="thermal ramp: heat only, or heat then cool.")
+@json_output_option
 def plan_make_cmd(method, out, positions, fit_method, duration, sample_rate, turn_duration, axis,
                   angle, start, latitude, rimu_profile, table_rate, tilted, tilt_deg,
                   tilted_duration, max_rate, max_accel, max_duration, rate_family, design,
-                  temps, temp_range, soak, ramp_dpm, unit_tau, ramp_positions, cycles):
+                  temps, temp_range, soak, ramp_dpm, unit_tau, ramp_positions, cycles,
+                  as_json=False):
     """Write a plan of METHOD's family (its parameters in a [generator] table)."""
     from calib_cli.io.h5 import atomic_path
     from calib_cli.io.plan import parse_plan
@@ -297,6 +301,8 @@ def plan_make_cmd(method, out, positions, fit_method, duration, sample_rate, tur
     if warning:
         info(f"[yellow]warning:[/] {warning}")
     info(f"{method} plan, {len(d['segment'])} segments -> {out}")
+    if as_json:
+        output_json(out, "plan", [warning] if warning else [])
 
 
 @plan_group.command("optimize")
@@ -312,14 +318,12 @@ def plan_make_cmd(method, out, positions, fit_method, duration, sample_rate, tur
 @click.option("--rate", type=float, help="Sample rate, Hz (default: the plan's).")
 @click.option("--truth", "truth_path", type=click.Path(dir_okay=False),
               help="Predict at this truth model (default: a neutral unit).")
-@click.option("--method", type=click.Choice(["auto", "vector", "scalar", "gyro", "align",
-                                             "rimu", "turntable"]), default="auto",
+@click.option("--method", type=click.Choice(plan_method_names()), default="auto",
               show_default=True)
-@turntable_fit_options
+@plan_options
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
 def plan_optimize_cmd(plan, targets, max_duration, out, like, accel_noise, gyro_noise, rate,
-                      truth_path, method, lever_arm, proof_mass, tangential, table_encoder,
-                      grade, priors, as_json):
+                      truth_path, method, as_json, **method_options):
     """The shortest plan of PLAN's family (generated plans: number of positions
     and durations; other plans: durations only) whose predicted sigma meets
     every --target."""
@@ -341,8 +345,7 @@ def plan_optimize_cmd(plan, targets, max_duration, out, like, accel_noise, gyro_
         if Path(out).resolve() == Path(plan).resolve():
             raise click.UsageError("--out must not be the input plan")
     p = load_plan(plan)
-    topts = _turntable_options(p, lever_arm, proof_mass, tangential, table_encoder, grade,
-                               priors)
+    topts = plan_option_values(design.resolve_method(p, method), method_options)
     truth = load_truth(truth_path, plan_layout(p)) if truth_path else None
     nz = _noise(p, like, accel_noise, gyro_noise, rate, truth)
     from calib_cli.cli.progress import bar

@@ -13,7 +13,15 @@ import click
 from rich.live import Live
 from rich.table import Table
 
-from calib_cli.cli.common import Ctx, complete_profile, err_console, info, interactive
+from calib_cli.cli.common import (
+    Ctx,
+    complete_profile,
+    err_console,
+    info,
+    interactive,
+    json_output_option,
+    output_json,
+)
 from calib_cli.cli.main import cli
 from calib_cli.errors import CalibError, InputError
 
@@ -82,7 +90,8 @@ def _raise_interrupt(*_):
 
 @cli.command("record")
 @click.option("--imu", "imu", required=True, shell_complete=complete_profile("imu"),
-              help="IMU profile: a .toml path or a profile name (`calib profiles`).")
+              help="IMU profile: a .toml path, a profile name (`calib profiles`), or auto "
+              "(find the protocol on --port).")
 @click.option("--port", help="Serial port of the IMU (serial profiles).")
 @click.option("--can-interface", help="python-can interface (default: the profile's).")
 @click.option("--can-channel", help="CAN channel (default: the profile's).")
@@ -124,10 +133,11 @@ def _raise_interrupt(*_):
               help="Climatic chamber profile (path, shipped name, or 'manual') for plans with "
               "chamber_temp_degC (docs/thermal.md).")
 @click.option("--chamber-port", help="Serial port of the chamber.")
+@json_output_option
 def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_path, duration,
                rate, out, journal_path, keep_journal, settle_window, accel_still, gyro_still,
                settle_timeout, segment_duration, reconnect_timeout, gravity_tolerance,
-               no_data_timeout, force, no_check, chamber, chamber_port):
+               no_data_timeout, force, no_check, chamber, chamber_port, as_json=False):
     """Record an experiment plan (or a free-running log) from an IMU into raw.h5."""
     from calib_cli.acquire.profile import load_imu_profile
     from calib_cli.acquire.session import free_run_plan
@@ -135,6 +145,17 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
 
     if plan_path and duration is not None:
         raise click.UsageError("give --plan or --duration, not both")
+    if imu == "auto":  # probe the port for a known protocol (acquire/probe.py)
+        if not port:
+            raise click.UsageError("--imu auto needs --port")
+        from calib_cli.acquire.probe import candidate_profiles, no_protocol_message, probe_port
+
+        cands = candidate_profiles()
+        found = probe_port(port, cands)
+        if not found:
+            raise InputError(no_protocol_message(port, cands), port)
+        imu = found[0].name
+        info(f"--imu auto: {imu} ({found[0].detail}, {found[0].how})")
     prof = load_imu_profile(imu)
     if rate:
         import dataclasses
@@ -178,10 +199,13 @@ def record_cmd(imu, port, can_interface, can_channel, table, table_port, plan_pa
             aside = f"{journal_path}.{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}.old"
             os.replace(journal_path, aside)
             info(f"the earlier journal was set aside as {aside}")
-        return _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
-                       duration, out, journal_path, keep_journal, settle_window, accel_still,
-                       gyro_still, settle_timeout, segment_duration, reconnect_timeout,
-                       gravity_tolerance, no_data_timeout, prof, plan, cprof, chamber_port)
+        rv = _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
+                     duration, out, journal_path, keep_journal, settle_window, accel_still,
+                     gyro_still, settle_timeout, segment_duration, reconnect_timeout,
+                     gravity_tolerance, no_data_timeout, prof, plan, cprof, chamber_port)
+        if as_json and rv == 0:
+            output_json(out, "raw")
+        return rv
 
 
 def _source(prof, transport) -> str:
@@ -322,6 +346,10 @@ def _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
                          cprof.path if cprof and cprof.kind != "manual" else None) if p]
     try:
         write_raw(out, rec, inputs)
+        if session.device_info:  # what the recorder set on the unit, and read back
+            from calib_cli.acquire.device import write_device_info
+
+            write_device_info(out, prof, session.device_info)
     except CalibError as exc:  # a full disk: the journal keeps the recording (issue 37)
         exc.message += f"; the journal {journal_path} keeps the recording (calib recover)"
         raise

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import click
 
-from calib_cli.cli.common import info
+from calib_cli.cli.common import info, json_output_option, output_json
 from calib_cli.cli.main import cli
 
 COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
@@ -14,7 +14,8 @@ COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.p
 @cli.command("recover")
 @click.argument("journal", type=click.Path(dir_okay=False))
 @click.option("--out", required=True, type=click.Path(dir_okay=False))
-def recover_cmd(journal, out):
+@json_output_option
+def recover_cmd(journal, out, as_json=False):
     """Turn a recording journal into raw.h5."""
     from calib_cli.acquire.session import journal_to_recording
     from calib_cli.io.h5 import write_raw
@@ -32,3 +33,5 @@ def recover_cmd(journal, out):
         state += f"; {c['journal_rows_dropped']} rows with non-finite values or time going back dropped"
     info(f"recovered {len(rec)} samples, {len(rec.segments)} segments from a journal "
          f"{state} -> {out}")
+    if as_json:
+        output_json(out, "raw")

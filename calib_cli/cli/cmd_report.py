@@ -45,9 +45,17 @@ def _allan_for(raw: str, kind: str):
 @click.option("--tolerances", "tol_path", type=click.Path(dir_okay=False),
               help="Tolerance file (as for `calib batch`): the verdict checks the parameters "
                    "against it instead of against the noise floor.")
+@click.option("--history", "history_dir", type=click.Path(file_okay=False),
+              help="The directory of the unit's earlier calibrations (a `calib batch` output "
+                   "directory): the tolerances' max_change_sigma compares with the last of "
+                   "them, as the batch does. Without it that rule is not evaluated and the "
+                   "verdict says so.")
 @click.option("--pdf", "pdf", is_flag=True,
               help="Also write the same report as report.pdf (A4, matplotlib).")
-def report_cmd(cal, raw, out_dir, tol_path, pdf=False):
+@click.option("--json", "as_json", is_flag=True,
+              help='Print {"output", "kind", "html", "markdown", "pdf", "verdict", "figures"} '
+                   "as JSON on stdout and nothing else there.")
+def report_cmd(cal, raw, out_dir, tol_path, history_dir=None, pdf=False, as_json=False):
     """Markdown and self-contained HTML report of a calibration, with plots.
 
     RAW (optional): a free-running raw record (or an 'allan' file) adds the
@@ -56,10 +64,20 @@ def report_cmd(cal, raw, out_dir, tol_path, pdf=False):
 
     c = read_calibration(cal)
     ctx = ReportContext(cal=c, cal_path=cal, prov=provenance(cal))
+    if file_kind(cal) == "diagnosis":  # its steps and residuals: a section of their own
+        from calib_cli.io.diag_h5 import read_diagnosis, read_diagnosis_arrays
+
+        ctx.diagnosis = {"summary": read_diagnosis(cal), "arrays": read_diagnosis_arrays(cal)}
     if tol_path:
-        from calib_cli.batch.tolerance import load_tolerances
+        from calib_cli.io.tolerance import load_tolerances
 
         ctx.tolerances, ctx.tolerances_path = load_tolerances(tol_path), tol_path
+    if history_dir:
+        if not tol_path:
+            raise click.UsageError("--history applies to --tolerances")
+        from calib_cli.io.history import scan
+
+        ctx.history = scan(history_dir, ctx.prov.get("unit_serial") or c.serial or "")
     if raw:
         kind = file_kind(raw)
         if kind not in ("raw", "corrected", "allan"):
@@ -81,7 +99,20 @@ def report_cmd(cal, raw, out_dir, tol_path, pdf=False):
             from calib_cli.report.pdf import write_pdf
 
             pages = write_pdf(sections, title, Path(tmp) / "report.pdf")
-    info(f"report with {len(manifest['figures'])} figures -> {out / 'report.html'}")
+    n = len(manifest["figures"])
+    info(f"report with {n} figure{'' if n == 1 else 's'} -> {out / 'report.html'}")
     if pdf:
         info(f"{pages} pages -> {out / 'report.pdf'}")
+    if as_json:
+        from calib_cli.cli.common import print_json
+        from calib_cli.report.builder import verdict
+
+        word, line = verdict(ctx)
+        print_json({"output": str(out), "kind": "report", "html": str(out / "report.html"),
+                    "markdown": str(out / "report.md"),
+                    "pdf": str(out / "report.pdf") if pdf else None,
+                    "verdict": {"result": word, "line": line},
+                    "figures": [{"file": str(out / f["file"]), "caption": f["caption"]}
+                                for f in manifest["figures"]],
+                    "sections": [s.title for s in sections]})
     return 0

@@ -1,4 +1,5 @@
-"""calib fit rimu RAW --out CAL, and calib rimu-check RAW CAL (parity-space FDI)."""
+"""calib rimu-check RAW CAL (parity-space FDI); `calib fit rimu` is made from the method
+table (cli/cmd_fit.py)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,6 @@ import click
 import numpy as np
 from rich.table import Table
 
-from calib_cli.cli.cmd_fit import fit_group, json_option, need_raw_out, run_with, save, with_options
 from calib_cli.cli.common import Ctx, err_console, out_console, print_json
 from calib_cli.cli.main import cli
 from calib_cli.errors import FaultDetected, InputError
@@ -14,26 +14,6 @@ from calib_cli.io.h5 import read_calibration, read_raw
 
 R2D = 180.0 / np.pi
 _SHOW = {"accel": (1e3 / 9.80665, "mg"), "gyro": (R2D, "deg/s")}
-
-
-@fit_group.command("rimu")
-@click.argument("raw", required=False, type=click.Path(dir_okay=False))
-@click.option("--out", type=click.Path(dir_okay=False))
-@with_options
-@json_option
-def fit_rimu_cmd(raw, out, with_text, list_effects, with_base, with_noise, as_json):
-    """Redundant unit: per sensor bias, scale error, dEl, dAz (docs/rimu.md)."""
-    from calib_cli.methods import registry
-
-    if run_with("rimu", raw, out, with_text, list_effects, with_base, with_noise, as_json):
-        return
-    need_raw_out(raw, out)
-    rec = read_raw(raw)
-    from calib_cli.cli.progress import bar
-
-    with bar("fit rimu"):
-        res = registry.run("rimu", rec, None, raw)  # a misplaced position is named (exit 4)
-    save(res, raw, out, rec=rec, as_json=as_json)
 
 
 def _render_report(s: dict) -> None:

@@ -12,8 +12,8 @@ from calib_cli.cli.render import params_table
 from calib_cli.io.contract_json import calibration_json  # noqa: F401  (re-exported)
 from calib_cli.io.escape import term_text
 from calib_cli.io.h5 import file_kind, provenance, read_calibration, read_raw
+from calib_cli.model.display import MG, StatUnits, counts_note, g_figures_line, value_text
 from calib_cli.report.format import CHECK_POSITION_HEADER, check_position_rows
-from calib_cli.units import g_figures_line
 
 
 def raw_json(path) -> dict:
@@ -26,8 +26,23 @@ def raw_json(path) -> dict:
             "counters": r.counters}
 
 
-# kind -> (json builder, terminal renderer); other modules add their kinds
+# kind -> show(files, as_json, covariance); other modules add their kinds. The static
+# tree (cli/_tree.py, "showers") names the module of each, imported when that kind is
+# shown: `calib show` loads one module, not every command's (COMPLETE_COMMAND)
 SHOWERS: dict = {}
+COMPLETE_COMMAND = True
+
+
+def _shower(kind: str):
+    if kind not in SHOWERS:
+        import importlib
+
+        from calib_cli.cli.tree import tree
+
+        mod = tree().get("showers", {}).get(kind)
+        if mod:
+            importlib.import_module(mod)
+    return SHOWERS.get(kind)
 
 
 def _render_provenance(path):
@@ -42,24 +57,28 @@ def _render_provenance(path):
 def _render_calibration(path, covariance):
     c = read_calibration(path)
     out_console.print(params_table(c.params, c.sigma, c.units, title=f"calibration ({c.method})"))
-    st = Table(title="stats", show_header=False)
+    note = counts_note(c.params, c.units)
+    if note:
+        out_console.print(term_text(note), markup=False)
+    su = StatUnits.of(c)
+    st = Table(title="stats (display units; data in counts stay counts)", show_header=False)
     for k, v in c.stats.items():
         if k == "check_positions" and isinstance(v, dict):  # a table of its own, below
             v = (f"{v.get('verdict')}: {v.get('n', 0)} static positions, max |z| "
                  f"{v['max_abs_z']:.2f}" if "max_abs_z" in v
                  else f"{v.get('verdict')}: {v.get('note', '')}")
-        if isinstance(v, float):
-            v = f"{v:.6g}"
+        else:
+            v = value_text(k, v, limit=160, units=su)
         st.add_row(term_text(k), term_text(v))
     out_console.print(st)
     if "g_table" in c.tables:
-        gt = Table(title="|g| per position (m/s^2)")
-        for col in ("position", "samples", "before", "after", "after - g"):
+        gt = Table(title="|g| per position (m/s^2; after - g in mg)")
+        for col in ("position", "samples", "before", "after", "after - g (mg)"):
             gt.add_column(col)
         labels = c.tables.get("segment_labels", [])
         for lab, row in zip(labels, np.asarray(c.tables["g_table"])):
             gt.add_row(term_text(lab), f"{row[0]:.0f}", "-" if np.isnan(row[1]) else f"{row[1]:.6f}",
-                       f"{row[2]:.6f}", f"{row[3]:+.2e}")
+                       f"{row[2]:.6f}", f"{row[3] * MG:+.4f}")
         out_console.print(gt)
         line = g_figures_line(c.stats)
         if line:
@@ -108,8 +127,9 @@ def show_cmd(files, as_json, covariance):
         from calib_cli.cli.compare import show_compare  # A.h5 B.h5: differences in sigma
 
         return show_compare(files, as_json)
-    if kind in SHOWERS:
-        return SHOWERS[kind](files, as_json, covariance)
+    shower = _shower(kind)
+    if shower is not None:
+        return shower(files, as_json, covariance)
     if as_json:
         print_json(calibration_json(path, covariance) if kind == "calibration" else raw_json(path))
         return 0

@@ -20,14 +20,29 @@ COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.p
 @cli.command("simulate")
 @click.argument("plan", type=click.Path(dir_okay=False))
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False),
-              help="raw.h5, or a .csv log in the contract's columns.")
+              help="raw.h5, a .csv log in the contract's columns, or a flight-controller or "
+                   "ROS log: .ulg (PX4), .bin (ArduPilot), .mcap, .bag (docs/simulate.md).")
 @click.option("--seed", default=0, show_default=True, type=int, help="Random seed.")
 @click.option("--truth", "truth_path", type=click.Path(dir_okay=False),
               help="Truth model TOML (docs/simulate.md); default: a random MEMS unit.")
+@click.option("--in-force", "in_force_path", type=click.Path(dir_okay=False),
+              help=".ulg/.bin: the calibration parameters the firmware applies before logging "
+                   "(a QGroundControl .params or Mission Planner .parm file; default: the "
+                   "plan's [autopilot] table, else none).")
 @json_output_option
-def simulate_cmd(plan, out, seed, truth_path, as_json=False):
+def simulate_cmd(plan, out, seed, truth_path, in_force_path, as_json=False):
     """Simulate the experiment of PLAN from a truth model, with noise."""
+    from pathlib import Path
+
+    from calib_cli.io.log_writers import LOG_SUFFIXES
+
+    suffix = Path(out).suffix.lower()
+    if in_force_path and suffix not in (".ulg", ".bin"):
+        raise click.UsageError("--in-force is for --out LOG.ulg or LOG.bin")
     p = load_plan(plan)
+    in_force = None
+    if suffix in LOG_SUFFIXES:
+        in_force = _in_force(p, in_force_path)
     truth = load_truth(truth_path, plan_layout(p)) if truth_path else None
     from calib_cli.cli.progress import bar
 
@@ -38,7 +53,11 @@ def simulate_cmd(plan, out, seed, truth_path, as_json=False):
         exc.path = exc.path or plan
         raise
     inputs = [plan] + ([truth_path] if truth_path else [])
-    if out.lower().endswith(".csv"):
+    if suffix in LOG_SUFFIXES:
+        from calib_cli.io.log_writers import write_sim_log
+
+        write_sim_log(out, rec, in_force, in_force_path or plan)
+    elif out.lower().endswith(".csv"):
         write_csv(out, rec)
     else:
         write_raw(out, rec, inputs)
@@ -47,7 +66,26 @@ def simulate_cmd(plan, out, seed, truth_path, as_json=False):
         info(f"[yellow]warning:[/] {line}")
     info(f"simulated {len(rec)} samples, {len(rec.segments)} segments -> {out}")
     if as_json:
-        output_json(out, "csv" if out.lower().endswith(".csv") else "raw", warnings)
+        kind = suffix[1:] if suffix in LOG_SUFFIXES else \
+            ("csv" if out.lower().endswith(".csv") else "raw")
+        output_json(out, kind, warnings)
+
+
+def _in_force(plan, path) -> dict | None:
+    """The parameters in force: --in-force FILE, else the plan's [autopilot] table
+    ({NAME = value}), else None (a board without calibration)."""
+    if path:
+        from calib_cli.io.fc_params import read_params_file
+
+        return read_params_file(path)[1]
+    table = plan.extra.get("autopilot")
+    if table is None:
+        return None
+    if not isinstance(table, dict) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in table.values()):
+        raise InputError("[autopilot] must hold parameter names with numbers "
+                         "(CAL_ACC0_XOFF = 0.12)", plan.path)
+    return {str(k): float(v) for k, v in table.items()}
 
 
 def range_warnings(plan, rec) -> list[str]:

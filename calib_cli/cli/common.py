@@ -21,9 +21,24 @@ def __getattr__(name):
         if name not in _CONSOLES:
             from rich.console import Console
 
-            _CONSOLES[name] = Console(stderr=name == "err_console", highlight=False)
+            stream = sys.stderr if name == "err_console" else sys.stdout
+            # a pipe or a log file (CI): tables at their full width, never cut to 80
+            # columns ("accel_K[0,…"); a terminal: its own width
+            width = None if _isatty(stream) else FULL_WIDTH
+            _CONSOLES[name] = Console(stderr=name == "err_console", highlight=False,
+                                      width=width)
         return _CONSOLES[name]
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+FULL_WIDTH = 1000  # columns of a console whose stream is not a terminal
+
+
+def _isatty(stream) -> bool:
+    try:
+        return stream.isatty()
+    except (AttributeError, ValueError):
+        return False
 
 
 class Ctx:
@@ -48,9 +63,10 @@ def print_json(obj) -> None:
     sys.stdout.write(json.dumps(to_jsonable(obj), indent=2) + "\n")
 
 
-def output_json(path, kind: str, warnings=()) -> None:
+def output_json(path, kind: str, warnings=(), extra: dict | None = None) -> None:
     """The --json object of a command that writes one file (import, simulate,
-    apply, export): {"output", "kind", "sha256", "warnings"} on stdout alone."""
+    apply, export): {"output", "kind", "sha256", "warnings"} on stdout alone,
+    and the command's own keys ``extra`` after them."""
     import hashlib
 
     h = hashlib.sha256()
@@ -58,7 +74,7 @@ def output_json(path, kind: str, warnings=()) -> None:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
     print_json({"output": str(path), "kind": kind, "sha256": h.hexdigest(),
-                "warnings": [str(w) for w in warnings]})
+                "warnings": [str(w) for w in warnings], **(extra or {})})
 
 
 def json_output_option(f):

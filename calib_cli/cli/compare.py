@@ -6,9 +6,9 @@ import numpy as np
 from rich.table import Table
 
 from calib_cli.cli.common import info, out_console, print_json
-from calib_cli.cli.render import display_of
 from calib_cli.io.h5 import provenance, read_calibration
 from calib_cli.methods.compare import compare
+from calib_cli.model.display import display_of, is_matrix
 
 
 def show_compare(files, as_json: bool) -> int:
@@ -28,18 +28,21 @@ def show_compare(files, as_json: bool) -> int:
     for col in ("parameter", "A", "B", "B - A", "sigma", "z", "unit"):
         t.add_column(col, justify="left" if col in ("parameter", "unit") else "right")
     for k, d in res["params"].items():
-        factor, unit = display_of(k, res["units"][k])
         for idx in np.ndindex(d.shape):
+            factor, unit = display_of(k, res["units"][k], idx)
+            # a dimensionless matrix: values as they are, differences and sigma in ppm
+            dfac, dunit = (1e6, "ppm") if is_matrix(k, res["units"][k]) else (factor, unit)
             s, z = res["sigma"][k][idx], res["z"][k][idx]
             if s == 0 and d[idx] == 0:
                 continue  # fixed by convention in both
             name = f"{k}[{','.join(map(str, idx))}]" if d.ndim else k
-            zs = "n/a" if np.isnan(z) else f"{z:+.2f}"
+            zs = "not determined" if np.isnan(z) else f"{z:+.2f}"
             if np.isfinite(z) and abs(z) > 3:
                 zs = f"[bold red]{zs}[/]"
             t.add_row(name, f"{res['a'][k][idx] * factor:.7g}", f"{res['b'][k][idx] * factor:.7g}",
-                      f"{d[idx] * factor:+.3g}", "unobservable" if np.isnan(s) else
-                      f"{s * factor:.3g}", zs, unit)
+                      f"{d[idx] * dfac:+.3g}", "unobservable" if np.isnan(s) else
+                      f"{s * dfac:.3g}", zs, unit if dunit == unit else f"{unit or '-'} "
+                      f"(B - A, sigma: {dunit})")
     out_console.print(t)
     for key in ("only_in_a", "only_in_b", "incomparable"):
         if res[key]:

@@ -25,7 +25,7 @@ class _Commands(click.Group):
         cmd = super().get_command(ctx, name)
         if cmd is None and not _loaded:
             if not _load_one(name):
-                _register()
+                register_all()
             cmd = super().get_command(ctx, name)
         if cmd is not None:  # output-path and number guards (issue 15), lazily loaded too
             from calib_cli.cli.guard import guard_one
@@ -34,7 +34,7 @@ class _Commands(click.Group):
         return cmd
 
     def list_commands(self, ctx):
-        _register()
+        register_all()
         return super().list_commands(ctx)
 
     def format_epilog(self, ctx, formatter):
@@ -51,7 +51,7 @@ class _Commands(click.Group):
             return super().format_commands(ctx, formatter)
         from click.utils import make_default_short_help
 
-        from calib_cli.cli.index import top_level_rows
+        from calib_cli.cli.tree import top_level_rows
 
         rows = top_level_rows()
         if rows:  # as click's own format_commands lays them out
@@ -101,7 +101,7 @@ def _print_warning(line: str) -> None:
 _loaded = False
 
 
-def _register() -> None:
+def register_all() -> None:
     """Each command lives in its own module ``cli/cmd_*.py``; importing it
     registers it on ``cli`` (no central list to edit when adding a command)."""
     import importlib
@@ -133,7 +133,7 @@ def _load_one(name: str) -> bool:
 import calib_cli.cli as _pkg  # noqa: E402
 
 if not getattr(_pkg, "LAZY_COMMANDS", False):
-    _register()
+    register_all()
 
 from calib_cli.cli.guard import guard_all  # noqa: E402
 
@@ -170,7 +170,8 @@ def main(argv=None) -> None:
         _err().print("calib: interrupted", markup=False)
         sys.exit(130)
     except click.UsageError as exc:  # one line, with where to look for help
-        msg = exc.format_message()
+        # click lists a Choice's values one per line ("Choose from:\n\taccel,\n\t...")
+        msg = " ".join(exc.format_message().split())
         if isinstance(exc, click.BadParameter) and "is a directory" in msg:
             # a directory where a file is expected: bad input (exit 3)
             _err().print(f"calib: error: {msg}", markup=False, soft_wrap=True)

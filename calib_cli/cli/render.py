@@ -2,24 +2,16 @@
 
 from __future__ import annotations
 
-import numpy as np
 from rich.table import Table
 
 from calib_cli.cli.common import Ctx, err_console
-from calib_cli.model.display import DISPLAY, display_of  # noqa: F401  (re-exported)
-from calib_cli.units import g_figures_line
-
-
-def fmt_value(v: float, s: float | None, factor: float, matrix_key: bool) -> str:
-    if s is None or not np.isfinite(s):
-        sig = "unobservable"
-    elif s == 0:
-        sig = "fixed"
-    elif matrix_key:
-        sig = f"+- {s * 1e6:.3g} ppm"
-    else:
-        sig = f"+- {s * factor:.3g}"
-    return f"{v * factor:.7g}  {sig}"
+from calib_cli.model.display import (  # noqa: F401  (display_of re-exported)
+    counts_note,
+    display_of,
+    entries,
+    g_error_line,
+    g_figures_line,
+)
 
 
 def params_table(params: dict, sigma: dict, units: dict, title: str = "parameters") -> Table:
@@ -30,19 +22,8 @@ def params_table(params: dict, sigma: dict, units: dict, title: str = "parameter
     tab.add_column("parameter")
     tab.add_column("value +- 1 sigma")
     tab.add_column("unit")
-    for key, val in params.items():
-        val = np.asarray(val, dtype=float)
-        sig = np.asarray(sigma.get(key, np.full(val.shape, np.nan)), dtype=float)
-        factor, unit = display_of(key, units.get(key, ""))
-        matrix_key = key.endswith("_K") and "count" not in units.get(key, "")
-        if val.ndim == 0:
-            tab.add_row(term_text(key), fmt_value(float(val), float(sig), factor, False),
-                        term_text(unit))
-            continue
-        for idx in np.ndindex(val.shape):
-            name = f"{key}[{','.join(map(str, idx))}]"
-            tab.add_row(term_text(name), fmt_value(val[idx], sig[idx], factor, matrix_key),
-                        term_text(unit) if not matrix_key else "-")
+    for e in entries(params, sigma, units):
+        tab.add_row(term_text(e.name), e.value_sigma(), term_text(e.unit))
     return tab
 
 
@@ -53,15 +34,14 @@ def render_summary(res) -> None:
     err_console.print(params_table(res.params, res.sigma, res.units,
                                    title=f"calibration ({res.method})"))
     st = res.stats
-    if "g_error_rms_after" in st and st["g_error_rms_after"] is not None:
-        before = st.get("g_error_rms_before")
-        b = "n/a (counts)" if before is None else f"{before * 1e3 / 9.80665:.3f} mg"
-        floor = st.get("g_error_floor")
-        floor = "" if floor is None else f" (noise floor {floor * 1e3 / 9.80665:.4f} mg)"
-        err_console.print(f"|g| error RMS: before {b}, after "
-                          f"{st['g_error_rms_after'] * 1e3 / 9.80665:.4f} mg{floor}")
+    line = g_error_line(st)
+    if line:
+        err_console.print(line, markup=False)
         if g_figures_line(st):
-            err_console.print(g_figures_line(st))
+            err_console.print(g_figures_line(st), markup=False)
+    note = counts_note(res.params, res.units)
+    if note:
+        err_console.print(note, markup=False)
     if st.get("unobservable"):
         err_console.print(f"[yellow]unobservable:[/] {', '.join(st['unobservable'])}")
     if st.get("sigma_inflation", 1.0) != 1.0:

@@ -14,26 +14,24 @@ from pathlib import Path
 
 import numpy as np
 
-from calib_cli.data import Recording, Segment
+from calib_cli.data import Recording
 from calib_cli.errors import InputError, num
 from calib_cli.geometry import Layout
-from calib_cli.io.plan import Plan, PlanSegment
-from calib_cli.methods.cycle_detect import CycleDetection, detect_cycles, trim_intervals
-from calib_cli.methods.static_detect import DetectionReport, detect_static
+from calib_cli.io.log_segments import (  # noqa: F401  (re-exported: the CSV's segments)
+    TIME_MAX,
+    Chunk,
+    check_time_range,
+    plan_cycles,
+    segments_from_column,
+    segments_from_detection,
+)
+from calib_cli.io.plan import Plan
+from calib_cli.io.sniff import not_a_text_log
+from calib_cli.methods.static_detect import detect_static
+from calib_cli.plan import plan_layout
 
 OPTIONAL = ("temp", "table_angle", "table_rate")
 SEG_MAX = 2**31  # a segment index beyond this is no index (and would overflow an int)
-TIME_MAX = 1e12  # s (31,700 years): a time beyond this is no recording's (or not in seconds)
-
-
-def check_time_range(t, path, unit_hint: str = "") -> None:
-    """Exit 3 on a time value no recording has (|t| > TIME_MAX s): at 1e20 s
-    the float steps are 16384 s and every rate and duration would be garbage."""
-    t = np.asarray(t, dtype=float)
-    if len(t) and not np.all(np.abs(t) <= TIME_MAX):
-        v = t[np.flatnonzero(~(np.abs(t) <= TIME_MAX))[0]]
-        raise InputError(f"time value {num(v)} s is beyond any recording (|t| <= "
-                         f"{TIME_MAX:g} s){unit_hint}", path)
 
 
 def _read_table(path: str):
@@ -42,7 +40,9 @@ def _read_table(path: str):
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
         raise InputError("no such file", path) from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        raise InputError(not_a_text_log(path, exc), path) from None
+    except OSError as exc:
         raise InputError(f"cannot read: {exc}", path) from None
     lines = text.splitlines()
     body_start, header = None, None
@@ -109,120 +109,10 @@ def read_columns(path: str, layout: Layout):
     return t, accel, gyro, opt, None if seg is None else seg.astype(int)
 
 
-def _raw_segment(ps: PlanSegment, plan_index: int, start: int, stop: int,
-                 label: str | None = None) -> Segment:
-    return Segment(label=label or ps.label, kind=ps.kind if not ps.repeat_auto else "static",
-                   start=int(start), stop=int(stop), plan_index=plan_index,
-                   attitude=ps.attitude, attitude_sigma=ps.attitude_sigma,
-                   table_axis_enu=ps.table_axis_enu, table_rate=ps.table_rate,
-                   lever_arm=ps.lever_arm, rotation_axis_body=ps.rotation_axis_body,
-                   rotation_angle=ps.rotation_angle)
-
-
-def segments_from_column(seg: np.ndarray, plan: Plan, path: str) -> list[Segment]:
-    """Contiguous runs of the same segment index become segments."""
-    n_plan = len(plan.segments)
-    bad = (seg < -1) | (seg >= n_plan)
-    if bad.any():
-        raise InputError(f"segment index {num(seg[bad][0])} out of range: the plan has "
-                         f"{n_plan} segments (use -1 between segments)", path)
-    out, counts = [], {}
-    d = np.flatnonzero(np.diff(seg)) + 1
-    starts = np.concatenate([[0], d])
-    stops = np.concatenate([d, [len(seg)]])
-    for a, b in zip(starts, stops):
-        k = int(seg[a])
-        if k < 0:
-            continue
-        ps = plan.segments[k]
-        counts[k] = counts.get(k, 0) + 1
-        label = plan.visit_labels[k]
-        if ps.repeat_auto or counts[k] > 1:
-            label = f"{label}#{counts[k]}"
-        out.append(_raw_segment(ps, k, a, b, label))
-    return out
-
-
-def segments_from_detection(report: DetectionReport, plan: Plan, n: int, path: str,
-                            cycles: CycleDetection | None = None) -> list[Segment]:
-    """Match detected static intervals to the plan's static segments in order;
-    a repeat = "auto" segment absorbs any number; turn segments are the spans
-    between the intervals around them. Rotating segments take the detected
-    rotation cycles (``cycles``, methods/cycle_detect.py) in order; holds inside
-    a cycle are not static positions."""
-    rotating = [(i, s) for i, s in enumerate(plan.segments) if s.kind == "rotating"]
-    intervals = list(report.intervals)
-    by_plan: dict[int, list[Segment]] = {}
-    if rotating:
-        if cycles is None or len(cycles.cycles) != len(rotating):
-            found = 0 if cycles is None else len(cycles.cycles)
-            why = "" if cycles is None else f": {cycles.explain(len(rotating))}"
-            raise InputError(f"the plan has {len(rotating)} rotating segments but the data show "
-                             f"{found}{why}", path)
-        for (i, s), (a, b) in zip(rotating, cycles.cycles):
-            by_plan[i] = [_raw_segment(s, i, a, b, plan.visit_labels[i])]
-        intervals = trim_intervals(intervals, cycles.cycles, 1)
-    statics = [(i, s) for i, s in enumerate(plan.segments) if s.kind == "static"]
-    fixed = sum(1 for _, s in statics if not s.repeat_auto)
-    auto = any(s.repeat_auto for _, s in statics)
-    if rotating and not statics:
-        intervals = []  # quiet spans between cycles (remounts) are no plan positions
-    found = len(intervals)
-    if (found != fixed and not auto) or (auto and found < fixed):
-        expect = f"{fixed}" + (" or more" if auto else "")
-        raise InputError(f"detected {found} static intervals but the plan has {expect} static "
-                         f"segments; {report.explain(fixed, at_least=auto)}", path)
-    n_auto = found - fixed
-    # static plan segments expanded to one entry per detected interval
-    assigned: list[tuple[int, PlanSegment, str]] = []
-    for i, s in statics:
-        if s.repeat_auto:
-            assigned += [(i, s, f"{s.label}#{k + 1}") for k in range(n_auto)]
-        else:
-            assigned.append((i, s, plan.visit_labels[i]))
-    out: list[Segment] = []
-    for (i, s, label), (a, b) in zip(assigned, intervals):
-        seg = _raw_segment(s, i, a, b, label)
-        by_plan.setdefault(i, []).append(seg)
-    # walk the plan; turn segments take the span between neighbouring intervals
-    prev_stop = 0
-    pending_turn: tuple[int, PlanSegment] | None = None
-    for i, s in enumerate(plan.segments):
-        if s.kind == "turn":
-            if pending_turn is not None:
-                raise InputError(f"turn segments {plan.segments[pending_turn[0]].label!r} and "
-                                 f"{s.label!r} follow each other with no static position between "
-                                 "them: they cannot be separated without a 'segment' column", path)
-            pending_turn = (i, s)
-            continue
-        segs = by_plan.get(i, [])
-        if pending_turn is not None:
-            start = segs[0].start if segs else n
-            out.append(_raw_segment(pending_turn[1], pending_turn[0], prev_stop, start,
-                                    plan.visit_labels[pending_turn[0]]))
-            pending_turn = None
-        out += segs
-        if segs:
-            prev_stop = segs[-1].stop
-    if pending_turn is not None:
-        out.append(_raw_segment(pending_turn[1], pending_turn[0], prev_stop, n,
-                                plan.visit_labels[pending_turn[0]]))
-    return out
-
-
-def plan_cycles(plan: Plan, t, gyro, table_rate=None) -> CycleDetection | None:
-    """The rotation cycles of the data where the plan has rotating segments."""
-    if gyro is None or not any(s.kind == "rotating" for s in plan.segments):
-        return None
-    return detect_cycles(t, gyro, table_rate)
-
-
 def import_csv(path, plan: Plan, window_s: float = 1.0, multiplier: float = 3.0,
                min_static_s: float = 1.0, units: dict | None = None) -> Recording:
     """A contract CSV and its plan -> Recording. Raises InputError naming the file."""
     path = str(path)
-    from calib_cli.io.stream_import import plan_layout
-
     layout = plan_layout(plan)
     t, accel, gyro, opt, seg = read_columns(path, layout)
     if seg is not None:
@@ -304,7 +194,7 @@ def _stream_header(path: str):
             try:
                 s = raw.decode("utf-8").strip()
             except UnicodeDecodeError as exc:
-                raise InputError(f"cannot read: {exc}", path) from None
+                raise InputError(not_a_text_log(path, exc), path) from None
             if not s or s.startswith("#"):
                 continue
             header = [c.strip() for c in s.split(",")]
@@ -335,8 +225,6 @@ def _layout_columns(header, layout: Layout, path: str):
 
 
 def _chunk(data_cols, cols):
-    from calib_cli.io.stream_import import Chunk
-
     ti, ai, gi, oi, si = cols
     return Chunk(time=data_cols[ti], accel=np.column_stack([data_cols[i] for i in ai]),
                  gyro=None if gi is None else np.column_stack([data_cols[i] for i in gi]),
@@ -344,7 +232,7 @@ def _chunk(data_cols, cols):
                  segment=None if si is None else data_cols[si])
 
 
-class _CommentFilter:
+class CommentFilter:
     """A read-only byte stream over the log from the line after the header,
     without comment lines (first non-blank character ``#``) and blank lines;
     it hashes every byte of the file on the way (the provenance's SHA-256)."""
@@ -442,7 +330,7 @@ def _segments(path, offset, hasher):
                 return
 
 
-class _Assembler:
+class Assembler:
     """pyarrow's record batches (about 1 MB of text each) regrouped into chunks
     of exactly ``CHUNK_ROWS`` rows (the raw file's HDF5 chunk: whole chunks are
     written once, never read back and rewritten), one copy per value."""
@@ -458,8 +346,6 @@ class _Assembler:
 
     def take(self, m):
         """A chunk of the first m pending rows."""
-        from calib_cli.io.stream_import import Chunk
-
         ti, ai, gi, oi, si = self.cols
         t = np.empty(m)
         acc = np.empty((m, len(ai)))
@@ -490,7 +376,7 @@ class _Assembler:
         return Chunk(time=t, accel=acc, gyro=gyr, opt=opt, segment=seg)
 
 
-class _FileHash:
+class FileHash:
     """SHA-256 of a whole file, computed by a background thread while the
     import reads it (hashlib releases the GIL on large blocks)."""
 
@@ -551,7 +437,7 @@ def _arrow_chunks(path, header, offset, head, cols, hasher, direct=False):
     ``direct``: the body of the log, from the line after the header, read in
     pieces (``_segments``, hashed on the way) that pyarrow parses from
     memory; any comment or blank-only line in the body is a parse error,
-    hence a _Fallback to the filtering stream (``_CommentFilter``)."""
+    hence a _Fallback to the filtering stream (``CommentFilter``)."""
     if direct:
         import pyarrow as pa
 
@@ -563,11 +449,11 @@ def _arrow_chunks(path, header, offset, head, cols, hasher, direct=False):
         stream = None
         source = batches()
     else:
-        stream = _CommentFilter(path, offset, head, hasher)
+        stream = CommentFilter(path, offset, head, hasher)
         source = _arrow_batches(stream, header)
     t_last = None
     ti, si = cols[0], cols[4]
-    asm = _Assembler(cols)
+    asm = Assembler(cols)
     rows = 0
     try:
         for batch in source:
@@ -676,7 +562,7 @@ def _text_chunks(path, header, cols_or_error, hasher=None):
                             or isinstance(cols_or_error, InputError)):
                         yield _chunk([data[:, j] for j in range(k)], cols_or_error)
         except UnicodeDecodeError as exc:
-            raise InputError(f"cannot read: {exc}", path) from None
+            raise InputError(not_a_text_log(path, exc), path) from None
         if rows:
             data = block(rows)
             if not (nonfinite or time_err or seg_err or isinstance(cols_or_error, InputError)):
@@ -707,7 +593,7 @@ def import_csv_stream(path, plan: Plan, out, inputs=(), window_s: float = 1.0,
     progress: optional callback ``progress(chunks_read)`` after each chunk."""
     import hashlib
 
-    from calib_cli.io.stream_import import import_to_raw, plan_layout, prefetch
+    from calib_cli.io.stream_import import import_to_raw, prefetch
 
     path = str(path)
     layout = plan_layout(plan)

@@ -80,3 +80,22 @@ def read_diagnosis(path) -> dict:
     if not isinstance(obj, dict):
         raise InputError("/summary is not a JSON object", p)
     return obj
+
+
+def read_diagnosis_arrays(path) -> dict:
+    """{"bins": {time, segment, count}, "residuals": {stage: {name: (M, n)}}} of a
+    diagnosis file: the residuals (noise units) of the base model ("initial") and
+    after each step, for reports."""
+    p = str(path)
+    out: dict = {"bins": {}, "residuals": {}}
+    with open_checked(p, "diagnosis") as h5:
+        for k in ("time", "segment", "count"):
+            if f"bins/{k}" in h5:
+                out["bins"][k] = np.asarray(h5[f"bins/{k}"][()])
+        if "residuals" in h5:
+            for stage in h5["residuals"]:
+                grp = h5["residuals"][stage]
+                if isinstance(grp, h5py.Group):
+                    out["residuals"][stage] = {n: np.asarray(grp[n][()], float) for n in grp
+                                               if isinstance(grp[n], h5py.Dataset)}
+    return out

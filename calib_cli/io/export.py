@@ -90,9 +90,13 @@ def _predict(model, params, sensor, f, w):
 def affine_correction(cal: CalibrationResult, path: str = "<calibration>") -> dict:
     """{"accel": {"b", "K", "K_inv"}, "gyro": {"d", "G", "G_inv", "D"}} for the
     sensors the calibration covers, read off its forward model."""
-    if cal.layout.redundant:
-        raise InputError("a redundant-unit (RIMU) calibration has no triad K^-1; export it "
-                         "as json, yaml or csv", path)
+    from calib_cli.methods.registry import method_of_result
+
+    m = method_of_result(cal.method)  # the method's export policy (methods/registry.py)
+    if cal.layout.redundant or (m is not None and m.export != "firmware"):
+        what = ("a redundant-unit (RIMU) calibration" if cal.layout.redundant
+                else f"a {cal.method} calibration")
+        raise InputError(f"{what} has no triad K^-1; export it as json, yaml or csv", path)
     names = {d.get("name") for d in cal.model}
     bad = sorted(names - _effects("linear") - _effects("input") - _effects("thermal")
                  - set(NONAFFINE) - {"time_offset"})

@@ -30,7 +30,8 @@ import io
 import numpy as np
 
 from calib_cli.data import CalibrationResult
-from calib_cli.errors import InputError
+from calib_cli.errors import CalibError, InputError
+from calib_cli.io import fc_params
 
 AUTOPILOT_FORMATS = ("kalibr", "px4", "ardupilot")
 KALIBR_KEYS = ("accelerometer_noise_density", "accelerometer_random_walk",
@@ -69,6 +70,8 @@ def kalibr_from_allan(res, rostopic: str = "/imu0") -> dict:
 
 
 def kalibr_dict(acc_nd, acc_rw, gyr_nd, gyr_rw, rostopic, rate) -> dict:
+    if rate is not None:  # 100 Hz, not the 100.00000000000213 of float time stamps
+        rate = float(f"{float(rate):.10g}")
     vals = (acc_nd, acc_rw, gyr_nd, gyr_rw, str(rostopic), rate)
     return {k: (v if k == "rostopic" else _num(v)) for k, v in zip(KALIBR_KEYS, vals)}
 
@@ -87,22 +90,29 @@ def kalibr_from_raw_noise(sigma_accel, sigma_gyro, dt) -> tuple:
 
 
 # ---------------------------------------------------------------------------
-# ArduPilot's temperature calibration (INS_TCALn_*), docs/export.md
+# PX4 / ArduPilot parameters (docs/export.md)
 #
-# From ArduPilot's libraries/AP_InertialSensor/AP_InertialSensor_tempcal.cpp:
-# per IMU, INS_TCALn_ENABLE, _TMIN, _TMAX and vectors ACC1..ACC3, GYR1..GYR3,
-# the coefficients of a polynomial without constant term in T - 35 degC
-# (TEMP_REFERENCE), stored times 1e6 (SCALE_FACTOR):
-#     P(T) = (c1 + (c2 + c3 d) d) d * 1e-6,  d = T - 35,
-# applied in the sensor frame before the offsets and scales
-# (AP_InertialSensor_Backend::_rotate_and_correct_accel/gyro):
-#     v -= P(clamp(T)) ; v += P(clamp(CALTEMP)),  clamp to [TMIN, TMAX],
-# CALTEMP being INS_ACCn_CALTEMP / INS_GYRn_CALTEMP, the temperature the
-# offsets hold at. Units: m/s^2 and rad/s, as the offsets.
+# Both firmwares correct each sensor in its own frame, then rotate
+# (io/fc_params.py writes their equations out):  y = R S (x - o - thermal(T)).
+# A fit on logged data y gives  y = b + B(T) + K f  (contract section 2, bias
+# drift B with B(T_ref) = 0), so  f = K^-1 (y - b - B(T))
+#   = K^-1 R S (x - o - thermal(T) - S^-1 R^T (b + B(T))).
+# The firmware can hold  f = R S' (x - o' - thermal'(T))  with
+#   S' = diag(R^T K^-1 R S)     (the off-diagonal of R^T K^-1 R S is dropped)
+#   o' + thermal'(T) = o + thermal(T) + S^-1 R^T (b + B(T))      (exact)
+# which is PX4's own update (Accelerometer.hpp BiasCorrectedSensorOffset:
+# "existing offset + bias rotated to sensor frame and unscaled"). For raw data
+# (o, thermal) = 0 and S = R = I: the absolute calibration.
 
-AP_TEMP_REFERENCE = 35.0  # degC, TEMP_REFERENCE
-AP_SCALE_FACTOR = 1.0e6  # SCALE_FACTOR
-AP_TCAL_ORDER = 3
+AP_TEMP_REFERENCE = fc_params.AP_TEMP_REFERENCE
+AP_SCALE_FACTOR = fc_params.AP_SCALE_FACTOR
+AP_TCAL_ORDER = fc_params.TCAL_ORDER
+
+
+class UsageProblem(CalibError):
+    """An option the firmware has no parameters for (exit 2)."""
+
+    exit_code = 2
 
 
 def reexpand(coef, t_ref: float, t0: float = AP_TEMP_REFERENCE) -> np.ndarray:
@@ -120,161 +130,310 @@ def reexpand(coef, t_ref: float, t0: float = AP_TEMP_REFERENCE) -> np.ndarray:
     return c
 
 
-def ap_poly(params_c: np.ndarray, temp, tmin: float, tmax: float) -> np.ndarray:
-    """ArduPilot's polynomial_eval at clamp(temp): params_c (3, 3) as stored (x 1e6)."""
-    d = np.clip(np.asarray(temp, float), tmin, tmax) - AP_TEMP_REFERENCE
-    c = np.asarray(params_c, float) / AP_SCALE_FACTOR
-    return ((c[:, 0][:, None] + (c[:, 1][:, None] + c[:, 2][:, None] * d) * d) * d).T
-
-
-def ardupilot_tcal(cal: CalibrationResult, instance: int, path: str):
-    """({sensor: (3, 3) stored coefficients}, tmin, tmax, caltemp, {sensor: bias at
-    caltemp}) of a thermal calibration, or None without bias drift terms."""
-    p, st = cal.params, cal.stats
-    sensors = [s for s in ("accel", "gyro")
-               if np.any(np.nan_to_num(np.asarray(p.get(f"{s}_temp_bias", 0.0), float)))]
-    if not sensors:
+def _drift(p: dict, sensor: str):
+    """The bias drift coefficients (3, N) of a thermal fit, or None."""
+    v = p.get(f"{sensor}_temp_bias")
+    if v is None:
         return None
-    if not 0 <= instance <= 2:
-        raise InputError("ArduPilot holds temperature calibrations for IMUs 1-3 "
-                         "(INS_TCAL1..3): use --instance 0, 1 or 2", path)
-    coef = {s: np.asarray(p[f"{s}_temp_bias"], float).reshape(3, -1) for s in sensors}
-    if max(c.shape[1] for c in coef.values()) > AP_TCAL_ORDER:
-        raise InputError("ArduPilot's temperature polynomials are third order at most", path)
-    t_ref = float(st.get("temp_ref_degC", 25.0))
-    rng = st.get("temp_range_degC") or [t_ref, t_ref]
-    tmin, tmax = float(rng[0]), float(rng[1])
-    # the offsets hold at CALTEMP; ArduPilot clamps it to [TMIN, TMAX] too
-    caltemp = float(np.clip(t_ref, tmin, tmax))
-    stored, bias_at = {}, {}
-    for s, c in coef.items():
-        e = reexpand(c, t_ref)  # the constant e[:, 0] cancels between T and CALTEMP
-        full = np.zeros((3, AP_TCAL_ORDER))
-        full[:, :e.shape[1] - 1] = e[:, 1:]
-        stored[s] = full * AP_SCALE_FACTOR
+    v = np.nan_to_num(np.asarray(v, dtype=float)).reshape(3, -1)
+    return v if np.any(v != 0) else None
+
+
+def _scale_drift_note(cal: CalibrationResult, sensor: str, dropped: dict) -> None:
+    v = np.nan_to_num(np.asarray(cal.params.get(f"{sensor}_temp_scale", 0.0), dtype=float))
+    if np.any(v != 0):
         from calib_cli.model.effects import temp_poly
 
-        bias_at[s] = np.asarray(p[f"{s}_bias"], float) + temp_poly(c, np.array([caltemp - t_ref]))[0]
-    return stored, tmin, tmax, caltemp, bias_at
+        rng = cal.stats.get("temp_range_degC") or [0.0, 0.0]
+        t_ref = float(cal.stats.get("temp_ref_degC", 25.0))
+        dts = np.linspace(float(rng[0]), float(rng[1]), 51) - t_ref
+        size = float(np.abs(temp_poly(v.reshape(3, -1), dts)).max())
+        dropped[f"{sensor}_temp_scale: scale-factor change with temperature (not held by the "
+                "autopilot; largest relative change over the calibrated range)"] = size
 
 
-# ---------------------------------------------------------------------------
-# PX4 / ArduPilot: per-axis offsets and scales
+def _check_triad(cal: CalibrationResult, path: str) -> None:
+    for sensor in ("accel", "gyro"):
+        b = cal.params.get(f"{sensor}_bias")
+        if b is not None and np.asarray(b).size != 3 or cal.method == "rimu":
+            n = np.asarray(b).size if b is not None else "n"
+            raise InputError(f"a redundant-unit (RIMU) calibration of {n} single-axis sensors "
+                             "has no per-axis triad offsets and scales for an autopilot: export "
+                             "it as json, yaml, csv or c-header", path)
+        if cal.raw_units.get(sensor, "m/s^2" if sensor == "accel" else "rad/s") == "count" \
+                and b is not None:
+            raise InputError(f"the {sensor} calibration is in counts; the autopilot's parameters "
+                             "are in SI units", path)
 
 
-def _diag_model(cal: CalibrationResult, sensor: str, path: str):
-    """(offset, scale, dropped) with f = (raw - offset) * scale per axis, the
-    autopilots' model; ``dropped``: what the model cannot hold."""
-    p = cal.params
-    if cal.raw_units.get(sensor, "m/s^2" if sensor == "accel" else "rad/s") == "count":
-        raise InputError(f"the {sensor} calibration is in counts; the autopilot's parameters "
-                         "are in SI units", path)
-    dropped = {}
-    bias = p.get(f"{sensor}_bias")
+def compose(old: fc_params.SensorCal, firmware: str, sensor: str, cal: CalibrationResult,
+            path: str, shared_range=None) -> tuple[fc_params.SensorCal, dict]:
+    """The firmware parameters that apply ``cal`` on top of ``old`` (the
+    calibration in force when the data was logged; identity for raw data), and
+    {what is dropped: its size}. Module comment above for the algebra."""
+    p, st = cal.params, cal.stats
+    R, S, o = old.R, old.scale, old.offset
+    dropped: dict = {}
+    bias = np.asarray(p[f"{sensor}_bias"], dtype=float).reshape(3)
     K = p.get(f"{sensor}_K")
-    if bias is None:
-        return None, None, dropped
-    bias = np.asarray(bias, dtype=float).reshape(3)
-    for k in (f"{sensor}_temp_bias", f"{sensor}_temp_scale"):  # docs/thermal.md
-        v = np.nan_to_num(np.asarray(p.get(k, 0.0), dtype=float))
-        if np.any(v != 0):
-            if k.endswith("temp_scale"):
-                rng = cal.stats.get("temp_range_degC") or [0.0, 0.0]
-                t_ref = float(cal.stats.get("temp_ref_degC", 25.0))
-                from calib_cli.model.effects import temp_poly
-
-                dts = np.linspace(float(rng[0]), float(rng[1]), 51) - t_ref
-                size = float(np.abs(temp_poly(v.reshape(3, -1), dts)).max())
-                dropped[f"{k}: scale-factor change with temperature (not held by the "
-                        "autopilot; largest relative change over the calibrated range)"] = size
-            else:
-                dropped[f"{k}: temperature terms (the values at T_ref are written; largest "
-                        "coefficient)"] = float(np.abs(v).max())
-    if K is None:
-        return bias, np.ones(3), dropped
-    K = np.asarray(K, dtype=float).reshape(3, 3)
-    Kinv = np.linalg.inv(K)
-    off = Kinv - np.diag(np.diag(Kinv))
+    Kinv = np.eye(3) if K is None else np.linalg.inv(np.asarray(K, dtype=float).reshape(3, 3))
+    # the whole correction in the sensor frame: R^T K^-1 R S; the firmware holds its diagonal
+    A = (R.T @ Kinv @ R) * S[None, :]
+    off = A - np.diag(np.diag(A))
+    inv = "K^-1" if sensor == "accel" else "G^-1"
     if np.any(off != 0):
-        dropped[f"{sensor} cross-axis/misalignment (largest off-diagonal of K^-1)"] = \
+        where = "" if fc_params.is_axis_permutation(R) and np.allclose(R, np.eye(3)) else \
+            " in the sensor frame"
+        dropped[f"{sensor} cross-axis/misalignment (largest off-diagonal of {inv}{where})"] = \
             float(np.abs(off).max())
-    if sensor == "gyro" and "gyro_D" in p and np.any(np.asarray(p["gyro_D"]) != 0):
-        dropped["gyro g-sensitivity D (largest entry, (rad/s)/(m/s^2))"] = \
-            float(np.abs(np.asarray(p["gyro_D"])).max())
-    return bias, np.diag(Kinv).copy(), dropped
-
-
-def autopilot_params(cal: CalibrationResult, target: str, instance: int = 0,
-                     path: str = "<calibration>") -> tuple[list[tuple[str, float]], list[str]]:
-    """(parameters [(name, value)], notes) for ``target`` px4 or ardupilot."""
-    a_off, a_scale, dropped = _diag_model(cal, "accel", path)
-    g_off, g_scale, g_dropped = _diag_model(cal, "gyro", path)
-    dropped.update(g_dropped)
-    if a_off is None and g_off is None:
-        raise InputError("no accel_bias or gyro_bias in the calibration", path)
-    params: list[tuple[str, float]] = []
-    notes: list[str] = []
-    axes = "XYZ"
-    if target == "px4":
-        for i in range(3):
-            if a_off is not None:
-                params.append((f"CAL_ACC{instance}_{axes[i]}OFF", float(a_off[i])))
-        for i in range(3):
-            if a_scale is not None:
-                params.append((f"CAL_ACC{instance}_{axes[i]}SCALE", float(a_scale[i])))
-        for i in range(3):
-            if g_off is not None:
-                params.append((f"CAL_GYRO{instance}_{axes[i]}OFF", float(g_off[i])))
-        notes.append(f"set CAL_ACC{instance}_ID and CAL_GYRO{instance}_ID to the sensors' "
-                     "device ids (sensor_accel/sensor_gyro device_id in a ULog)")
-    elif target == "ardupilot":
-        n = "" if instance == 0 else str(instance + 1)
-        tcal = ardupilot_tcal(cal, instance, path)
-        if tcal is not None:  # the bias drift goes to INS_TCALn_*, offsets at CALTEMP
-            stored, tmin, tmax, caltemp, bias_at = tcal
-            for s in stored:
-                dropped = {k: v for k, v in dropped.items() if not k.startswith(f"{s}_temp_bias")}
-            a_off = bias_at.get("accel", a_off)
-            g_off = bias_at.get("gyro", g_off)
-        for i in range(3):
-            if a_off is not None:
-                params.append((f"INS_ACC{n}OFFS_{axes[i]}", float(a_off[i])))
-        for i in range(3):
-            if a_scale is not None:
-                params.append((f"INS_ACC{n}SCAL_{axes[i]}", float(a_scale[i])))
-        for i in range(3):
-            if g_off is not None:
-                params.append((f"INS_GYR{n}OFFS_{axes[i]}", float(g_off[i])))
-        notes.append("ArduPilot re-learns the gyro offsets at every boot unless INS_GYR_CAL = 0")
-        if tcal is not None:
-            m = instance + 1
-            params.append((f"INS_TCAL{m}_ENABLE", 1.0))
-            params.append((f"INS_TCAL{m}_TMIN", tmin))
-            params.append((f"INS_TCAL{m}_TMAX", tmax))
-            for s, short in (("accel", "ACC"), ("gyro", "GYR")):
-                c = stored.get(s, np.zeros((3, 3)))
-                for k in range(AP_TCAL_ORDER):
-                    for i in range(3):
-                        params.append((f"INS_TCAL{m}_{short}{k + 1}_{axes[i]}", float(c[i, k])))
-            for s, short in (("accel", "ACC"), ("gyro", "GYR")):
-                if s in stored:
-                    params.append((f"INS_{short}{m}_CALTEMP", caltemp))
-            notes.append(
-                f"INS_TCAL{m}_*: the bias-drift polynomials re-expanded about ArduPilot's "
-                f"fixed 35 degC reference (AP_InertialSensor_tempcal.cpp: third order, no "
-                f"constant term, times 1e6), valid over TMIN..TMAX = {tmin:g}..{tmax:g} degC; "
-                f"the offsets hold at INS_*_CALTEMP = {caltemp:g} degC; scale terms are not "
-                "held (see below)")
-            if "gyro" in stored:
-                notes.append("with INS_GYR_CAL = 1 ArduPilot re-learns the gyro offsets at "
-                             "boot and sets INS_GYRn_CALTEMP to that temperature itself")
+    if sensor == "accel":
+        scale = np.diag(A).copy()
     else:
+        scale = np.ones(3)
+        g = np.diag(A)
+        if np.any(np.abs(g - 1) > 0):
+            dropped["gyro scale factors (largest |(G^-1)_ii - 1|: neither autopilot has a gyro "
+                    "scale parameter)"] = float(np.abs(g - 1).max())
+        D = p.get("gyro_D")
+        if D is not None and np.any(np.asarray(D) != 0):
+            dropped["gyro g-sensitivity D (largest entry, (rad/s)/(m/s^2))"] = \
+                float(np.abs(np.asarray(D)).max())
+    _scale_drift_note(cal, sensor, dropped)
+    to_sensor = R.T / S[:, None]  # logged-frame offsets -> sensor-frame offsets: S^-1 R^T
+    offset = o + to_sensor @ bias
+    B = _drift(p, sensor)
+    thermal = old.thermal
+    if B is not None:
+        t_ref = float(st.get("temp_ref_degC", 25.0))
+        rng = st.get("temp_range_degC") or [t_ref, t_ref]
+        lo, hi = float(rng[0]), float(rng[1])
+        Bs = to_sensor @ B  # the drift's coefficient vectors in the sensor frame
+        thermal, offset = _thermal(old.thermal, firmware, sensor, Bs, t_ref, lo, hi, offset,
+                                   path, shared_range, old.slot)
+    new = fc_params.SensorCal(offset, scale, np.eye(3), thermal, old.device_id, old.slot)
+    return new, dropped
+
+
+def _thermal(old, firmware, sensor, Bs, t_ref, lo, hi, offset, path, shared_range, slot):
+    """(new Thermal, new offset) holding old thermal(T) + Bs(T) (Bs: (3, N) in T - t_ref,
+    zero at t_ref) over the fitted range [lo, hi]."""
+    from calib_cli.model.effects import temp_poly
+
+    order = Bs.shape[1]
+    if old is not None and (lo < old.tmin - 1e-9 or hi > old.tmax + 1e-9):
+        raise fc_params.CompositionError(
+            f"the {sensor} temperature calibration in force holds over {old.tmin:g}..{old.tmax:g} "
+            f"degC, the fit over {lo:g}..{hi:g} degC: the firmware clamps each polynomial to "
+            "its range, so their sum is not one polynomial")
+    if firmware == "px4":
+        if old is None:
+            if order > fc_params.TCAL_ORDER:
+                raise InputError("PX4's temperature polynomials (TC_*_X0..X3) are third order "
+                                 "at most", path)
+            coef = np.zeros((3, fc_params.TCAL_ORDER + 1))
+            coef[:, 1:order + 1] = Bs
+            return fc_params.Thermal("px4", coef, lo, hi, t_ref, slot), offset
+        e = reexpand(Bs, t_ref, old.tref)  # about the TREF in force: X0 + X1 d + ...
+        if e.shape[1] - 1 > fc_params.TCAL_ORDER:
+            raise InputError("PX4's temperature polynomials are third order at most", path)
+        coef = np.array(old.coef, dtype=float)
+        coef[:, 1:e.shape[1]] += e[:, 1:]
+        return fc_params.Thermal("px4", coef, old.tmin, old.tmax, old.tref, old.slot), \
+            offset + e[:, 0]
+    # ArduPilot: P(T) - P(CALTEMP), P without constant term in T - 35, times 1e6
+    if order > fc_params.TCAL_ORDER:
+        raise InputError("ArduPilot's temperature polynomials are third order at most", path)
+    e = reexpand(Bs, t_ref)
+    stored = np.zeros((3, fc_params.TCAL_ORDER))
+    stored[:, :order] = e[:, 1:] * AP_SCALE_FACTOR
+    if old is None:
+        tmin, tmax = shared_range or (lo, hi)
+        caltemp = float(np.clip(t_ref, tmin, tmax))  # ArduPilot clamps CALTEMP too
+        return (fc_params.Thermal("ardupilot", stored, tmin, tmax, caltemp, slot),
+                offset + temp_poly(Bs, np.array([caltemp - t_ref]))[0])
+    caltemp = float(np.clip(old.tref, old.tmin, old.tmax))
+    return (fc_params.Thermal("ardupilot", np.asarray(old.coef, float) + stored, old.tmin,
+                              old.tmax, old.tref, old.slot),
+            offset + temp_poly(Bs, np.array([caltemp - t_ref]))[0])
+
+
+def _mode(source: dict, target: str, residual: bool, in_force: dict | None) -> str:
+    """absolute | composed | residual | unknown (no origin recorded)."""
+    if residual:
+        return "residual"
+    if in_force is not None:
+        return "composed"
+    samples = source.get("samples")
+    if samples == "corrected":
+        return "composed"
+    if samples == "raw":
+        return "absolute"
+    return "unknown"
+
+
+def autopilot_export(cal: CalibrationResult, target: str, instance: int | None = None,
+                     path: str = "<calibration>", source: dict | None = None,
+                     residual: bool = False, in_force: dict | None = None) -> tuple:
+    """(parameters [(name, value)], notes, meta) for ``target`` px4 or ardupilot.
+
+    ``source``: the calibration's /source (io/h5.read_source); a fit on data the
+    firmware had already corrected is composed with the parameters in force
+    (``in_force`` overrides the log's) unless ``residual``. ``meta``: what the
+    --json object reports (mode, instance, parameters in force, dropped terms)."""
+    if target not in fc_params.FIRMWARES:
         raise InputError(f"unknown autopilot {target!r}", path)
-    if g_scale is not None and np.any(np.abs(g_scale - 1) > 0):
-        dropped["gyro scale factors (largest |1/G_ii - 1|)"] = float(np.abs(g_scale - 1).max())
+    _check_triad(cal, path)
+    source = dict(source or {})
+    sensors = [s for s in ("accel", "gyro") if cal.params.get(f"{s}_bias") is not None]
+    if not sensors:
+        raise InputError("no accel_bias or gyro_bias in the calibration", path)
+    mode = _mode(source, target, residual, in_force)
+    log_fw = source.get("firmware")
+    if instance is not None:
+        try:
+            fc_params.check_instance(target, instance)
+        except ValueError as exc:
+            raise UsageProblem(str(exc)) from None
+    notes: list[str] = []
+    params_in_force = in_force if in_force is not None else (source.get("parameters") or {})
+    if mode == "composed":
+        if in_force is None and log_fw and log_fw != target:
+            raise fc_params.CompositionError(
+                f"the data was corrected by {log_fw} parameters; a {target} export of this fit "
+                f"would mix two firmwares: use --format {log_fw}, or --residual")
+        changed = source.get("parameters_changed") or []
+        if changed and in_force is None:
+            raise fc_params.CompositionError(
+                "calibration parameters changed during the log (" + ", ".join(changed[:5])
+                + "), so no one set of parameters was in force: import a log recorded with "
+                "fixed parameters, or give them with --in-force FILE")
+    ids = source.get("device_ids") or {}
+    log_inst = source.get("instance")
+    olds: dict = {}
+    for s in sensors:
+        dev = ids.get(s)
+        if mode == "composed":
+            if target == "px4" and dev is None and in_force is None:
+                raise fc_params.CompositionError(
+                    f"the log does not say which {s} sensor_combined comes from (no "
+                    "sensor_selection, several sensor_* instances), so its CAL_* slot is not "
+                    "known: import --source sensor, or give --in-force FILE with --instance")
+            inst = instance if target == "ardupilot" and instance is not None and \
+                log_inst is None else (log_inst if target == "ardupilot" else instance)
+            olds[s] = fc_params.in_force(target, params_in_force, s,
+                                         instance=inst if inst is not None else 0,
+                                         device_id=dev if target == "px4" else None)
+        else:
+            olds[s] = fc_params.SensorCal(np.zeros(3), np.ones(3), np.eye(3), None,
+                                          None if dev is None else int(dev))
+    # the instance the parameters are written for
+    out_inst = {}
+    for s in sensors:
+        if instance is not None:
+            out_inst[s] = instance
+        elif target == "px4":
+            out_inst[s] = olds[s].slot if olds[s].slot is not None else 0
+        else:
+            out_inst[s] = int(log_inst) if log_inst is not None and log_fw == "ardupilot" else 0
+        try:
+            fc_params.check_instance(target, out_inst[s])
+        except ValueError as exc:
+            raise UsageProblem(str(exc)) from None
+    if target == "ardupilot" and len(set(out_inst.values())) > 1:
+        out_inst = {s: out_inst[sensors[0]] for s in sensors}
+    dropped: dict = {}
+    new: dict = {}
+    shared = None
+    if target == "ardupilot":  # one INS_TCALn_TMIN/TMAX for both sensors
+        th = [olds[s].thermal for s in sensors if olds[s].thermal is not None]
+        shared = (th[0].tmin, th[0].tmax) if th else None
+    for s in sensors:
+        new[s], d = compose(olds[s], target, s, cal, path, shared)
+        dropped.update(d)
+        if target == "ardupilot" and new[s].thermal is not None and shared is None:
+            shared = (new[s].thermal.tmin, new[s].thermal.tmax)
+    if target == "ardupilot" and any(new[s].thermal is not None for s in sensors):
+        for s in ("accel", "gyro"):  # TCAL enables both sensors' polynomials: zeros for the other
+            if s in new and new[s].thermal is None:
+                new[s] = fc_params.SensorCal(
+                    new[s].offset, new[s].scale, new[s].R,
+                    fc_params.Thermal("ardupilot", np.zeros((3, 3)), *shared, np.nan),
+                    new[s].device_id, new[s].slot)
+    params = fc_params.to_params_split(target, {s: (out_inst[s], new[s]) for s in sensors})
+    notes += _notes(target, mode, source, olds, new, out_inst, sensors, params_in_force,
+                    in_force is not None)
     for what, size in dropped.items():
         notes.append(f"not representable, dropped: {what} = {size:.3g}")
-    return params, notes
+    meta = {"mode": mode, "firmware": target, "instance": out_inst,
+            "in_force": ({k: params_in_force[k] for k in sorted(params_in_force)}
+                         if mode == "composed" else {}),
+            "dropped": dropped}
+    return params, notes, meta
+
+
+def _notes(target, mode, source, olds, new, out_inst, sensors, params_in_force, given) -> list:
+    notes = []
+    src = source.get("stream", "")
+    if mode == "composed":
+        rot = "; ".join(sorted({olds[s].rotation for s in sensors if olds[s].rotation}))
+        notes.append(
+            f"COMPOSED: the fitted data ({source.get('format', 'log')} {src}) was already "
+            f"corrected by the {target} parameters in force "
+            f"({'from --in-force' if given else 'from the log'}); these values are those "
+            "parameters followed by the fitted residual, an absolute calibration of the "
+            f"sensor{' (' + rot + ')' if rot else ''}")
+    elif mode == "residual":
+        notes.append("RESIDUAL (--residual): the fit of the logged data as it is, on top of "
+                     "whatever calibration the firmware applied when it was logged; NOT an "
+                     "absolute calibration: loading it replaces the parameters in force")
+    elif mode == "unknown":
+        notes.append("the data's origin is not recorded (not imported from a flight-controller "
+                     "log): written as an absolute calibration of raw samples; if the samples "
+                     "were corrected by the firmware, use calib import ulog|dataflash (which "
+                     "records the parameters in force) or --in-force FILE")
+    else:
+        notes.append(f"ABSOLUTE: the fitted data ({source.get('format', '')} {src}) is raw, "
+                     "before the firmware's calibration")
+    if target == "px4":
+        for s in sensors:
+            key = "ACC" if s == "accel" else "GYRO"
+            if new[s].device_id is None:
+                notes.append(f"set CAL_{key}{out_inst[s]}_ID to the sensor's device id "
+                             f"(sensor_{s}.device_id in a ULog): PX4 applies a slot only to "
+                             "the device it names")
+            if new[s].thermal is not None and new[s].device_id is None:
+                notes.append(f"set TC_{key[0]}{new[s].thermal.slot or out_inst[s]}_ID to the "
+                             "same device id (TemperatureCompensation matches it)")
+    else:
+        notes.append("ArduPilot re-learns the gyro offsets at every boot unless INS_GYR_CAL = 0")
+        th = [new[s].thermal for s in sensors if new[s].thermal is not None
+              and np.isfinite(new[s].thermal.tref)]
+        if th:
+            t = th[0]
+            notes.append(
+                f"INS_TCAL: the bias-drift polynomials re-expanded about ArduPilot's fixed "
+                f"35 degC reference (AP_InertialSensor_tempcal.cpp: third order, no constant "
+                f"term, times 1e6), valid over TMIN..TMAX = {t.tmin:g}..{t.tmax:g} degC; the "
+                f"offsets hold at CALTEMP = {t.tref:g} degC; scale terms are not held (see "
+                "below)")
+            if "gyro" in sensors and new["gyro"].thermal is not None:
+                notes.append("with INS_GYR_CAL = 1 ArduPilot re-learns the gyro offsets at boot "
+                             "and sets the gyro CALTEMP to that temperature itself")
+    for s in sensors:
+        t = new[s].thermal
+        if target == "px4" and t is not None:
+            notes.append(f"TC_{'A' if s == 'accel' else 'G'}: the {s} bias drift as PX4's "
+                         f"polynomial X0 + X1 d + X2 d^2 + X3 d^3, d = T - TREF (TREF = "
+                         f"{t.tref:g} degC), clamped to TMIN..TMAX = {t.tmin:g}..{t.tmax:g} "
+                         "degC (TemperatureCompensation.cpp); scale terms are not held")
+        if mode == "composed" and olds[s].thermal is not None and _drift_none(new, olds, s):
+            notes.append(f"the {s} temperature calibration in force is kept as it is "
+                         "(not written)")
+    return notes
+
+
+def _drift_none(new, olds, s) -> bool:
+    return new[s].thermal is olds[s].thermal
 
 
 def params_file(params, notes, target: str, source: str) -> str:
@@ -287,38 +446,35 @@ def params_file(params, notes, target: str, source: str) -> str:
         buf.write("# " + line.replace("\n", " ").replace("\r", " ") + "\n")
     for name, value in params:
         if target == "px4":
-            w.writerow([1, 1, name, repr(float(value)), 9])  # 9: MAV_PARAM_TYPE_REAL32
+            # MAV_PARAM_TYPE_INT32 (6) for PX4's integer parameters, REAL32 (9) otherwise
+            is_int = name.endswith(fc_params.PX4_INT_SUFFIX)
+            w.writerow([1, 1, name, str(int(round(value))) if is_int else repr(float(value)),
+                        6 if is_int else 9])
         else:
             w.writerow([name, repr(float(value))])
     return buf.getvalue()
 
 
 def export_for_tool(cal: CalibrationResult, fmt: str, source: str, path: str,
-                    allan=None, raw=None, rostopic: str = "/imu0", instance: int = 0,
-                    rate: float | None = None) -> tuple[str, list[str]]:
-    """(text, warnings) of ``fmt`` in AUTOPILOT_FORMATS. kalibr: noise
-    densities and random walks from ``allan`` (an AllanResult); without it,
-    densities from ``raw`` (a Recording: pooled within-position noise) and
-    random walks null."""
+                    allan=None, raw=None, rostopic: str = "/imu0", instance: int | None = None,
+                    rate: float | None = None, data_source: dict | None = None,
+                    residual: bool = False, in_force: dict | None = None
+                    ) -> tuple[str, list[str], dict]:
+    """(text, warnings, meta) of ``fmt`` in AUTOPILOT_FORMATS. kalibr: noise
+    densities and random walks from ``allan`` (an AllanResult); without it
+    exit 3 naming the option (Kalibr needs all four figures)."""
     warnings: list[str] = []
     if fmt == "kalibr":
-        if allan is not None:
-            d = kalibr_from_allan(allan, rostopic)
-        else:
-            acc_nd = gyr_nd = None
-            if raw is not None and raw.static_segments():
-                from calib_cli.methods.segstats import static_stats
-
-                dt = 1.0 / raw.sample_rate
-                sa = static_stats(raw, "accel").sigma
-                sg = static_stats(raw, "gyro").sigma if raw.gyro is not None else None
-                acc_nd, gyr_nd = kalibr_from_raw_noise(sa, sg, dt)
-                rate = raw.sample_rate
-            else:
-                warnings.append("no noise figures: give --allan ALLAN.h5 (or --raw RAW.h5 for "
-                                "the noise densities)")
-            warnings.append("random walks null: they need an Allan analysis (--allan ALLAN.h5)")
-            d = kalibr_dict(acc_nd, None, gyr_nd, None, rostopic, rate)
-        return kalibr_yaml(d), warnings
-    params, notes = autopilot_params(cal, fmt, instance, path)
-    return params_file(params, notes, fmt, source), warnings
+        if allan is None:
+            if raw is not None:
+                raise InputError("Kalibr needs the random walks too, which --raw cannot give: "
+                                 "give --allan ALLAN.h5 (calib allan RAW.h5 --out ALLAN.h5, a "
+                                 "record at rest)", path)
+            raise InputError("a calibration holds no noise figures, which Kalibr's imu.yaml "
+                             "is: give --allan ALLAN.h5 (calib allan RAW.h5 --out ALLAN.h5, a "
+                             "record at rest)", path)
+        d = kalibr_from_allan(allan, rostopic)
+        return kalibr_yaml(d), warnings, {}
+    params, notes, meta = autopilot_export(cal, fmt, instance, path, data_source, residual,
+                                           in_force)
+    return params_file(params, notes, fmt, source), warnings, meta

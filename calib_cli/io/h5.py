@@ -58,6 +58,64 @@ def write_provenance(h5: h5py.File, kind: str, inputs=(), serial: str | None = N
     hashes = {str(p): sha256_file(p) for p in inputs if p and Path(p).is_file()}
     set_text(h5, "input_sha256", json.dumps(hashes))
     set_attrs(h5, extra or {})
+    if kind in ("calibration", "diagnosis"):  # a fit carries its data's origin on
+        copy_source(h5, inputs)
+
+
+# ---------------------------------------------------------------------------
+# the samples' origin: /source (docs/file-formats.md; io/imu_logs.py fills it)
+
+SOURCE_JSON = ("parameters", "parameters_changed", "device_ids")
+
+
+def write_source(h5, source: dict) -> None:
+    """/source: where the samples come from and whether the device had already
+    corrected them ("samples": "raw", "corrected" or "unknown") and by which
+    parameters; dicts and lists as JSON text (long text checksummed, io/h5file.py)."""
+    g = h5.require_group("source")
+    set_attrs(g, {k: json.dumps(v) if isinstance(v, (dict, list, tuple)) else v
+                  for k, v in source.items() if v is not None})
+
+
+def _read_source_group(g, path: str) -> dict:
+    out = {}
+    names = list(g.attrs) + [n for n in g if isinstance(g[n], h5py.Dataset)]  # long text
+    for k in names:
+        v = g.attrs[k] if k in g.attrs else None
+        if v is None or isinstance(v, (bytes, str, np.bytes_)) or (
+                isinstance(v, np.ndarray) and v.dtype.kind in "SUO"):
+            v = validate.text(g, k, path)
+        elif isinstance(v, np.generic):
+            v = v.item()
+        if k in SOURCE_JSON and isinstance(v, str):
+            try:
+                v = json.loads(v)
+            except ValueError:
+                raise InputError(f"/source/{k} is not valid JSON", path) from None
+        out[k] = v
+    return out
+
+
+def read_source(path) -> dict:
+    """The /source of a raw, calibration or diagnosis file ({} when it has none:
+    a CSV import, a simulation)."""
+    p = str(path)
+    with h5py.File(p, "r") as h5:
+        return _read_source_group(h5["source"], p) if "source" in h5 else {}
+
+
+def copy_source(h5, inputs) -> None:
+    """The /source of the first input that has one (the fitted raw file)."""
+    for p in inputs:
+        try:
+            if not (p and Path(p).is_file() and h5py.is_hdf5(p)):
+                continue
+            with h5py.File(p, "r") as src:
+                if "source" in src:
+                    write_source(h5, _read_source_group(src["source"], str(p)))
+                    return
+        except OSError:
+            continue
 
 
 @contextlib.contextmanager
@@ -81,11 +139,9 @@ def open_checked(path, kinds) -> h5py.File:
     try:
         h5 = h5py.File(p, "r")
     except OSError:
-        hint = ""
-        if Path(p).suffix.lower() in (".csv", ".txt", ".log", ".dat", ".tsv"):
-            hint = ("; a text log is imported first: calib import csv FILE --plan PLAN.toml "
-                    "--out raw.h5 (or calib import text, docs/import.md)")
-        raise InputError(f"not an HDF5 file (or damaged){hint}", p) from None
+        from calib_cli.io.sniff import hint_for_non_hdf5
+
+        raise InputError(f"not an HDF5 file (or damaged){hint_for_non_hdf5(p)}", p) from None
     try:
         # before any text is read: HDF5 loops forever on some damaged string heaps
         validate.check_global_heaps(h5, p)

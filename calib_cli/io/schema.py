@@ -29,7 +29,9 @@ PLAN_TOP = {"name", "kind", "protocol", "description", "site", "unit", "segment"
             # climatic chamber (issue 21, docs/thermal.md): ramp-rate limit and soak rule
             # (record), the unit's thermal time constant (simulate)
             "chamber_ramp_dpm", "unit_tau_s", "chamber_soak_tol_degC", "chamber_soak_s",
-            "chamber_soak_timeout_s"}
+            "chamber_soak_timeout_s",
+            # parameters in force for `simulate --out LOG.ulg|.bin` (docs/simulate.md)
+            "autopilot"}
 CHAMBER_KEYS = ("chamber_ramp_dpm", "unit_tau_s", "chamber_soak_tol_degC", "chamber_soak_s",
                 "chamber_soak_timeout_s")
 PLAN_SITE = {"latitude_deg", "height_m", "g", "longitude_deg", "name", "allow_any_g"}
@@ -242,10 +244,10 @@ def known_param_keys() -> set[str]:
     import numpy as np
 
     from calib_cli.model.effects import Layout
-    from calib_cli.model.truth import _key_owner
+    from calib_cli.model.truth import key_owner
 
-    keys = set(_key_owner(Layout(), {}))
-    keys |= set(_key_owner(Layout(n=6, el0=np.zeros(6), az0=np.zeros(6)), {}))
+    keys = set(key_owner(Layout(), {}))
+    keys |= set(key_owner(Layout(n=6, el0=np.zeros(6), az0=np.zeros(6)), {}))
     return keys | {"attitude"}
 
 
@@ -259,21 +261,7 @@ def param_shape(key: str):
 
 
 # -- device and geometry profiles (docs/acquisition.md): strict ----------------
-IMU_PROFILE = {
-    "": {"name", "description", "format", "rate_hz", "transport", "frame", "checksum",
-         "sequence", "timestamp", "field", "byte_order", "message", "noise"},
-    "transport": {"kind", "baudrate", "bytesize", "parity", "stopbits", "interface",
-                  "channel", "bitrate", "timeout_s"},
-    "frame": {"sync", "length_type", "length_covers", "byte_order", "start", "terminator",
-              "delimiter", "pattern"},
-    "checksum": {"kind", "name", "width", "poly", "init", "refin", "refout", "xorout",
-                 "covers", "byte_order", "separator", "hex_digits"},
-    "sequence": {"field", "bits"},
-    "timestamp": {"source", "field", "scale", "unit", "bits"},
-    "field": {"name", "type", "unit", "scale", "offset", "literal"},
-    "message": {"id", "extended", "field", "checksum", "length", "byte_order"},
-    "noise": {"accel_std", "gyro_std", "accel_white", "gyro_white"},
-}
+# IMU profiles: acquire/profile.py (IMU_KEYS, typed values)
 TABLE_PROFILE = {
     "": {"name", "description", "kind", "terminator", "timeout_s", "speed_dps", "transport",
          "commands", "responses", "replies"},
@@ -322,25 +310,6 @@ def check_transport(tr: dict, path: str) -> None:
     s = tr.get("stopbits")
     if s is not None and s not in (1, 1.5, 2):
         raise InputError(f"transport.stopbits must be 1, 1.5 or 2, got {s!r}", path)
-
-
-def check_imu_profile_values(raw: dict, prof, path: str) -> None:
-    import math
-
-    check_transport(raw.get("transport", {}), path)
-    for f in prof.all_fields():
-        if not math.isfinite(f.scale) or f.scale == 0:
-            raise InputError(f"field {f.name!r}: scale must be a finite non-zero number, got "
-                             f"{f.scale!r}", path)
-    bits = getattr(prof, "seq_bits", None)
-    if prof.seq_field and (not isinstance(bits, int) or not 1 <= bits <= 64):
-        raise InputError(f"sequence.bits must be 1..64, got {bits!r}", path)
-    noise = raw.get("noise", {})
-    if isinstance(noise, dict):
-        for k, v in noise.items():
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
-                    or v < 0:
-                raise InputError(f"noise.{k} must be a number >= 0, got {v!r}", path)
 
 
 def check_table_templates(commands: dict, path: str) -> None:

@@ -31,6 +31,15 @@ from calib_cli.io.h5 import (
     write_provenance,
     write_segments,
     write_site_layout,
+    write_source,
+)
+from calib_cli.io.log_segments import (
+    Chunk,
+    check_time_range,
+    convert_units,
+    plan_cycles,
+    segments_from_column,
+    segments_from_detection,
 )
 from calib_cli.io.h5file import h5_output, set_attrs, set_text
 from calib_cli.methods.static_stream import OnlineFloors, StreamDetector
@@ -39,15 +48,6 @@ from calib_cli.plan import Plan, plan_layout  # noqa: F401  (plan_layout re-expo
 CHUNK_ROWS = 65536
 READ_ROWS = 1 << 18
 OPTIONAL = ("temp", "table_angle", "table_rate")
-
-
-@dataclass
-class Chunk:
-    time: np.ndarray
-    accel: np.ndarray
-    gyro: np.ndarray | None = None
-    opt: dict = field(default_factory=dict)  # temp, table_angle, table_rate -> (m,)
-    segment: np.ndarray | None = None  # plan segment index per sample (int)
 
 
 @dataclass
@@ -202,8 +202,6 @@ def prefetch(source: Iterable[Chunk], depth: int = 3) -> Iterator[Chunk]:
 
 def segments_from_runs(vals, starts, n, plan: Plan, path: str):
     """csvlog.segments_from_column, from the runs of the column."""
-    from calib_cli.io.csvlog import segments_from_column
-
     if not vals:
         return []
     vals = np.asarray(vals)
@@ -250,19 +248,21 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
                   accel_units: str = "m/s^2", gyro_units: str = "rad/s",
                   hashes: Callable[[], dict] | None = None, counters: dict | None = None,
                   check: Callable[[_Sink, list], None] | None = None,
-                  sample_kind: str = "instant") -> ImportSummary:
+                  sample_kind: str = "instant", provenance: dict | None = None) -> ImportSummary:
     """Stream ``source`` into the raw file ``out`` (written atomically).
 
     ``path`` names the log in error messages; ``inputs`` are hashed into the
     provenance (``hashes()`` may supply hashes already computed while
     streaming); ``check(sink, segments)`` may veto the segments (gap checks) and returns
     counters to record. ``source`` is closed on return (a generator's ``close``).
+    ``counters`` and ``provenance`` (the samples' origin, /source: h5.write_source)
+    are written as they are once ``source`` is exhausted (a reader fills them in).
     """
     keep_freed_memory()
     try:
         return _import_to_raw(out, source, plan, path, inputs, window_s, multiplier,
                               min_static_s, accel_units, gyro_units, hashes, counters, check,
-                              sample_kind)
+                              sample_kind, provenance)
     finally:
         close = getattr(source, "close", None)
         if close is not None:  # a reader thread (``prefetch``) stops now, not at exit
@@ -270,9 +270,8 @@ def import_to_raw(out, source: Iterable[Chunk], plan: Plan, path: str, inputs=()
 
 
 def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_static_s,
-                   accel_units, gyro_units, hashes, counters, check, sample_kind):
-    from calib_cli.io.csvlog import check_time_range
-    from calib_cli.io.textlog import convert_units
+                   accel_units, gyro_units, hashes, counters, check, sample_kind,
+                   provenance=None):
 
     layout = plan_layout(plan)
     units = convert_units(np.zeros((1, 3)), np.zeros((1, 3)), accel_units, gyro_units, path)[2]
@@ -315,8 +314,6 @@ def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_st
         if runs is not None:
             segments = segments_from_runs(runs.vals, runs.starts, n, plan, path)
         else:
-            from calib_cli.io.csvlog import plan_cycles, segments_from_detection
-
             report = det.result(sink.blocks, multiplier, min_static_s, times=sink.times)
             cycles = None
             if "gyro" in sink.ds and any(s.kind == "rotating" for s in plan.segments):
@@ -343,4 +340,6 @@ def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_st
         set_text(h5.create_group("plan"), "text", plan.text)
         if counters:
             set_attrs(h5.create_group("counters"), counters)
+        if provenance:
+            write_source(h5, provenance)
     return ImportSummary(n, tuple(segments), units, counters)

@@ -19,8 +19,12 @@ import numpy as np
 from calib_cli.data import Recording
 from calib_cli.errors import InputError, num
 from calib_cli.geometry import Layout
-from calib_cli.io.csvlog import (
+from calib_cli.io.log_segments import (  # noqa: F401  (units re-exported)
+    ACCEL_UNITS,
+    G0,
+    GYRO_UNITS,
     check_time_range,
+    convert_units,
     plan_cycles,
     segments_from_column,
     segments_from_detection,
@@ -28,9 +32,6 @@ from calib_cli.io.csvlog import (
 from calib_cli.io.plan import Plan
 from calib_cli.methods.static_stream import detect_static_arrays
 
-G0 = 9.80665
-ACCEL_UNITS = {"count": None, "m/s^2": 1.0, "g": G0}
-GYRO_UNITS = {"count": None, "rad/s": 1.0, "deg/s": np.pi / 180.0}
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9, "sample": None}
 SAMPLE_COUNTERS = ("samples", "n_samples", "sample", "index")
 FIELDS = ("time", "ax", "ay", "az", "gx", "gy", "gz", "temp", "segment")
@@ -42,22 +43,6 @@ ALIASES = {
     "gz": ("gz", "gyr_z", "gyro_z", "gyrz"),
     "temp": ("temp", "temperature"), "segment": ("segment", "part"),
 }
-
-
-def convert_units(accel, gyro, accel_units: str, gyro_units: str, path: str = ""):
-    """(accel, gyro, units dict): g -> m/s^2 and deg/s -> rad/s; counts kept."""
-    if accel_units not in ACCEL_UNITS:
-        raise InputError(f"unknown accelerometer unit {accel_units!r}; use one of "
-                         f"{', '.join(ACCEL_UNITS)}", path)
-    if gyro_units not in GYRO_UNITS:
-        raise InputError(f"unknown gyro unit {gyro_units!r}; use one of "
-                         f"{', '.join(GYRO_UNITS)}", path)
-    fa, fg = ACCEL_UNITS[accel_units], GYRO_UNITS[gyro_units]
-    units = {"accel": "count" if fa is None else "m/s^2",
-             "gyro": "count" if fg is None else "rad/s"}
-    accel = accel if fa in (None, 1.0) else accel * fa
-    gyro = None if gyro is None else (gyro if fg in (None, 1.0) else gyro * fg)
-    return accel, gyro, units
 
 
 def _sniff(path: str, delimiter: str, header: str):
@@ -106,7 +91,7 @@ def _read_text_arrow(path: str, delimiter: str, header: str):
     pyarrow, whitespace-separated, comment or blank lines in the body, a cell
     that is not a number, NaN): that reader then gives the data or the exact
     error message."""
-    from calib_cli.io.csvlog import _CommentFilter, have_pyarrow
+    from calib_cli.io.csvlog import CommentFilter, have_pyarrow
 
     if not have_pyarrow():
         return None
@@ -122,7 +107,7 @@ def _read_text_arrow(path: str, delimiter: str, header: str):
         def update(self, b):
             pass
 
-    stream = _CommentFilter(path, start, b"", _NoHash())
+    stream = CommentFilter(path, start, b"", _NoHash())
     cols = [f"c{i}" for i in range(k)]
     try:
         table = pacsv.read_csv(
@@ -159,7 +144,11 @@ def read_text(path: str, delimiter: str = "auto", header: str = "auto", fast: bo
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
         raise InputError("no such file", path) from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        from calib_cli.io.sniff import not_a_text_log
+
+        raise InputError(not_a_text_log(path, exc), path) from None
+    except OSError as exc:
         raise InputError(f"cannot read: {exc}", path) from None
     lines = [(i + 1, ln.strip()) for i, ln in enumerate(text.splitlines())]
     lines = [(i, ln) for i, ln in lines if ln and not ln.startswith(("#", "%"))]
@@ -326,7 +315,7 @@ def import_text(acc_path, plan: Plan, gyro_path=None, columns: str | None = None
                 multiplier: float = 3.0, min_static_s: float = 1.0) -> Recording:
     """A foreign-layout text log (one file, or accelerometer + gyro files) -> Recording."""
     acc_path = str(acc_path)
-    from calib_cli.io.stream_import import plan_layout
+    from calib_cli.plan import plan_layout
 
     layout = plan_layout(plan)
     if layout.redundant:
@@ -488,7 +477,7 @@ def _text_chunks_arrow(path, sep, start, k, idx, scale, rate):
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
-    from calib_cli.io.csvlog import ARROW_BLOCK, STREAM_ROWS, USE_THREADS, _Assembler
+    from calib_cli.io.csvlog import ARROW_BLOCK, STREAM_ROWS, USE_THREADS, Assembler
 
     names = [f"c{i}" for i in range(k)]
     stream = pa.OSFile(path)
@@ -511,7 +500,7 @@ def _text_chunks_arrow(path, sep, start, k, idx, scale, rate):
         else None
     cols = (ti, [idx[f] for f in ("ax", "ay", "az")], gi,
             {"temp": idx["temp"]} if "temp" in idx else {}, None)
-    asm = _Assembler(cols)
+    asm = Assembler(cols)
     t_last, n = None, 0
     try:
         while True:
@@ -571,13 +560,13 @@ def import_text_to_raw(out, acc_path, plan: Plan, gyro_path=None, columns: str |
     streamable = (gyro_path is None and not sort and segments_json is None and have_pyarrow()
                   and time_unit in TIME_UNITS and not plan_is_redundant(plan))
     if streamable:
-        from calib_cli.io.csvlog import _FileHash
+        from calib_cli.io.csvlog import FileHash
         from calib_cli.io.stream_import import import_to_raw, prefetch
 
         try:
             sep, start, k, idx, scale = _text_stream_plan(acc_path, columns, delimiter, header,
                                                           rate, time_unit)
-            fh = _FileHash(acc_path)  # the provenance's SHA-256, by a thread meanwhile
+            fh = FileHash(acc_path)  # the provenance's SHA-256, by a thread meanwhile
             res = import_to_raw(out, prefetch(_text_chunks_arrow(acc_path, sep, start, k, idx,
                                                                  scale, rate)),
                                 plan, acc_path, inputs, window_s, multiplier, min_static_s,
@@ -597,6 +586,6 @@ def import_text_to_raw(out, acc_path, plan: Plan, gyro_path=None, columns: str |
 
 
 def plan_is_redundant(plan: Plan) -> bool:
-    from calib_cli.io.stream_import import plan_layout
+    from calib_cli.plan import plan_layout
 
     return plan_layout(plan).redundant

@@ -395,7 +395,7 @@ def model_specs(c, path: str) -> dict:
         if d["name"] not in CATALOGUE:
             raise InputError(f"the model names an unknown effect {d['name']!r} (/model "
                              f"effects); this calib knows {', '.join(sorted(CATALOGUE))}", path)
-        if d.get("sensor") not in (None, "accel", "gyro"):
+        if d.get("sensor") not in (None, "", "accel", "gyro"):  # "": no sensor (time_offset)
             raise InputError(f"effect {d['name']!r} of the model has sensor {d.get('sensor')!r}"
                              "; expected 'accel' or 'gyro'", path)
         try:

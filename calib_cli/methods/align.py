@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation
 from calib_cli.data import CalibrationResult, Recording, Segment
 from calib_cli.errors import EstimationError, InputError
 from calib_cli.methods import lsq
+from calib_cli.methods.noise import pooled_within
 from calib_cli.model.earth import EARTH_RATE
 from calib_cli.model.effects import Bias, Layout, ScaleMisalignment
 from calib_cli.model.frames import attitude_to_rotation, rotation_to_attitude
@@ -85,22 +86,14 @@ class Inputs:
 # inputs
 
 
-def _means(rec: Recording, segs) -> tuple:
-    f, w, n = [], [], []
-    ssa = ssw = 0.0
-    dof = 0
-    for s in segs:
-        a, g = rec.accel[s.slice], rec.gyro[s.slice]
-        f.append(a.mean(0))
-        w.append(g.mean(0))
-        n.append(len(a))
-        ssa = ssa + ((a - a.mean(0)) ** 2).sum(0)
-        ssw = ssw + ((g - g.mean(0)) ** 2).sum(0)
-        dof += len(a) - 1
-    if dof <= 0:
+def static_means(rec: Recording, segs) -> tuple:
+    """Accel and gyro means (M, 3) of the static segments, their sample counts (M,)
+    and the pooled per-sample noise sigma (3,) of each (methods/noise.py)."""
+    acc = pooled_within((rec.accel[s.slice] for s in segs), 3)
+    gyr = pooled_within((rec.gyro[s.slice] for s in segs), 3)
+    if acc.dof <= 0:
         raise EstimationError("the static positions hold too few samples to estimate the noise")
-    return (np.array(f), np.array(w), np.array(n, float), np.sqrt(ssa / dof),
-            np.sqrt(ssw / dof))
+    return acc.means, gyr.means, acc.counts, acc.sigma, gyr.sigma
 
 
 def _plan_turn(rec: Recording, a: Segment, b: Segment) -> Rotation | None:
@@ -141,7 +134,7 @@ def collect(rec: Recording, rotation: str = "auto", turn_sigma: float = 0.0) -> 
     if len(segs) < 2:
         raise EstimationError(f"alignment needs two static positions; the recording has "
                               f"{len(segs)}: add a second position after a turn of 60-180 deg")
-    f, w, n, sa, sw = _means(rec, segs)
+    f, w, n, sa, sw = static_means(rec, segs)
     gaps = []
     for a, b in zip(segs[:-1], segs[1:], strict=True):
         i0, i1 = a.stop - 1, b.start
@@ -165,7 +158,7 @@ def collect(rec: Recording, rotation: str = "auto", turn_sigma: float = 0.0) -> 
     return Inputs(segs, f, w, n, sa, sw, gaps)
 
 
-def _integrate(inp: Inputs, C1: Rotation, eps, site, earth_noise: float = 0.0) -> None:
+def integrate_turns(inp: Inputs, C1: Rotation, eps, site, earth_noise: float = 0.0) -> None:
     """(Re)integrate the gyro gaps with bias eps removed and C1 the attitude
     of position 1; earth_noise (rad/s): earth rate unknown to this level."""
     C = C1
@@ -245,7 +238,7 @@ def analytic(f1, f2, w1, w2, dR: Rotation, site, use_gyro: bool):
     return nab, eps, C1
 
 
-def _tilt_only(f1, site) -> Rotation:
+def tilt_only(f1, site) -> Rotation:
     u = f1
     return attitude_to_rotation([np.arctan2(u[1], u[2]), np.arctan2(-u[0], np.hypot(u[1], u[2])),
                                  0.0])
@@ -333,7 +326,7 @@ class _Problem:
         return np.concatenate([ra, rw, th[9:]])
 
 
-def _euler_cov(C1: Rotation, cov_alpha: np.ndarray, unobs_alpha: np.ndarray):
+def euler_cov(C1: Rotation, cov_alpha: np.ndarray, unobs_alpha: np.ndarray):
     """Roll, pitch, yaw of C1 and their covariance from alpha's; entries coupled
     to an unobservable alpha component are NaN."""
     e0 = rotation_to_attitude(C1)
@@ -391,14 +384,14 @@ def fit_align(rec: Recording, rotation: str = "auto", gyro: str = "auto",
 
     # pass 1: rough attitude and bias, integrate, analytic solution; pass 2: again
     eps = np.zeros(3) if use_gyro else 0.5 * (inp.w[0] + inp.w[1])
-    C1 = _tilt_only(inp.f[0], site)
+    C1 = tilt_only(inp.f[0], site)
     if use_gyro:
         C1, _ = Rotation.align_vectors([site.specific_force_enu / site.gravity,
                                         site.earth_rate_enu / EARTH_RATE],
                                        [inp.f[0] / np.linalg.norm(inp.f[0]),
                                         inp.w[0] / np.linalg.norm(inp.w[0])], weights=[1e6, 1])
     for _ in range(2):
-        _integrate(inp, C1, eps, site, earth_noise)
+        integrate_turns(inp, C1, eps, site, earth_noise)
         ang = inp.gaps[0].dR.magnitude()
         if ang < MIN_TURN:
             raise EstimationError(
@@ -408,7 +401,7 @@ def fit_align(rec: Recording, rotation: str = "auto", gyro: str = "auto",
                 "an axis that is not horizontal East-West")
         nab, eps, C1 = analytic(inp.f[0], inp.f[1], inp.w[0], inp.w[1], inp.gaps[0].dR, site,
                                 use_gyro)
-    _integrate(inp, C1, eps, site, earth_noise)
+    integrate_turns(inp, C1, eps, site, earth_noise)
     prob = _Problem(inp, C1, eps, site, use_gyro, sK)
     theta0 = np.zeros(prob.p)
     theta0[0:3], theta0[3:6] = nab, eps
@@ -479,7 +472,7 @@ def _result(rec, inp, prob, fit, use_gyro, why, sK, fixed) -> CalibrationResult:
     C_all = prob.attitudes(th)
     C1 = C_all[0]
     cov = fit.cov
-    e, J, cov_e, bad_e = _euler_cov(C1, np.nan_to_num(cov[6:9, 6:9]), unobs[6:9])
+    e, J, cov_e, bad_e = euler_cov(C1, np.nan_to_num(cov[6:9, 6:9]), unobs[6:9])
     # covariance over [nabla, eps, attitude] (9 x 9) with the cross terms through J
     T = np.zeros((9, prob.p))
     T[0:6, 0:6] = np.eye(6)

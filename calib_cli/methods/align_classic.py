@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError
-from calib_cli.methods.align import KEYS, UNITS, _integrate, _tilt_only, collect, g_error_stats
+from calib_cli.methods.align import KEYS, UNITS, collect, g_error_stats, integrate_turns, tilt_only
 from calib_cli.model.earth import EARTH_RATE
 from calib_cli.model.frames import rotation_to_attitude
 
@@ -59,7 +59,7 @@ def fit_classic(rec: Recording, rotation: str = "auto") -> CalibrationResult:
     rot = "plan" if rotation == "auto" and any(s.kind == "turn" for s in rec.segments) else rotation
     inp = collect(rec, rot)
     site = rec.site
-    _integrate(inp, _tilt_only(inp.f[0], site), 0.5 * (inp.w[0] + inp.w[1]), site)
+    integrate_turns(inp, tilt_only(inp.f[0], site), 0.5 * (inp.w[0] + inp.w[1]), site)
     psi = [0.0]
     for gp in inp.gaps:
         rv = gp.dR.as_rotvec()

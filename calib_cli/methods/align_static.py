@@ -40,7 +40,7 @@ from scipy.spatial.transform import Rotation
 from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError, InputError
 from calib_cli.methods import lsq
-from calib_cli.methods.align import KEYS, UNITS, _euler_cov, _means, earth_rate_usable, g_error_stats
+from calib_cli.methods.align import KEYS, UNITS, earth_rate_usable, euler_cov, g_error_stats, static_means
 from calib_cli.model.earth import EARTH_RATE
 from calib_cli.model.effects import Bias, Layout
 from calib_cli.model.imu_model import ImuModel
@@ -137,7 +137,7 @@ def fit_align_static(rec: Recording) -> CalibrationResult:
     if len(segs) < 2:
         raise EstimationError(f"static alignment needs two static positions; the recording "
                               f"has {len(segs)}")
-    inp = _Inputs(segs, *_means(rec, segs))
+    inp = _Inputs(segs, *static_means(rec, segs))
     usable, why = earth_rate_usable(inp)
     if not usable:
         raise EstimationError(f"{why}; the static-only alignment needs the earth rate at both "
@@ -159,12 +159,12 @@ def fit_align_static(rec: Recording) -> CalibrationResult:
     att, sig_att, bad_att = [], [], []
     for k, C in enumerate(C_all):
         sl = slice(6 + 3 * k, 9 + 3 * k)
-        e, _, cov_e, bad = _euler_cov(C, np.nan_to_num(cov[sl, sl]), unobs[sl])
+        e, _, cov_e, bad = euler_cov(C, np.nan_to_num(cov[sl, sl]), unobs[sl])
         att.append(e)
         sig_att.append(np.sqrt(np.abs(np.diag(cov_e))))
         bad_att.append(bad)
     # covariance over [nabla, eps, attitude_1] (9 x 9), through the Euler Jacobian
-    _, J1, _, _ = _euler_cov(C_all[0], np.zeros((3, 3)), np.zeros(3, bool))
+    _, J1, _, _ = euler_cov(C_all[0], np.zeros((3, 3)), np.zeros(3, bool))
     T = np.zeros((9, prob.p))
     T[0:6, 0:6] = np.eye(6)
     T[6:9, 6:9] = J1

@@ -57,7 +57,7 @@ class Step:
     @property
     def with_arg(self) -> str:
         """The step's effect as ``calib fit --with`` spells it."""
-        from calib_cli.methods.fit_with import with_arg
+        from calib_cli.methods.with_effects import with_arg
 
         return with_arg(self.effect, self.sensor)
 
@@ -95,7 +95,7 @@ class Diagnosis:
 
     def fit_command(self, raw: str = "RAW.h5", out: str = "CAL.h5") -> str | None:
         """The command that writes the final model's calibration (None: no step)."""
-        from calib_cli.methods.fit_with import fit_command
+        from calib_cli.methods.with_effects import fit_command
 
         return fit_command(self.method, self.with_list, self.base, self.problem.noise_mode,
                            raw, out)
@@ -103,7 +103,7 @@ class Diagnosis:
     def calibration(self, rec=None):
         """The final model as an ordinary calibration (``methods.fit_with``)."""
         from calib_cli.methods.diagnose_fit import settle_noise
-        from calib_cli.methods.fit_with import WANDERS, calibration_of
+        from calib_cli.methods.with_effects import WANDERS, calibration_of
 
         wander = {dc.effect_key(s.effect, s.sensor): (s.params, s.sigma) for s in self.steps
                   if s.effect in WANDERS}
@@ -193,7 +193,7 @@ def start_params(pb: Problem, base: str = "full") -> dict | None:
     return start
 
 
-def _zscore(d: float, k: int) -> float:
+def zscore(d: float, k: int) -> float:
     """Normal-equivalent z of a chi^2_k statistic (Wilson-Hilferty): ranks
     candidates with different k by their p-value without underflow."""
     v = 2.0 / (9.0 * k)
@@ -251,7 +251,7 @@ WANDERS = {"bias_random_walk": ("random_walk", "bias_rw"),
            "bias_instability": ("flicker", "bias_instability")}
 
 
-def _try_wander(pb: Problem, cur: Fit, c: dc.Candidate):
+def try_wander(pb: Problem, cur: Fit, c: dc.Candidate):
     """(candidate, fit, params, sigma, k, score, within-segment score) of a wandering
     bias on one sensor (a random walk or flicker, diagnose_stoch). Score: the
     likelihood ratio over the whole record with the model refitted under the
@@ -341,7 +341,7 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
         known = columns(cur)
         for c in cands:
             if c.name in WANDERS:
-                got = _try_wander(pb, cur, c)
+                got = try_wander(pb, cur, c)
                 if got is not None:
                     within[c.key] = got[6]
                     tried.append(got[:6])
@@ -369,7 +369,7 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
         for c, f, params, sigma, k, d in tried:
             thr = float(stats.chi2.isf(alpha / m, k))
             p = float(stats.chi2.sf(max(d, 0.0), k))
-            logp = -_zscore(d, k)
+            logp = -zscore(d, k)
             table.append({"candidate": c.key, "score": d, "threshold": thr, "dof": k,
                           "p_value": p})
             if c.key in within:  # a wander must show inside the segments too
@@ -378,7 +378,7 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
                     continue
             if d > thr and (best is None or logp < best[0]):
                 best = (logp, c, f, params, sigma, k, d, thr, p)
-        table.sort(key=lambda r: -_zscore(r["score"], r["dof"]))
+        table.sort(key=lambda r: -zscore(r["score"], r["dof"]))
         rounds.append(table)
         if best is None:
             break

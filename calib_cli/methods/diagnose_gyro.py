@@ -32,10 +32,10 @@ from scipy import stats
 
 from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError
-from calib_cli.methods.diagnose import ALPHA, MAX_STEPS, Step, _zscore
+from calib_cli.methods.diagnose import ALPHA, MAX_STEPS, Step, zscore
 from calib_cli.methods.diagnose_candidates import Candidate, describe, effect_key
 from calib_cli.methods.diagnose_gyro_wander import KEYS, WanderLikelihood, unit_of, with_wander
-from calib_cli.methods.fit_with import GYRO_EFFECTS, fit_command, gyro_effect
+from calib_cli.methods.with_effects import GYRO_EFFECTS, fit_command, gyro_effect
 
 R2D = 180.0 / np.pi
 # below this margin of likelihood ratio the two wanders are reported as not separable:
@@ -218,9 +218,9 @@ def _diagnose_gyro(rec: Recording, base: str, alpha: float, max_steps: int,
             p = float(stats.chi2.sf(max(d, 0.0), k))
             table.append({"candidate": effect_key(n, "gyro"), "score": d, "threshold": thr,
                           "dof": k, "p_value": p})
-            if d > thr and (best is None or -_zscore(d, k) < best[0]):
-                best = (-_zscore(d, k), n, f, keys, k, d, thr, p)
-        table.sort(key=lambda r: -_zscore(r["score"], r["dof"]))
+            if d > thr and (best is None or -zscore(d, k) < best[0]):
+                best = (-zscore(d, k), n, f, keys, k, d, thr, p)
+        table.sort(key=lambda r: -zscore(r["score"], r["dof"]))
         rounds.append(table)
         if best is None:
             break

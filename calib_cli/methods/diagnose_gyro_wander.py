@@ -161,7 +161,7 @@ class WanderLikelihood:
         from calib_cli.methods import gyro as G
 
         self.G, self.rec, self.structure = G, rec, structure
-        self.prob = G._Problem(rec, acc)
+        self.prob = G.GyroProblem(rec, acc)
         self.M = None  # {kind: (3, n_eq, n_eq)} per unit figure^2
         self.sub = SubMeans(self.prob, rec)
         self.n0 = None  # the gyro fit's own equations: the first n0 rows
@@ -170,7 +170,7 @@ class WanderLikelihood:
     def linear(self, names, res):
         """(r, A) at the white fit ``res`` of base + ``names``: whitened residuals and
         their Jacobian over the model's free parameters."""
-        from calib_cli.methods.fit_with import gyro_effect
+        from calib_cli.methods.with_effects import gyro_effect
         from calib_cli.model.imu_model import Packing
 
         extra = tuple(gyro_effect(n) for n in names if n != "g_sensitivity")

@@ -27,13 +27,13 @@ import numpy as np
 
 from calib_cli.data import Recording
 from calib_cli.errors import EstimationError
+from calib_cli.methods.noise import difference_sigma
 from calib_cli.methods.rimu import segment_kinematics
 from calib_cli.model import kinematics as kn
 from calib_cli.model.effects import Layout
 from calib_cli.model.frames import attitude_to_rotation
 
 BIN_S = 0.5  # s: bin length
-METHODS = ("accel", "align", "turntable", "rimu")
 
 
 @dataclass
@@ -115,19 +115,6 @@ class Problem:
         return None if self.kin.temp is None else self.bin_mean(self.kin.temp)
 
 
-def _noise_sigma(y: np.ndarray, seg_bounds) -> np.ndarray:
-    """Per-sample white-noise sigma from second differences within segments."""
-    d2 = []
-    for a, b in seg_bounds:
-        if b - a >= 3:
-            d2.append(y[a + 2:b] - 2 * y[a + 1:b - 1] + y[a:b - 2])
-    d = np.concatenate(d2)
-    mad = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(6.0)
-    sd = d.std(axis=0) / np.sqrt(6.0)
-    # quantised data (counts) can have a MAD of zero: fall back to the standard deviation
-    return np.where(mad > 0.3 * sd, mad, sd)
-
-
 def build_problem(rec: Recording, method: str, bin_s: float = BIN_S,
                   noise: str = "auto") -> Problem:
     """The usable samples of a recording for the given method.
@@ -187,8 +174,6 @@ def _aligned(rec: Recording) -> Recording:
 
 
 def _build(rec: Recording, method: str, bin_s: float) -> Problem:
-    if method not in METHODS:
-        raise EstimationError(f"diagnose --method {method}: unknown method")
     if method == "rimu" and not rec.layout.redundant:
         raise EstimationError("--method rimu needs a redundant-unit recording (plan kind "
                               "\"rimu\" with a [rimu] geometry)")
@@ -257,7 +242,7 @@ def _build(rec: Recording, method: str, bin_s: float) -> Problem:
     y = {sen: np.concatenate(v) for sen, v in ys.items()}
     starts = np.array(starts)
     counts = np.array(counts, float)
-    sigma = {sen: _noise_sigma(y[sen], bounds) for sen in sensors}
+    sigma = {sen: difference_sigma(y[sen], 2, bounds) for sen in sensors}
     g = float(np.median(np.linalg.norm(kin.f, axis=1)))
     pb = Problem(method, sensors, kin, y, starts, counts, np.array(bin_seg),
                  np.zeros(len(starts)), sigma, {}, [s.label for s in rec.segments],
@@ -353,7 +338,7 @@ def _scalar_problem(rec: Recording, use, skipped, bin_s: float) -> Problem:
     y = {"accel": np.concatenate(ys)}
     pb = Problem("accel", ("accel",), kin, y, np.array(starts), np.array(counts, float),
                  np.array(bin_seg), np.zeros(len(starts)),
-                 {"accel": _noise_sigma(y["accel"], bounds)}, {},
+                 {"accel": difference_sigma(y["accel"], 2, bounds)}, {},
                  [s.label for s in rec.segments], [s.kind for s in rec.segments],
                  [s.label for s in skipped], dict(rec.units), Layout(), {}, g,
                  np.zeros((0, 3)), u, np.array(basis), np.concatenate(tix),

@@ -21,84 +21,26 @@ contract's order, the effects' descriptions): ``fit --with`` and
 
 from __future__ import annotations
 
-import numpy as np
-
 from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError
 from calib_cli.methods import diagnose_candidates as dc
-from calib_cli.methods import result as _result
 from calib_cli.methods.blas_threads import one_blas_thread
-from calib_cli.methods.diagnose_fit import MOUNT_KEY, Fit, ModelSpec, columns, fit_model, settle_noise
+from calib_cli.methods.diagnose_fit import Fit, ModelSpec, columns, fit_model, settle_noise
 from calib_cli.methods.diagnose_problem import Problem, build_problem
-from calib_cli.model.correction import correct
-from calib_cli.model.effects import TEMP_REF_C, make_effect
-
-# effects a fit can take (CONTRACT.md section 5) and the sensor each acts on:
-# None = per sensor (unqualified: every sensor the method fits), "" = the whole unit
-EFFECTS = {
-    "misalignment": None, "accel_nonlinearity": "accel", "scale_asymmetry": None,
-    "temperature_drift": None, "g_sensitivity": "gyro", "lever_arm": "",
-    "proof_mass_offsets": "", "time_offset": "", "bias_random_walk": None,
-    "bias_instability": None,
-}
-ENGINE_METHODS = ("accel", "align", "turntable", "rimu")
-WANDERS = ("bias_random_walk", "bias_instability")
-
-
-GYRO_EFFECTS = ("misalignment", "scale_asymmetry", "temperature_drift", "g_sensitivity")
-# what ``fit gyro --with`` takes: the deterministic effects and the wandering biases (noise-
-# model terms on the gyro equations' generalised likelihood, methods/diagnose_gyro_wander.py)
-GYRO_WITH = GYRO_EFFECTS + WANDERS
-
-
-def method_sensors(method: str) -> tuple:
-    return {"accel": ("accel",), "gyro": ("gyro",)}.get(method, ("accel", "gyro"))
-
-
-def gyro_effect(name: str):
-    return make_effect(name, "gyro", **({"structure": "full"} if name == "misalignment" else {}))
-
-
-def with_arg(name: str, sensor: str) -> str:
-    """The --with spelling of one effect on one sensor: "gyro.temperature_drift",
-    "lever_arm", "accel_nonlinearity"."""
-    if EFFECTS.get(name) is None and sensor:
-        return f"{sensor}.{name}"
-    return name
-
-
-def parse_with(text: str, method: str, sensors=None) -> list[tuple[str, str]]:
-    """[(effect name, sensor)] from "A,B.c,...", in order (ValueError: unknown name)."""
-    sensors = tuple(sensors or method_sensors(method))
-    out: list[tuple[str, str]] = []
-    for raw in (x.strip() for x in str(text).split(",")):
-        if not raw:
-            continue
-        sensor = None
-        name = raw
-        if "." in raw:
-            sensor, name = raw.split(".", 1)
-            if sensor not in ("accel", "gyro"):
-                raise ValueError(f"{raw!r}: the sensor is accel or gyro")
-        if name not in EFFECTS:
-            raise ValueError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
-        fixed = EFFECTS[name]
-        if fixed is not None:
-            if sensor is not None and fixed and sensor != fixed:
-                raise ValueError(f"{raw!r}: {name} acts on the {fixed} only")
-            items = [(name, fixed)]
-        elif sensor is not None:
-            if sensor not in sensors:
-                raise ValueError(f"{raw!r}: the {method} method does not fit the {sensor}")
-            items = [(name, sensor)]
-        else:
-            items = [(name, s) for s in sensors]
-        for it in items:
-            if it not in out:
-                out.append(it)
-    if not out:
-        raise ValueError("no effect named")
-    return out
+from calib_cli.methods.with_effects import (
+    EFFECTS,
+    GYRO_EFFECTS,
+    GYRO_WITH,
+    WANDERS,
+    calibration_of,
+    fit_command,
+    g_error_per_position,
+    gyro_effect,
+    method_sensors,
+    parse_with,
+    with_arg,
+)
+from calib_cli.model.effects import make_effect
 
 
 def _candidate(pb: Problem, base: str, name: str, sensor: str) -> dc.Candidate:
@@ -155,7 +97,7 @@ def gyro_lines(rec: Recording, accel=None, base: str = "full") -> list[dict]:
     """``effect_lines`` of the gyro method on a record."""
     from calib_cli.methods.gyro import excitation
 
-    ex = excitation(rec, accel if accel is not None else _accel_of(rec), base)
+    ex = excitation(rec, accel if accel is not None else accel_of(rec), base)
     out = []
     for name in GYRO_WITH:
         e = gyro_effect(name)
@@ -165,7 +107,7 @@ def gyro_lines(rec: Recording, accel=None, base: str = "full") -> list[dict]:
     return out
 
 
-def _accel_of(rec: Recording):
+def accel_of(rec: Recording):
     from calib_cli.methods.accel_lsq import fit_accel
 
     return fit_accel(rec)
@@ -191,7 +133,7 @@ def fit_with_gyro(rec: Recording, effects, base: str = "full", accel=None,
     if len(wanders) > 1:
         raise EstimationError(f"--with {', '.join('gyro.' + n for n in wanders)}: one "
                               "wandering bias per sensor")
-    acc = accel if accel is not None else _accel_of(rec)
+    acc = accel if accel is not None else accel_of(rec)
     ex = excitation(rec, acc, base)
     extra, names = [], []
     for name, _ in effects:
@@ -220,8 +162,6 @@ def fit_with_gyro(rec: Recording, effects, base: str = "full", accel=None,
 def fit_with(rec: Recording, method: str, effects, base: str = "full", noise: str = "auto"
              ) -> tuple[CalibrationResult, Problem, Fit]:
     """The method's base model plus ``effects`` [(name, sensor)] (module docstring)."""
-    if method not in ENGINE_METHODS:
-        raise EstimationError(f"--with is not available for the {method} method yet")
     with one_blas_thread():
         pb = build_problem(rec, method, noise=noise)
         check_excited(pb, base, effects)
@@ -234,9 +174,9 @@ def fit_with(rec: Recording, method: str, effects, base: str = "full", noise: st
         for name, sensor in effects:
             c = _candidate(pb, base, name, sensor)
             if name in WANDERS:
-                from calib_cli.methods.diagnose import _try_wander
+                from calib_cli.methods.diagnose import try_wander
 
-                got = _try_wander(pb, cur, c)
+                got = try_wander(pb, cur, c)
                 if got is None:
                     raise EstimationError(f"--with {with_arg(name, sensor)}: one wandering "
                                           f"bias per sensor (the {sensor} already has one)")
@@ -262,109 +202,7 @@ def add_effect(pb: Problem, cur: Fit, c: dc.Candidate) -> Fit:
 # a fit of the engine as an ordinary calibration
 
 
-def g_error_per_position(pb: Problem, model, params: dict) -> list:
-    """[(segment label, |mean f| - g raw, corrected)] over the static positions (triads;
-    [] for a redundant unit), m/s^2 (raw: in the data's units)."""
-    if pb.layout.redundant or "accel" not in pb.sensors:
-        return []
-    seg = pb.kin.segment
-    out = []
-    y = pb.y["accel"]
-    for idx in np.unique(seg):
-        if pb.seg_kinds[idx] != "static":
-            continue
-        on = seg == idx
-        temp = None if pb.kin.temp is None else np.asarray(pb.kin.temp[on], float)
-        x = correct(model, params, "accel", y[on], temp=temp)
-        out.append((pb.seg_labels[idx], float(np.linalg.norm(y[on].mean(axis=0)) - pb.g),
-                    float(np.linalg.norm(x.mean(axis=0)) - pb.g)))
-    return out
-
-
-def _static_g_errors(pb: Problem, model, params: dict, counts: bool) -> tuple:
-    """RMS over the static positions of |mean f| - g, raw and corrected (triads)."""
-    rows = g_error_per_position(pb, model, params)
-    if not rows:
-        return None, None
-    before = [r[1] for r in rows]
-    after = [r[2] for r in rows]
-    rms = lambda v: float(np.sqrt(np.mean(np.square(v))))  # noqa: E731
-    return (None if counts else rms(before)), rms(after)
-
-
-def calibration_of(pb: Problem, fit: Fit, method: str, rec: Recording | None, base_names,
-                   wander: dict | None = None, with_list=(), base: str = "full",
-                   initial: Fit | None = None) -> CalibrationResult:
-    """The whole model of an engine fit as a calibration (params, sigma, covariance over
-    the model's free entries in the contract's order; the nuisance angles in stats)."""
-    from calib_cli.methods.diagnose_fit import predict_bins
-
-    model = fit.spec.model
-    packing = fit.packing
-    nm = packing.size
-    labels = packing.labels()
-    keys = [s.key for s in packing.specs]
-    cov = np.asarray(fit.cov, float)[:nm, :nm]
-    unobs = [_result.entry_name(k, model.spec(k).shape, i)
-             for (k, i), u in zip(labels, fit.unobs[:nm]) if u]
-    params = {k: np.asarray(fit.params[k], float) for k in keys}
-    sigma = {k: np.asarray(fit.sigma[k], float) for k in keys}
-    if "lever_arm" in sigma:  # the axial convention s . a = 0: reported 0 with sigma 0
-        s = sigma["lever_arm"]
-        bad = ~np.isfinite(s) | (s == 0)
-        params["lever_arm"] = np.where(bad, 0.0, params["lever_arm"])
-        sigma["lever_arm"] = np.where(bad, 0.0, s)
-    units = _result.param_units(model, pb.units)
-    pred = predict_bins(pb, fit.spec, fit.params, fit.mount)
-    stats: dict = {"method": method, "engine": "diagnose refit (0.5 s bins)",
-                   "base_model": list(base_names), "base": base, "with": list(with_list),
-                   "unobservable": unobs}
-    for s in pb.sensors:
-        res = pb.ymean[s] - pred[s]
-        stats[f"{s}_residual_rms"] = float(np.sqrt(np.mean(res ** 2)))
-        stats[f"{s}_noise_sigma"] = np.asarray(pb.sigma[s], float).tolist()
-    n = len(fit.r)
-    stats["residual_rms_noise_units"] = float(np.sqrt(np.mean(fit.r ** 2)))
-    stats["noise_rms"] = float(np.sqrt(max(n - fit.n_free, 1) / n))
-    if initial is not None:
-        stats["residual_rms_initial_noise_units"] = float(np.sqrt(np.mean(initial.r ** 2)))
-    stats["chi2_dof"] = float(fit.chi2 / max(n - fit.n_free, 1))
-    if fit.mount is not None and len(fit.mount):
-        what = {"align": "attitude correction (rotation of the navigation frame, rad)",
-                "turntable": "mount angles of the unit on the table (rad)"}.get(
-            method, "gravity-direction nuisance of each position (rad)")
-        stats["nuisance"] = {"what": what, "values": np.asarray(fit.mount, float).tolist(),
-                             "sigma": np.asarray(fit.sigma.get(MOUNT_KEY, []), float).tolist()}
-    if wander:
-        stats["noise_model"] = {
-            k: {"params": {kk: np.asarray(vv, float).tolist() for kk, vv in v[0].items()},
-                "sigma": {kk: np.asarray(vv, float).tolist() for kk, vv in v[1].items()},
-                "note": "a noise-model term: it widens sigma; never applied or exported"}
-            for k, v in wander.items()}
-    temp_eff = [e for e in model.effects if e.name == "temperature_drift"]
-    if temp_eff and pb.kin.temp is not None:
-        stats["temp_ref_degC"] = float(getattr(temp_eff[0], "temp_ref", TEMP_REF_C))
-        stats["temp_range_degC"] = [float(np.min(pb.kin.temp)), float(np.max(pb.kin.temp))]
-    b, a = _static_g_errors(pb, model, params, pb.units.get("accel") == "count")
-    if a is not None:
-        stats["g_error_rms_before"] = b
-        stats["g_error_rms_after"] = a
-    return CalibrationResult(
-        method=method, params=params, sigma=sigma, units={k: units[k] for k in keys},
-        covariance=cov, cov_order=labels, stats=stats,
-        model=[_result.describe_effect(e) for e in model.effects],
-        raw_units=dict(pb.units), layout=model.layout,
-        serial=None if rec is None else rec.serial)
-
-
-def fit_command(method: str, with_list, base: str = "full", noise: str = "auto",
-                raw: str = "RAW.h5", out: str = "CAL.h5") -> str | None:
-    """The command that writes the calibration of a diagnosis's final model."""
-    if not with_list:
-        return None
-    cmd = f"calib fit {method} {raw} --out {out} --with {','.join(with_list)}"
-    if base != "full":
-        cmd += f" --base {base}"
-    if noise != "auto":
-        cmd += f" --noise-floor {noise}"
-    return cmd
+__all__ = ["EFFECTS", "GYRO_EFFECTS", "GYRO_WITH", "WANDERS", "accel_of", "calibration_of",
+           "check_excited", "effect_lines", "fit_command", "fit_with", "fit_with_gyro",
+           "g_error_per_position", "gyro_effect", "gyro_lines", "method_sensors", "parse_with",
+           "with_arg"]

@@ -12,7 +12,7 @@ Three kinds of equations, each whitened by its own noise:
   its vertical part otherwise, the unknown horizontal part added to the
   variance).
 - transitions between consecutive static positions that are recorded without
-  a gap: the corrected gyro output, integrated as a quaternion from the last
+  a gap: the corrected gyro output, integrated as a rotation from the last
   sample of one position to the first of the next, must carry the gravity
   direction measured (by the calibrated accelerometer) at the first onto the
   one measured at the second. Two residuals per transition (the tangent
@@ -24,28 +24,27 @@ Three kinds of equations, each whitened by its own noise:
 Integration: per sample interval the rotation vector
 phi = (w_n + w_n+1) dt / 2 + (w_n x w_n+1) dt^2 / 12 (exact to third order
 for a rate that varies linearly over the interval, the coning correction),
-quaternions composed in body order by a pairwise (tree) product.
+rotations (SciPy's ``Rotation``) composed in body order by a pairwise (tree) product.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError, InputError
 from calib_cli.methods import lsq
+from calib_cli.methods.noise import pooled_within
 from calib_cli.methods.result import build_result
 from calib_cli.methods.static_detect import too_few_hint
 from calib_cli.model.correction import correct
 from calib_cli.model.earth import EARTH_RATE
 from calib_cli.model.effects import Bias, GSensitivity, Layout, ScaleMisalignment
-from calib_cli.model.frames import attitude_to_rotation
+from calib_cli.model.frames import attitude_to_rotation, axis_angle
 from calib_cli.model.imu_model import ImuModel, Packing
 from calib_cli.model.kinematics import Kinematics
 from calib_cli.model.strapdown import exp_matrix
-from calib_cli.model.strapdown import quat_exp as _qexp
-from calib_cli.model.strapdown import quat_matrix as _qmat
-from calib_cli.model.strapdown import quat_mul as _qmul
 from calib_cli.model.truth import effect_from_description
 
 GAP_FACTOR = 1.5  # a sample interval > 1.5 x the median is a gap: no integration across it
@@ -69,20 +68,13 @@ def integrate(phi_list) -> np.ndarray:
     m = len(phi_list)
     L = max(1, max(len(p) for p in phi_list))
     L2 = 1 << int(np.ceil(np.log2(L)))
-    q = np.zeros((m, L2, 4))
-    q[..., 0] = 1.0
+    phi = np.zeros((m, L2, 3))  # padded with identities
     for i, p in enumerate(phi_list):
-        if len(p):
-            q[i, :len(p)] = _qexp(p)
-    while q.shape[1] > 1:
-        q = _qmul(q[:, 0::2], q[:, 1::2])
-    return _qmat(q[:, 0])
-
-
-def _rodrigues(axis, angle, v):
-    """Rotate v (3,) about unit axis (3,) by angles (n,) -> (n, 3)."""
-    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
-    return v * c + np.cross(axis, v) * s + np.outer(1 - np.cos(angle), axis) * (axis @ v)
+        phi[i, :len(p)] = p
+    r = Rotation.from_rotvec(phi.reshape(-1, 3))
+    while len(r) > m:  # neighbours pair up within each row (L2 is a power of two)
+        r = r[0::2] * r[1::2]
+    return r.as_matrix().reshape(m, 3, 3)
 
 
 # ---------------------------------------------------------------------------
@@ -94,7 +86,7 @@ def _accel_model(acc: CalibrationResult) -> ImuModel:
     return ImuModel(effects, Layout())
 
 
-class _Problem:
+class GyroProblem:
     """Static means, transitions and turns of a recording, with their noise."""
 
     def __init__(self, rec: Recording, acc: CalibrationResult):
@@ -112,16 +104,13 @@ class _Problem:
         if not statics:
             self.f_static = np.zeros((0, 3))
         # static means (gyro in the data's units, accel corrected, SI)
-        self.W_static = np.array([rec.gyro[s.slice].mean(axis=0) for s in statics]).reshape(-1, 3)
+        gyr = pooled_within((rec.gyro[s.slice] for s in statics), 3)
+        acc = pooled_within((self.f_all[s.slice] for s in statics), 3)
+        self.W_static = gyr.means
         self.n_static = np.array([s.n for s in statics], dtype=float)
-        self.f_static = np.array([self.f_all[s.slice].mean(axis=0) for s in statics]).reshape(-1, 3)
-        ss_g = sum(((rec.gyro[s.slice] - m) ** 2).sum(axis=0)
-                   for s, m in zip(statics, self.W_static, strict=False))
-        ss_f = sum(((self.f_all[s.slice] - m) ** 2).sum(axis=0)
-                   for s, m in zip(statics, self.f_static, strict=False))
-        dof = max(int(self.n_static.sum()) - len(statics), 1)
-        self.sig_gyro = np.sqrt(np.asarray(ss_g) / dof) * np.ones(3)  # per sample, data units
-        self.sig_f = float(np.sqrt(np.mean(np.asarray(ss_f) / dof)))  # per sample, m/s^2
+        self.f_static = acc.means
+        self.sig_gyro = np.nan_to_num(gyr.sigma)  # per sample, data units
+        self.sig_f = float(np.sqrt(np.mean(np.nan_to_num(acc.sigma) ** 2)))  # per sample, m/s^2
         self.u = self.f_static / np.linalg.norm(self.f_static, axis=1)[:, None]
         # earth rate in body axes at each static position
         self.we_static = np.zeros((len(statics), 3))
@@ -235,7 +224,7 @@ class _Problem:
             if we is not None:
                 a = s.rotation_axis_body
                 theta = np.concatenate([[0.0], np.cumsum(0.5 * (w[:-1] + w[1:]) @ a * dt)])
-                e = _rodrigues(a, -theta, we)
+                e = axis_angle(a, -theta).apply(we)
                 total = total - (0.5 * (e[:-1] + e[1:]) * dt[:, None]).sum(axis=0)
             out.append(total)
         return np.array(out).reshape(-1, 3)
@@ -287,7 +276,7 @@ class _Problem:
 # the fit
 
 
-def _start(prob: _Problem, model: ImuModel, base: dict, counts: bool) -> dict:
+def _start(prob: GyroProblem, model: ImuModel, base: dict, counts: bool) -> dict:
     """Bias from the static means; G = s I with s from the turns or a search."""
     W = prob.rec.gyro
     d0 = np.median(prob.W_static, axis=0) if len(prob.statics) else np.zeros(3)
@@ -326,7 +315,7 @@ def _start(prob: _Problem, model: ImuModel, base: dict, counts: bool) -> dict:
     return dict(start, gyro_K=np.eye(3) * best)
 
 
-def _observable_D(prob: _Problem) -> bool:
+def _observable_D(prob: GyroProblem) -> bool:
     """g-sensitivity is observable from the static positions when their specific
     forces span 3-D (with the bias: rank 4 of [1, f])."""
     if len(prob.statics) < 4:
@@ -341,7 +330,7 @@ def excitation(rec: Recording, accel: CalibrationResult, base: str = "full"):
     (``Effect.not_excited``): turns both ways, temperature, gravity in 3-D."""
     from calib_cli.model.effects import Excitation
 
-    prob = _Problem(rec, accel)
+    prob = GyroProblem(rec, accel)
     both = False
     if len(prob.idx):
         d0 = np.median(prob.W_static, axis=0) if len(prob.statics) else 0.0
@@ -394,7 +383,7 @@ def fit_gyro(rec: Recording, accel: CalibrationResult | None = None,
         raise EstimationError(f"the gyro fit needs static positions (bias, noise, gravity "
                               f"directions); the recording has {len(rec.static_segments())}"
                               f"{too_few_hint(rec, 2)}")
-    prob = _Problem(rec, accel)
+    prob = GyroProblem(rec, accel)
     if noise is not None:
         prob.sig_gyro = np.broadcast_to(np.asarray(noise["gyro"], float), (3,)).copy()
         prob.sig_f = float(np.sqrt(np.mean(np.asarray(noise["accel"], float) ** 2)))
@@ -476,7 +465,7 @@ def _independent_accel(prob, model, packing, fit, base, sig, scales, accel):
         h = 0.1 * float(np.sqrt(C_a[m, m]))
         params = {k: np.array(v, float, copy=True) for k, v in accel.params.items()}
         params[key].reshape(-1)[flat] += h
-        J_a[:, m] = (_Problem(prob.rec, replace(accel, params=params)).residuals(model, p, sig)
+        J_a[:, m] = (GyroProblem(prob.rec, replace(accel, params=params)).residuals(model, p, sig)
                      - r0) / h
     L = np.linalg.cholesky(np.eye(len(r0)) + J_a @ C_a @ J_a.T)
 
@@ -544,7 +533,7 @@ def _finish(prob, model, packing, fit, base, p, sig, inflation, accel, use_D, cr
     return with_accel(res, accel, cross)
 
 
-def _warnings(p: dict, prob: _Problem) -> list[str]:
+def _warnings(p: dict, prob: GyroProblem) -> list[str]:
     out = []
     if np.any(np.diag(p["gyro_K"]) < 0):
         out.append("gyro_K has a negative scale factor: the sign of a turn's rotation_angle_deg "

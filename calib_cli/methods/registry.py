@@ -1,7 +1,10 @@
-"""The fit registry: per method a function, a typed options dataclass and its
-requirements, checked in one place. ``calib fit METHOD``, the batch's fit steps and
-``calib_cli.api.fit`` all go through ``run`` here, so the same recording gives the
-same result, exit code and message whichever way it is fitted.
+"""The method table: every calibration method, registered once (``methods/method.py``
+says what a method holds). ``calib fit``, ``calib batch``, ``calib_cli.api``, ``calib
+plan check``, ``calib diagnose`` and ``calib report`` iterate over ``FITS`` and hold no
+list of method names of their own; every fit, whichever way in, goes through ``run``:
+options checked, the recording checked, the method's own preparation, the fit (plain or
+``--with``), the gross-error screen, the impossible-result check -- in that order, so
+the same recording gives the same result, exit code and message.
 
 Rules (CONTRACT.md section 5):
 
@@ -11,165 +14,469 @@ Rules (CONTRACT.md section 5):
 - too few positions for the method (or degenerate ones, found by the fit itself)
   is exit 4.
 
-Options carry the command line's names and units (``table_tilt_deg``,
-``axis_sigma_mrad``, ...): a batch pipeline writes ``table_tilt_deg = 0.1`` where the
-command line says ``--table-tilt-deg 0.1``. A bad value is exit 3 naming the option.
+Start-up: the command line builds its options from this table, so this module
+imports no numpy or SciPy at the top: the fits below import their modules when
+called (those function-level imports buy the start-up time of ``calib fit --help``).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
-from dataclasses import dataclass, field
-from typing import Callable
+import inspect
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError, InputError
+from calib_cli.methods.method import FileInput, Method, Option, OptionsBase, Requires, resolve
 
-# plan kind -> the fit made for it (the hint of a wrong-kind message; batch method "auto")
-METHOD_OF_PLAN = {"static": "accel", "align": "align", "rimu": "rimu", "turntable": "turntable"}
+if TYPE_CHECKING:
+    from calib_cli.data import CalibrationResult, Recording
+
+__all__ = ["FITS", "FileInput", "Method", "Option", "Requires", "WithRequest", "check_recording",
+           "get", "information", "method_of_plan_kind", "method_of_result", "options_from",
+           "register", "run"]
+
+FITS: dict[str, Method] = {}
+
+
+def register(method: Method) -> Method:
+    """Add a method to the table (the one registration line of a new method)."""
+    if method.name in FITS:
+        raise ValueError(f"a method {method.name!r} is registered already")
+    FITS[method.name] = method
+    globals()[method.options_type.__name__] = method.options_type
+    return method
+
+
+def get(method: str) -> Method:
+    if method not in FITS:
+        raise InputError(f"unknown fit method {method!r}; known: {', '.join(sorted(FITS))}")
+    return FITS[method]
+
+
+def method_of_plan_kind(kind: str) -> str | None:
+    """The method a plan kind's records go to by default (batch ``method = "auto"``): the
+    one of that kind that claims no particular plans."""
+    return next((m.name for m in FITS.values() if kind in m.plan_kinds and m.claims is None),
+                None)
+
+
+def plan_method_names() -> list[str]:
+    """What ``plan check --method`` takes: auto, every method and its variants (accel's
+    vector and scalar)."""
+    out = ["auto"]
+    for m in FITS.values():
+        out += [m.name, *m.variants]
+    return out
+
+
+def method_of_result(result_method: str) -> Method | None:
+    """The method that wrote a calibration (its ``method``: the method's name or one of
+    its variants, e.g. "vector" for accel, "align-classic" for align)."""
+    for m in FITS.values():
+        if result_method == m.name or result_method in m.result_names:
+            return m
+    return None
+
+
+# ---------------------------------------------------------------------------
+# options
+
+
+def options_from(method: str, mapping: dict | None = None, /, **kw):
+    """The method's options from a mapping of the command line's names (a batch
+    step's table, API keywords); an unknown name or a bad value is an InputError
+    naming it."""
+    m = get(method)
+    given = {**(mapping or {}), **kw}
+    names = {o.name for o in m.options}
+    unknown = sorted(set(given) - names)
+    if unknown:
+        known = ", ".join(m.option_names()) or "none"
+        raise InputError(f"fit {method} takes no option {unknown[0]!r} (known: {known})")
+    opts = m.options_type(**given)
+    opts.check()
+    return opts
+
+
+def _options(m: Method, options):
+    if options is None or isinstance(options, dict):
+        return options_from(m.name, options)
+    if not isinstance(options, m.options_type):
+        raise TypeError(f"fit {m.name}: options must be {m.options_type.__name__}")
+    options.check()
+    return options
+
+
+# ---------------------------------------------------------------------------
+# the recording
+
+
+def check_recording(method: str, rec: Recording, path: str | None = None) -> None:
+    """The method's requirements on a recording: exit 3 for the wrong kind of
+    recording (naming the right command), exit 4 for too few positions."""
+    m = get(method)
+    req = m.requires
+    if req.layout == "triad" and rec.layout.redundant:
+        raise InputError(f"this is a redundant-unit recording: use `calib fit rimu`, not "
+                         f"`calib fit {method}`", path)
+    if req.layout == "redundant" and not rec.layout.redundant:
+        right = method_of_plan_kind(rec.plan_kind) or "accel"
+        raise InputError("not a redundant-unit recording (plan kind \"rimu\" with a [rimu] "
+                         f"geometry): use `calib fit {right}`", path)
+    for s in req.sensors:
+        if getattr(rec, s) is None:
+            raise InputError(f"`calib fit {method}` needs {s} data; the recording has none", path)
+    for attr, words in req.channels:
+        if getattr(rec, attr) is None:
+            raise InputError(f"`calib fit {method}` needs {words}; the recording has none", path)
+    for s in req.si:
+        if rec.in_counts(s):
+            raise InputError(f"`calib fit {method}` needs {s} data in SI units, the recording "
+                             "is in raw counts (import with a scale)", path)
+    if "accel" in req.sensors:  # static positions that do not see gravity (issue 37)
+        from calib_cli.methods.segstats import check_gravity_seen
+
+        check_gravity_seen(rec, path)
+    n_static = len(rec.static_segments())
+    if n_static < req.min_static:
+        from calib_cli.methods.static_detect import too_few_hint
+
+        right = method_of_plan_kind(rec.plan_kind)
+        if right and right != method and n_static == 0:  # the wrong fit for this plan
+            raise EstimationError(f"`calib fit {method}` needs >= {req.min_static} static "
+                                  f"position{'s' if req.min_static > 1 else ''}; this is a "
+                                  f"{rec.plan_kind} recording: use `calib fit {right}`", path)
+        raise EstimationError(f"`calib fit {method}` needs >= {req.min_static} static "
+                              f"position{'s' if req.min_static > 1 else ''}; the recording "
+                              f"has {n_static}{req.advice}{too_few_hint(rec, req.min_static)}",
+                              path)
+    n_rot = sum(1 for s in rec.segments if s.kind == "rotating")
+    if n_rot < req.min_rotating:
+        raise EstimationError(f"`calib fit {method}` needs >= {req.min_rotating} rotating "
+                              f"segment{'s' if req.min_rotating > 1 else ''} (table cycles); "
+                              f"the recording has {n_rot}", path)
+
+
+# ---------------------------------------------------------------------------
+# the one way to run a fit
 
 
 @dataclass(frozen=True)
-class Requires:
-    """What a method needs of a recording. layout: "triad" or "redundant"; sensors:
-    the data that must be present; si: sensors that must be in SI units (not counts);
-    min_static / min_rotating: fewest static positions / rotating segments."""
+class WithRequest:
+    """``--with``: catalogue effects [(name, sensor)] added to the method's base model
+    (methods/fit_with.py), the base model's scale factors ("full" or "diagonal") and
+    the noise floor ("auto" or "hf")."""
 
-    layout: str = "triad"
-    sensors: tuple = ("accel",)
-    si: tuple = ()
-    min_static: int = 0
-    min_rotating: int = 0
-    advice: str = ""  # appended to a too-few-positions message
+    effects: tuple
+    base: str = "full"
+    noise: str = "auto"
 
 
-def _choice(name: str, value, choices) -> None:
-    if value not in choices:
-        raise InputError(f"--{name.replace('_', '-')} must be one of {', '.join(choices)}, "
-                         f"got {value!r}")
-
-
-def _number(name: str, value, lo: float | None = None, hi: float | None = None,
-            lo_open: bool = False, optional: bool = False) -> None:
-    if value is None and optional:
+def check_with(method: str, req: WithRequest) -> None:
+    """What a method's ``--with`` accepts (ValueError naming the problem: the command
+    line's usage error, the batch's and API's InputError)."""
+    m = get(method)
+    if m.with_engine is None:
+        raise ValueError(f"the {method} method takes no --with")
+    if req.base not in ("full", "diagonal") or req.noise not in ("auto", "hf"):
+        raise ValueError("base is full or diagonal, the noise floor auto or hf")
+    if m.with_engine == "own":
+        bad = [n for n, _ in req.effects if n not in m.with_effects]
+        if bad:
+            raise ValueError(f"{bad[0]}: the {method} fit takes {', '.join(m.with_effects)}")
         return
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    if ok and lo is not None:
-        ok = value > lo if lo_open else value >= lo
-    if ok and hi is not None:
-        ok = value <= hi
-    if not ok:
-        lo_s = "" if lo is None else ("(" if lo_open else "[") + f"{lo:g}"
-        rng = f" in {lo_s}, {'inf)' if hi is None else f'{hi:g}]'}" if lo is not None else ""
-        raise InputError(f"--{name.replace('_', '-')} must be a number{rng}, got {value!r}")
+    from calib_cli.methods import with_effects as fw
+
+    if m.with_engine == "gyro":
+        bad = [fw.with_arg(n, s) for n, s in req.effects if s != "gyro" or n not in fw.GYRO_WITH]
+        if bad:
+            raise ValueError(f"{', '.join(bad)}: the gyro method takes "
+                             f"{', '.join(fw.GYRO_WITH)} (docs/diagnose.md)")
+    if any(n == "misalignment" for n, _ in req.effects):
+        if "misalignment" in m.with_excluded:
+            raise ValueError(f"the {method} method has no triad misalignment "
+                             f"({m.with_excluded['misalignment']})")
+        if req.base != "diagonal":
+            raise ValueError("--with misalignment needs --base diagonal (the full base model "
+                             "already has every misalignment)")
 
 
-@dataclass(frozen=True)
-class AccelOptions:
-    """``calib fit accel``: method auto (vector when every static segment has an
-    attitude, else scalar), vector or scalar."""
+def parse_with(method: str, text: str, base: str = "full", noise: str = "auto") -> WithRequest:
+    """A WithRequest from the ``--with`` text ("A,B.c"); ValueError names the problem."""
+    m = get(method)
+    if m.with_engine == "own":
+        effects = tuple((e.strip(), "") for e in str(text).split(",") if e.strip())
+        if not effects:
+            raise ValueError("no effect named")
+    else:
+        from calib_cli.methods.with_effects import parse_with as parse_effects
 
-    method: str = "auto"
-
-    def check(self) -> None:
-        _choice("method", self.method, ("auto", "vector", "scalar"))
-
-
-@dataclass(frozen=True)
-class GyroOptions:
-    """``calib fit gyro``: g_sensitivity auto/on/off; accel: an accelerometer
-    calibration to take the gravity directions from (None: fitted from the same
-    recording); accel_independent: it was fitted on other data (its uncertainty
-    is then propagated)."""
-
-    g_sensitivity: str = "auto"
-    accel: CalibrationResult | None = None
-    accel_independent: bool = False
-
-    def check(self) -> None:
-        _choice("g_sensitivity", self.g_sensitivity, ("auto", "on", "off"))
-        if self.accel is not None and "accel_K" not in self.accel.params:
-            raise InputError("--accel: not an accelerometer calibration (no accel_K)")
+        effects = tuple(parse_effects(text, method))
+    req = WithRequest(effects, base, noise)
+    check_with(method, req)
+    return req
 
 
-@dataclass(frozen=True)
-class AlignOptions:
-    """``calib fit align``: method two-position/classic/static, rotation auto/gyro/plan,
-    gyro auto/use/ignore, gyro_k_ppm (prior of the gyro K entries, ppm), turn_sigma_deg."""
-
-    method: str = "two-position"
-    rotation: str = "auto"
-    gyro: str = "auto"
-    gyro_k_ppm: float | None = None
-    turn_sigma_deg: float = 0.0
-
-    def check(self) -> None:
-        _choice("method", self.method, ("two-position", "classic", "static"))
-        _choice("rotation", self.rotation, ("auto", "gyro", "plan"))
-        _choice("gyro", self.gyro, ("auto", "use", "ignore"))
-        _number("gyro_k_ppm", self.gyro_k_ppm, 0.0, optional=True)
-        _number("turn_sigma_deg", self.turn_sigma_deg, 0.0)
+def _call_fit(m: Method, rec, options, progress=None):
+    fn = resolve(m.fit)
+    kw = ({"progress": progress} if progress is not None
+          and "progress" in inspect.signature(fn).parameters else {})
+    return fn(rec, options, **kw)
 
 
-@dataclass(frozen=True)
-class RimuOptions:
-    """``calib fit rimu``: no options."""
+def _fit_with(m: Method, rec, options, req: WithRequest):
+    if m.with_engine == "own":
+        return resolve(m.with_fit)(rec, options, req.effects)
+    from calib_cli.methods import fit_with as fw
 
-    def check(self) -> None:
-        pass
+    if m.with_engine == "gyro":
+        acc = options.accel.value if options.accel is not None else None
+        return fw.fit_with_gyro(rec, list(req.effects), req.base, acc, options.accel_independent)
+    return fw.fit_with(rec, m.name, list(req.effects), base=req.base, noise=req.noise)[0]
 
 
-@dataclass(frozen=True)
-class TurntableFitOptions:
-    """``calib fit turntable`` in the command line's names and units; ``to_method()``
-    gives the estimator's ``TurntableOptions`` (SI)."""
+def run(method: str, rec: Recording, options=None, path: str | None = None,
+        progress=None, with_: WithRequest | None = None) -> CalibrationResult:
+    """Check the options and the recording, prepare, fit (plain, or with the catalogue
+    effects of ``with_``), screen for gross errors, refuse an impossible result
+    (exit 4). ``options``: the method's options dataclass, a mapping of its names, or
+    None for the defaults. ``path`` names the recording in errors. ``progress(done,
+    total)``: optional, passed to fits that report progress. With ``with_`` the gross-
+    error screen is the plain fit's (a position the plain fit accuses is accused before
+    any effect can absorb it)."""
+    m = get(method)
+    try:
+        options = _options(m, options)
+        if with_ is not None:
+            try:
+                check_with(method, with_)
+            except ValueError as exc:
+                raise InputError(f"--with: {exc}") from None
+        check_recording(method, rec, path)
+        if m.prepare is not None:
+            options = resolve(m.prepare)(options, rec)
+        if with_ is not None and m.screen is not None:
+            _screened_fit(m, rec, options)  # the plain fit's screen; its result is not used
+        if with_ is not None:
+            res = _fit_with(m, rec, options, with_)
+        else:
+            res = _screened_fit(m, rec, options, progress)
+        from calib_cli.methods.gross import check_result
 
-    lever_arm: str = "estimate"
-    proof_mass: str = "auto"
-    tangential: str = "on"
-    block_s: float = 0.2
-    axis_sigma_mrad: float | str = "auto"  # "auto": estimated from the data
-    runout_mrad: float = 0.5
-    table_tilt_deg: float = 0.05
-    grade: str = "mems"
-    prior: dict | None = None  # key -> 1-sigma (SI)
-    noise: dict | None = None  # {"accel": sigma, "gyro": sigma} per sample (SI)
-    table_encoder: str = "auto"
+        check_result(res, rec)
+    except (InputError, EstimationError) as exc:
+        exc.path = exc.path or path
+        raise
+    except __import__("numpy").linalg.LinAlgError as exc:  # degenerate data the checks let through
+        raise EstimationError(f"`calib fit {method}`: the data do not determine the "
+                              f"parameters (a singular system: {exc}); check that the "
+                              "positions differ as the plan says", path) from None
+    return res
 
-    def check(self) -> None:
-        _choice("lever_arm", self.lever_arm, ("off", "known", "estimate"))
-        _choice("proof_mass", self.proof_mass, ("auto", "off", "estimate"))
-        _choice("tangential", self.tangential, ("on", "off"))
-        _choice("grade", self.grade, ("mems", "tactical", "navigation"))
-        _choice("table_encoder", self.table_encoder, ("auto", "off", "angle", "rate", "both"))
-        if not (isinstance(self.block_s, (int, float)) and math.isfinite(self.block_s)
-                and 0 < self.block_s <= 5):
-            raise InputError(f"--block must be in (0, 5] s, got {self.block_s}")
-        if self.axis_sigma_mrad != "auto" and not (
-                isinstance(self.axis_sigma_mrad, (int, float))
-                and math.isfinite(self.axis_sigma_mrad) and self.axis_sigma_mrad > 0):
-            raise InputError(f"--axis-sigma-mrad must be auto or > 0, got {self.axis_sigma_mrad}")
-        if not (isinstance(self.runout_mrad, (int, float)) and math.isfinite(self.runout_mrad)
-                and 0 <= self.runout_mrad <= 50):
-            raise InputError(f"--runout-mrad must be in [0, 50], got {self.runout_mrad}")
-        if not (isinstance(self.table_tilt_deg, (int, float))
-                and math.isfinite(self.table_tilt_deg) and 0 <= self.table_tilt_deg <= 10):
-            raise InputError(f"--table-tilt-deg must be in [0, 10], got {self.table_tilt_deg}")
-        from calib_cli.methods.turntable import PRIOR_KEYS
 
-        for k, v in (self.prior or {}).items():
-            if k not in PRIOR_KEYS:
-                raise InputError(f"--prior: unknown key {k!r}; expected one of "
-                                 f"{', '.join(PRIOR_KEYS)}")
-            _number(f"prior {k}", v, 0.0, lo_open=True)
-        if self.noise is not None:
-            if set(self.noise) != {"accel", "gyro"}:
-                raise InputError("--noise needs accel=SIGMA,gyro=SIGMA")
-            for k, v in self.noise.items():
-                _number(f"noise {k}", v, 0.0, lo_open=True)
+def _screened_fit(m: Method, rec, options, progress=None):
+    res = _call_fit(m, rec, options, progress)
+    if m.screen == "after":
+        from calib_cli.methods.gross import screen_fit
 
+        screen_fit(res, rec, lambda r: _call_fit(m, r, options))
+    return res
+
+
+def information(method: str, rec: Recording, options=None, noise: dict | None = None,
+                like: Recording | None = None) -> CalibrationResult:
+    """The method's covariance on a noise-free record at per-sample noise ``noise``
+    ({"accel", "gyro"}, SI): the fit's own rows and weights at the truth, i.e. the
+    inverse Fisher information ``plan check`` reports (``like``: the recording the
+    noise came from, for methods whose fit takes more than its noise from it)."""
+    m = get(method)
+    o = _options(m, options)
+    if m.information is not None:
+        return resolve(m.information)(rec, o, noise, like)
+    fn = resolve(m.fit)
+    if "noise" not in inspect.signature(fn).parameters:
+        raise EstimationError(f"the {method} method predicts nothing (its fit takes no noise=)")
+    return fn(rec, o, noise=noise)
+
+
+def diagnose(method: str, rec: Recording, base: str = "full", alpha: float | None = None,
+             noise: str = "auto"):
+    """``calib diagnose --method METHOD``: the method's diagnosis (its ``diagnose``
+    engine: "engine", the catalogue refit engine of methods/diagnose.py on the method's
+    base model; "gyro", the gyro fit's own equations, methods/diagnose_gyro.py)."""
+    m = get(method)
+    kw = {} if alpha is None else {"alpha": alpha}
+    if m.diagnose == "engine":
+        from calib_cli.methods.diagnose import diagnose as run_engine
+
+        return run_engine(rec, method, base=base, noise=noise, **kw)
+    if m.diagnose == "gyro":
+        from calib_cli.methods.diagnose_gyro import diagnose_gyro
+
+        return diagnose_gyro(rec, base=base, **kw)
+    raise EstimationError(f"diagnose --method {method}: the {method} method has no diagnosis")
+
+
+def diagnosable() -> list[str]:
+    """The methods ``calib diagnose --method`` takes."""
+    return [m.name for m in FITS.values() if m.diagnose]
+
+
+# ---------------------------------------------------------------------------
+# the built-in methods' fits (numpy and SciPy imported when a fit runs)
+
+
+def _fit_accel(rec, o, noise=None):
+    from calib_cli.methods.accel_lsq import fit_accel
+
+    if noise is not None:
+        return fit_accel(rec, o.method, noise=noise["accel"], strict=False)
+    return fit_accel(rec, o.method)
+
+
+def _fit_gyro(rec, o, noise=None):
+    from calib_cli.methods.gyro import fit_gyro
+
+    acc = None if o.accel is None else o.accel.value
+    if noise is not None:
+        return fit_gyro(rec, acc, o.g_sensitivity, noise=noise, strict=False)
+    return fit_gyro(rec, acc, o.g_sensitivity, accel_independent=o.accel_independent)
+
+
+def _prepare_gyro(o, rec):
+    """An accelerometer calibration read from a file made from other data than this
+    recording is independent of it: its uncertainty is propagated (docs/gyro.md)."""
+    if o.accel is not None and o.accel.from_this_recording is not None:
+        return dataclasses.replace(o, accel_independent=not o.accel.from_this_recording)
+    return o
+
+
+def _fit_align(rec, o, noise=None):
+    import numpy as np
+
+    if o.method == "classic":
+        from calib_cli.methods.align_classic import fit_classic
+
+        return fit_classic(rec, rotation=o.rotation)
+    if o.method == "static":
+        from calib_cli.methods.align_static import fit_align_static
+
+        return fit_align_static(rec)
+    from calib_cli.methods.align import fit_align
+
+    return fit_align(rec, rotation=o.rotation, gyro=o.gyro,
+                     gyro_k_prior=None if o.gyro_k_ppm is None else float(o.gyro_k_ppm) * 1e-6,
+                     turn_sigma=float(np.radians(o.turn_sigma_deg)), noise=noise)
+
+
+def _fit_rimu(rec, o, noise=None):
+    from calib_cli.methods.rimu import fit_rimu
+
+    if noise is not None:
+        return fit_rimu(rec, noise=noise, strict=False)
+    return fit_rimu(rec)
+
+
+def _fit_turntable(rec, o, progress=None):
+    from calib_cli.methods.turntable import fit_turntable
+
+    return fit_turntable(rec, o.to_method(), progress=progress)
+
+
+THERMAL_ORDER = 2  # plan check predicts the thermal fit at this order when --order is auto
+
+
+def _fit_thermal(rec, o, noise=None, lag: bool = False):
+    from calib_cli.methods.thermal import fit_thermal
+
+    sensors = ("accel", "gyro") if o.sensor == "both" else (o.sensor,)
+    base = None if o.base is None else o.base.value
+    if noise is not None:
+        return fit_thermal(rec, order=o.order or THERMAL_ORDER, temp_ref=o.temp_ref,
+                           sensors=sensors, base=base, noise=noise)
+    return fit_thermal(rec, order=o.order, temp_ref=o.temp_ref, sensors=sensors, base=base,
+                       lag=lag)
+
+
+def _thermal_with(rec, o, effects):
+    return _fit_thermal(rec, o, lag=any(n == "thermal_lag" for n, _ in effects))
+
+
+def _accel_variant(plan) -> str:
+    """``fit accel --method auto`` on a plan: vector when every static position has an
+    attitude, else scalar (CONTRACT.md section 5)."""
+    statics = [s for s in plan.segments if s.kind == "static"]
+    return "vector" if statics and all(s.attitude is not None for s in statics) else "scalar"
+
+
+def _has_turns(plan) -> bool:
+    """A static plan with turns of known angle goes to the gyro fit (Ferraris)."""
+    return any(s.kind == "turn" for s in plan.segments)
+
+
+# ---------------------------------------------------------------------------
+# lines the command line prints after a fit (pure: from the result)
+
+
+def _notes_gyro(res, o) -> list:
+    st = res.stats
+    out = []
+    if o.accel is not None and o.accel.from_this_recording is not None:
+        out.append("accelerometer calibration " + (
+            "from other data: its uncertainty is propagated into the gyro parameters"
+            if not o.accel.from_this_recording else "from this recording"))
+    out += [f"[yellow]warning:[/] {w}" for w in st.get("warnings", [])]
+    tr = st.get("transition_residual_rms_rad")
+    if "n_transitions" in st:
+        out.append(f"{st['n_transitions']} transitions, {st['n_turns']} turns, "
+                   f"{st['n_positions']} static positions; transition residual RMS "
+                   f"{'n/a' if tr is None else f'{tr * 180 / 3.141592653589793:.3f} deg'}")
+    return out
+
+
+def _notes_align(res, o) -> list:
+    st, out = res.stats, []
+    if o.method == "static" and st.get("degeneracy"):
+        out.append(f"[yellow]degenerate positions:[/] {st['degeneracy']}; not observable: "
+                   + ", ".join(st["unobservable"]))
+    if not st.get("earth_rate_used", True):
+        out.append(f"[yellow]earth rate not used:[/] {st.get('grade_check')}; heading not "
+                   "estimated, accelerometer biases and tilt only")
+    if st.get("observability"):
+        out.append(st["observability"])
+    return out
+
+
+def _notes_turntable(res, o) -> list:
+    st, out = res.stats, []
+    clipped = st.get("accel_clipped_samples") or []
+    if any(clipped):
+        out.append(f"[yellow]warning:[/] {sum(clipped)} accelerometer samples sit at full scale "
+                   "(saturated?): the centripetal and tangential terms may exceed the range; "
+                   "the fit does not model clipping")
+    if st.get("accel_noise_inflation", 1.0) > 1.0:
+        out.append(f"[yellow]the model does not explain the accelerometer data:[/] noise "
+                   f"widened x{st['accel_noise_inflation']:.1f} (lever arms or proof masses "
+                   "missing?)")
+    return out
+
+
+def _notes_thermal(res, o) -> list:
+    st = res.stats
+    if "temp_order" not in st:
+        return []
+    return [f"order {st['temp_order']} (T_ref {st['temp_ref_degC']:g} degC, range "
+            f"{st['temp_range_degC'][0]:.1f}..{st['temp_range_degC'][1]:.1f} degC)"]
+
+
+# ---------------------------------------------------------------------------
+# the built-in methods
+
+
+class TurntableOptionsBase(OptionsBase):
     def to_method(self):
+        """The estimator's ``TurntableOptions`` (SI) of these options."""
         import numpy as np
 
         from calib_cli.methods.turntable import TurntableOptions
@@ -187,182 +494,159 @@ class TurntableFitOptions:
             table_encoder=self.table_encoder)
 
 
-def _fit_accel(rec, o: AccelOptions):
-    from calib_cli.methods.accel_lsq import fit_accel
+ENGINE_EXCLUDED = {"misalignment": "align: K is the identity; rimu: each sensor's direction "
+                                   "is in the base model"}
 
-    return fit_accel(rec, o.method)
+register(Method(
+    "accel", "static multi-position accelerometer fit", _fit_accel,
+    help="Static multi-position accelerometer fit: A = b + K f.",
+    options=(Option("method", "auto", "vector: known attitudes; scalar: |a| = g.", "choice",
+                    ("auto", "vector", "scalar")),),
+    requires=Requires("triad", ("accel",), min_static=1),
+    screen="inside", information=lambda rec, o, noise, like: _fit_accel(rec, o, noise),
+    plan_kinds=("static",), variants={"vector": {"method": "vector"},
+                                      "scalar": {"method": "scalar"}},
+    variant_of=_accel_variant,
+    result_names=("vector", "scalar"), plan_candidates="calib_cli.design:position_candidates",
+    with_engine="engine", diagnose="engine", report=("calib_cli.report.sections_static",),
+    options_name="AccelOptions", docs="docs/accel.md"))
 
+register(Method(
+    "thermal", "bias and scale factor polynomials in temperature", _fit_thermal,
+    help="Bias and scale factor polynomial in temperature on top of the static model, from "
+         "soak steps and/or ramps in known positions (docs/thermal.md).",
+    options=(
+        Option("order", None, "Polynomial order in T - T_ref (default: by BIC over 1..3).",
+               "int", lo=1, hi=3, optional=True, plan_check=False),
+        Option("temp_ref", 25.0, "Reference temperature T_ref, degC.", "float", lo=-100,
+               hi=200),
+        Option("sensor", "both", "The sensors whose temperature terms are fitted.", "choice",
+               ("accel", "gyro", "both")),
+        Option("base", None, "A room-temperature calibration whose K (and gyro G) are held.",
+               "calibration", needs_keys=("accel_K", "gyro_K"), metavar="CAL"),
+    ),
+    requires=Requires("triad", ("accel",), channels=(("temp", "the unit's temperature "
+                                                               "(samples/temp)"),)),
+    information=lambda rec, o, noise, like: _fit_thermal(rec, o, noise),
+    plan_kinds=("static",), claims="calib_cli.sim.chamber:has_chamber",
+    with_engine="own", with_fit=_thermal_with, with_effects=("thermal_lag",),
+    notes=_notes_thermal, report=("calib_cli.report.sections_thermal",),
+    options_name="ThermalOptions", docs="docs/thermal.md"))
 
-def _fit_gyro(rec, o: GyroOptions):
-    from calib_cli.methods.gyro import fit_gyro
+register(Method(
+    "gyro", "gyro bias, K (and D) from rotations between static positions", _fit_gyro,
+    help="Gyro bias, scale factors and misalignments (and g-sensitivity) from the rotations "
+         "between static positions and turns of known angle (docs/gyro.md).",
+    options=(
+        Option("g_sensitivity", "auto", "Fit gyro_D (auto: when the static positions make it "
+               "observable).", "choice", ("auto", "on", "off"), plan_check=True),
+        Option("accel", None, "Accelerometer calibration to take the gravity directions from "
+               "(default: fit it from RAW, `fit accel --method auto`).", "calibration",
+               needs_keys=("accel_K",), metavar="ACCEL_CAL"),
+        Option("accel_independent", False, "The accelerometer calibration was fitted on other "
+               "data (its uncertainty is propagated); read from its file's input hashes.",
+               "bool", cli=False, batch=False),
+    ),
+    requires=Requires("triad", ("accel", "gyro"), min_static=2),
+    screen="after", information=lambda rec, o, noise, like: _fit_gyro(rec, o, noise),
+    plan_kinds=("static",), claims=_has_turns, prepare=_prepare_gyro, notes=_notes_gyro,
+    with_uses=("accel", "accel_independent"), plan_candidates="calib_cli.design:gyro_candidates",
+    with_engine="gyro", diagnose="gyro", report=("calib_cli.report.sections_gyro",),
+    options_name="GyroOptions", docs="docs/gyro.md"))
 
-    return fit_gyro(rec, o.accel, o.g_sensitivity, accel_independent=o.accel_independent)
+register(Method(
+    "align", "biases and attitude from two or more static positions", _fit_align,
+    help="Accelerometer and gyro biases and the attitude of the first position from two (or "
+         "more) static positions related by a known rotation.",
+    options=(
+        Option("method", "two-position",
+               "two-position: any rotation between the positions; classic: the 2- or "
+               "4-position baseline (turns of 180 or 90 deg about the vertical body z); "
+               "static: static data only, the turn neither recorded nor stated (both "
+               "attitudes and the biases from the twelve static equations).", "choice",
+               ("two-position", "classic", "static")),
+        Option("rotation", "auto", "Rotation between positions: gyros integrated through the "
+               "recorded transition, or the plan's turn segments (auto: gyro when recorded).",
+               "choice", ("auto", "gyro", "plan"), plan_check=False),
+        Option("gyro", "auto", "Earth-rate equations: auto = grade check decides; use = fail "
+               "(exit 4) when the gyros cannot resolve the earth rate; ignore = accelerometer "
+               "biases and tilt only.", "choice", ("auto", "use", "ignore")),
+        Option("gyro_k_ppm", None, "Prior 1-sigma of the gyro scale-factor/misalignment "
+               "entries (ppm, urad) that bend the integrated turn [default: 30, or 3000 "
+               "without earth rate].", "float", lo=0.0, optional=True),
+        Option("turn_sigma_deg", 0.0, "1-sigma error per axis of a plan-stated turn (with "
+               "--rotation plan).", "float", lo=0.0),
+    ),
+    requires=Requires("triad", ("accel", "gyro"), min_static=2,
+                      advice=": add a second position after a turn of 60-180 deg"),
+    screen="after",  # two-position method: static positions (methods/gross.py)
+    information=lambda rec, o, noise, like: _fit_align(rec, o, noise),
+    plan_kinds=("align",), result_names=("align-classic",), notes=_notes_align,
+    plan_candidates="calib_cli.design:align_candidates",
+    with_engine="engine", with_excluded=ENGINE_EXCLUDED, diagnose="engine",
+    report=("calib_cli.report.sections_align_rimu",), options_name="AlignOptions",
+    docs="docs/align.md"))
 
+register(Method(
+    "rimu", "redundant unit: b, ks, dEl, dAz per sensor", _fit_rimu,
+    help="Redundant unit: per sensor bias, scale error, dEl, dAz (docs/rimu.md).",
+    requires=Requires("redundant", ("accel",)), screen="after",
+    information=lambda rec, o, noise, like: _fit_rimu(rec, o, noise),
+    plan_kinds=("rimu",), plan_candidates="calib_cli.design:position_candidates",
+    with_engine="engine", with_excluded=ENGINE_EXCLUDED,
+    diagnose="engine", report=("calib_cli.report.sections_align_rimu",), export="json",
+    options_name="RimuOptions", docs="docs/rimu.md"))
 
-def _fit_align(rec, o: AlignOptions):
-    import numpy as np
-
-    if o.method == "classic":
-        from calib_cli.methods.align_classic import fit_classic
-
-        return fit_classic(rec, rotation=o.rotation)
-    if o.method == "static":
-        from calib_cli.methods.align_static import fit_align_static
-
-        return fit_align_static(rec)
-    from calib_cli.methods.align import fit_align
-
-    return fit_align(rec, rotation=o.rotation, gyro=o.gyro,
-                     gyro_k_prior=None if o.gyro_k_ppm is None else float(o.gyro_k_ppm) * 1e-6,
-                     turn_sigma=float(np.radians(o.turn_sigma_deg)))
-
-
-def _fit_rimu(rec, o: RimuOptions):
-    from calib_cli.methods.rimu import fit_rimu
-
-    return fit_rimu(rec)
-
-
-def _fit_turntable(rec, o: TurntableFitOptions, progress=None):
-    from calib_cli.methods.turntable import fit_turntable
-
-    return fit_turntable(rec, o.to_method(), progress=progress)
-
-
-@dataclass(frozen=True)
-class FitMethod:
-    """One fit: ``function(rec, options) -> CalibrationResult``, its options type,
-    its requirements, and whether the gross-error screen refits it (rimu, gyro, align)."""
-
-    name: str
-    function: Callable
-    options: type
-    requires: Requires
-    screened: bool = False
-    summary: str = ""
-    aliases: dict = field(default_factory=dict)  # batch/CLI name -> options field
-
-    def option_names(self) -> tuple:
-        return tuple(f.name for f in dataclasses.fields(self.options)
-                     if f.name not in ("accel", "accel_independent"))
-
-
-FITS: dict[str, FitMethod] = {}
-
-
-def register(method: FitMethod) -> None:
-    FITS[method.name] = method
-
-
-register(FitMethod("accel", _fit_accel, AccelOptions,
-                   Requires("triad", ("accel",), min_static=1),
-                   summary="static multi-position accelerometer fit"))
-register(FitMethod("gyro", _fit_gyro, GyroOptions,
-                   Requires("triad", ("accel", "gyro"), min_static=2), screened=True,
-                   summary="gyro bias, K (and D) from rotations between static positions"))
-register(FitMethod("align", _fit_align, AlignOptions,
-                   Requires("triad", ("accel", "gyro"), min_static=2,
-                            advice=": add a second position after a turn of 60-180 deg"),
-                   screened=True,  # two-position method: static positions (methods/gross.py)
-                   summary="biases and attitude from two or more static positions"))
-register(FitMethod("rimu", _fit_rimu, RimuOptions,
-                   Requires("redundant", ("accel",)), screened=True,
-                   summary="redundant unit: b, ks, dEl, dAz per sensor"))
-register(FitMethod("turntable", _fit_turntable, TurntableFitOptions,
-                   Requires("triad", ("accel", "gyro"), si=("accel", "gyro"), min_rotating=1),
-                   summary="rotating-table calibration with lever arms and proof masses"))
-
-
-def get(method: str) -> FitMethod:
-    if method not in FITS:
-        raise InputError(f"unknown fit method {method!r}; known: {', '.join(sorted(FITS))}")
-    return FITS[method]
-
-
-def options_from(method: str, mapping: dict | None = None, /, **kw):
-    """The method's options from a mapping of the command line's names (a batch
-    step's table); an unknown name or a bad value is an InputError naming it."""
-    m = get(method)
-    given = {**(mapping or {}), **kw}
-    names = {f.name for f in dataclasses.fields(m.options)}
-    unknown = sorted(set(given) - names)
-    if unknown:
-        known = ", ".join(m.option_names()) or "none"
-        raise InputError(f"fit {method} takes no option {unknown[0]!r} (known: {known})")
-    opts = m.options(**given)
-    opts.check()
-    return opts
-
-
-def check_recording(method: str, rec: Recording, path: str | None = None) -> None:
-    """The method's requirements on a recording: exit 3 for the wrong kind of
-    recording (naming the right command), exit 4 for too few positions."""
-    m = get(method)
-    req = m.requires
-    if req.layout == "triad" and rec.layout.redundant:
-        raise InputError(f"this is a redundant-unit recording: use `calib fit rimu`, not "
-                         f"`calib fit {method}`", path)
-    if req.layout == "redundant" and not rec.layout.redundant:
-        right = METHOD_OF_PLAN.get(rec.plan_kind, "accel")
-        raise InputError("not a redundant-unit recording (plan kind \"rimu\" with a [rimu] "
-                         f"geometry): use `calib fit {right}`", path)
-    for s in req.sensors:
-        if getattr(rec, s) is None:
-            raise InputError(f"`calib fit {method}` needs {s} data; the recording has none"
-                             + ("" if s == "gyro" else ""), path)
-    for s in req.si:
-        if rec.in_counts(s):
-            raise InputError(f"`calib fit {method}` needs {s} data in SI units, the recording "
-                             "is in raw counts (import with a scale)", path)
-    if "accel" in req.sensors:  # static positions that do not see gravity (issue 37)
-        from calib_cli.methods.segstats import check_gravity_seen
-
-        check_gravity_seen(rec, path)
-    n_static = len(rec.static_segments())
-    if n_static < req.min_static:
-        from calib_cli.methods.static_detect import too_few_hint
-
-        raise EstimationError(f"`calib fit {method}` needs >= {req.min_static} static "
-                              f"position{'s' if req.min_static > 1 else ''}; the recording "
-                              f"has {n_static}{req.advice}{too_few_hint(rec, req.min_static)}",
-                              path)
-    n_rot = sum(1 for s in rec.segments if s.kind == "rotating")
-    if n_rot < req.min_rotating:
-        raise EstimationError(f"`calib fit {method}` needs >= {req.min_rotating} rotating "
-                              f"segment{'s' if req.min_rotating > 1 else ''} (table cycles); "
-                              f"the recording has {n_rot}", path)
-
-
-def run(method: str, rec: Recording, options=None, path: str | None = None,
-        progress=None) -> CalibrationResult:
-    """Check the recording, fit, screen for gross errors, refuse an impossible
-    result (exit 4). ``options``: the method's options dataclass, a mapping of
-    its names, or None for the defaults. ``path`` names the recording in errors.
-    ``progress(done, total)``: optional, passed to fits that report progress."""
-    m = get(method)
-    if options is None or isinstance(options, dict):
-        options = options_from(method, options)
-    elif not isinstance(options, m.options):
-        raise TypeError(f"fit {method}: options must be {m.options.__name__}")
-    else:
-        options.check()
-    check_recording(method, rec, path)
-    try:
-        import inspect
-
-        kw = ({"progress": progress} if progress is not None
-              and "progress" in inspect.signature(m.function).parameters else {})
-        res = m.function(rec, options, **kw)
-        from calib_cli.methods.gross import check_result, screen_fit
-
-        if m.screened:
-            screen_fit(res, rec, lambda r: m.function(r, options))
-        check_result(res, rec)
-    except (InputError, EstimationError) as exc:
-        exc.path = exc.path or path
-        raise
-    except __import__("numpy").linalg.LinAlgError as exc:  # degenerate data the checks let through
-        raise EstimationError(f"`calib fit {method}`: the data do not determine the "
-                              f"parameters (a singular system: {exc}); check that the "
-                              "positions differ as the plan says", path) from None
-    return res
+register(Method(
+    "turntable", "rotating-table calibration with lever arms and proof masses", _fit_turntable,
+    help="Accelerometer b, K (lower triangular), gyro d, G, D, lever arms and proof-mass "
+         "offsets from rotation cycles on a single-axis table of imprecise angle and rate.",
+    options=(
+        Option("lever_arm", "estimate", "off: no centripetal terms; known: each cycle's "
+               "lever_arm_m from the plan; estimate: two components per cycle (the axial one "
+               "is unobservable).", "choice", ("off", "known", "estimate"), plan_check=True),
+        Option("proof_mass", "auto", "Proof-mass offsets p_ij (best with tilted cycles, "
+               "docs/turntable.md). auto: estimated, entries the record cannot determine "
+               "reported with sigma null; off: held at 0.", "choice",
+               ("auto", "off", "estimate"), plan_check=True),
+        Option("tangential", "on", "dw/dt x r term from the differentiated gyros (off: blocks "
+               "in which the table accelerates are left out of the accelerometer "
+               "measurements).", "choice", ("on", "off"), plan_check=True),
+        Option("block_s", 0.2, "Measurement block length (s): the data are averaged over "
+               "blocks.", "float", lo=0.0, hi=5.0, lo_open=True, flag="--block"),
+        Option("axis_sigma_mrad", "auto", "How well the table axis stays fixed (per block, "
+               "1-sigma, mrad), or auto: estimated from the data "
+               "(stats.table_axis_noise_mrad).", "auto_float", lo=0.0, lo_open=True),
+        Option("runout_mrad", 0.5, "Prior 1-sigma of the table bearing's twice-per-revolution "
+               "rocking of the axis (estimated per cycle); 0: none.", "float", lo=0.0, hi=50.0),
+        Option("table_tilt_deg", 0.05, "Prior 1-sigma of the table axis's tilt from the plan's "
+               "direction (estimated, one per table axis); 0: take the plan's axis as exact.",
+               "float", lo=0.0, hi=10.0),
+        Option("grade", "mems", "Prior widths of the parameters for this grade of unit "
+               "(docs/turntable.md).", "choice", ("mems", "tactical", "navigation"),
+               plan_check=True),
+        Option("prior", None, "Override one prior 1-sigma (SI), e.g. --prior lever_arm=0.1; "
+               "keys: accel_bias accel_K gyro_bias gyro_K gyro_D lever_arm "
+               "proof_mass_offsets.", "key_values", keys="calib_cli.methods.turntable:PRIOR_KEYS",
+               multiple=True, metavar="KEY=SIGMA", plan_check=True),
+        Option("noise", None, "Per-sample white noise (SI: m/s^2, rad/s) instead of the "
+               "estimate from the data; one value for all axes of a sensor.", "key_values",
+               keys=("accel", "gyro"), exact_keys=True, optional=True,
+               metavar="accel=SIGMA,gyro=SIGMA"),
+        Option("table_encoder", "auto", "The table's angle and/or rate channels as "
+               "measurements (angle: zero, once-per-revolution error and clock offset "
+               "estimated; rate: scale error and offset estimated): auto uses those the log "
+               "has that pass the checks.", "choice", ("auto", "off", "angle", "rate", "both"),
+               plan_check=True),
+    ),
+    requires=Requires("triad", ("accel", "gyro"), si=("accel", "gyro"), min_rotating=1),
+    # the prediction keeps the turntable engineer's code path (issue 32 rewrites it)
+    information="calib_cli.design:turntable_information",
+    plan_kinds=("turntable",), plan_candidates="calib_cli.design:turntable_candidates",
+    notes=_notes_turntable, with_engine="engine", diagnose="engine",
+    report=("calib_cli.report.sections_turntable",), options_base=TurntableOptionsBase,
+    options_name="TurntableFitOptions",
+    cli_outputs=((Option("plot", None, "Write the sigma history of the lever arms and "
+                         "proof-mass offsets (PNG).", "text", metavar="PNG", batch=False),
+                  "calib_cli.report.sections_turntable:sigma_history_plot", "sigma history"),),
+    docs="docs/turntable.md"))

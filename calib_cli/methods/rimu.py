@@ -33,6 +33,7 @@ import numpy as np
 from calib_cli.data import CalibrationResult, Recording, Segment
 from calib_cli.errors import EstimationError
 from calib_cli.methods import lsq
+from calib_cli.methods.noise import pooled_within
 from calib_cli.model import kinematics as kn
 from calib_cli.model.effects import Bias, Installation, Layout
 from calib_cli.model.frames import attitude_to_rotation
@@ -155,23 +156,19 @@ def position_means(rec: Recording, sensor: str, segs: list[Segment]):
     nominal model's time-varying prediction (the turning earth rate)."""
     data = rec.accel if sensor == "accel" else rec.gyro
     nominal = base_model(layout=rec.layout)
-    means, f, w, counts = [], [], [], []
-    ss, dof = 0.0, 0
+    means, f, w, resid = [], [], [], []
     for s in segs:
         kin = segment_kinematics(rec, s)
         y = data[s.slice]
         means.append(y.mean(axis=0))
         f.append(kin.f.mean(axis=0))
         w.append(kin.w.mean(axis=0))
-        counts.append(len(y))
-        r = y - nominal.predict({}, kin, sensors=(sensor,))[sensor]
-        ss = ss + ((r - r.mean(axis=0)) ** 2).sum(axis=0)
-        dof += len(y) - 1
+        resid.append(y - nominal.predict({}, kin, sensors=(sensor,))[sensor])
     m = len(segs)
     kin = kn.Kinematics(np.zeros(m), np.array(f).reshape(m, 3), np.array(w).reshape(m, 3),
                         np.zeros((m, 3)))
-    sigma = np.sqrt(ss / dof) if dof > 0 else np.full(data.shape[1], np.nan)
-    return np.array(means).reshape(m, -1), kin, np.array(counts, float), sigma
+    pooled = pooled_within(resid, data.shape[1])
+    return np.array(means).reshape(m, -1), kin, pooled.counts, pooled.sigma
 
 
 # ---------------------------------------------------------------------------

@@ -178,7 +178,7 @@ def parity_check(params: dict, layout: Layout, sensor: str, time: np.ndarray, m:
     Pinv = np.linalg.inv(P)
     p = c @ V.T  # (K, dof)
     stat = np.einsum("ki,kij,kj->k", p, Pinv, p)
-    window = w / fs
+    window = float(f"{w / fs:.10g}")  # 0.5 s, not 0.49999999999998934 (float time stamps)
     alpha = rate_per_hour * window / 3600.0
     thr = float(stats.chi2.isf(alpha, dof))
     alarm = stat > thr

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib_cli.data import Recording, Segment
+from calib_cli.methods.noise import pooled_within
 
 
 @dataclass(frozen=True)
@@ -36,17 +37,8 @@ class StaticStats:
 def static_stats(rec: Recording, sensor: str = "accel", segments=None) -> StaticStats:
     segs = tuple(rec.static_segments() if segments is None else segments)
     data = rec.accel if sensor == "accel" else rec.gyro
-    means, counts, ss, dof = [], [], 0.0, 0
-    for s in segs:
-        x = data[s.slice]
-        m = x.mean(axis=0)
-        means.append(m)
-        counts.append(len(x))
-        ss = ss + ((x - m) ** 2).sum(axis=0)
-        dof += len(x) - 1
-    n = data.shape[1]
-    sigma = np.sqrt(ss / dof) if dof > 0 else np.full(n, np.nan)
-    return StaticStats(segs, np.array(means).reshape(-1, n), np.array(counts, dtype=float), sigma)
+    pooled = pooled_within((data[s.slice] for s in segs), data.shape[1])
+    return StaticStats(segs, pooled.means, pooled.counts, pooled.sigma)
 
 
 # |mean f| of a static position, in units of g, that a fit can still explain: the

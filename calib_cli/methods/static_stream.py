@@ -177,7 +177,7 @@ def stream_percentile(values: Callable[[], Iterable[np.ndarray]], n: int, q: flo
         parts, off = [], 0
         for blk in values():
             first = (-off) % step
-            parts.append(blk[first::step])
+            parts.append(blk[first::step].copy())  # a copy: a view would keep the block
             off += len(blk)
         sample = np.concatenate(parts)
     sample = np.asarray(sample, dtype=float)
@@ -536,7 +536,10 @@ class OnlineFloors:
         """Axis j's bracket narrowed around the quantile of the ``seen`` rows."""
         vals = np.concatenate(self.kept[j])
         p = FLOOR_QUANTILE / 100.0 * (seen - 1) - self.below[j]
-        pad = max(50, int(NARROW_PAD * seen))
+        # at most a quarter of the cap a side: a pad growing with the rows seen would
+        # outgrow the cap past ~25 M rows and give the store up (the exact floor is
+        # still checked against the bracket at the end)
+        pad = max(50, min(int(NARROW_PAD * seen), BRACKET_CAP // 4))
         i_lo, i_hi = int(p) - pad, int(p) + 1 + pad
         kth = [i for i in (i_lo, i_hi) if 0 <= i < len(vals)]
         if kth:

@@ -41,6 +41,7 @@ import numpy as np
 from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError
 from calib_cli.methods import lsq
+from calib_cli.methods.noise import difference_sigma
 from calib_cli.methods.result import build_result
 from calib_cli.model.effects import (
     TEMP_REF_C,
@@ -79,12 +80,6 @@ class Blocks:
     rots: object  # Rotation, one per block
     seg: np.ndarray  # (M,) segment index
     warmup_s: float  # excluded warm-up, s in total
-
-
-def _noise(x: np.ndarray, parts) -> np.ndarray:
-    """White sample noise per channel from first differences (robust to slow trends)."""
-    d = np.concatenate([np.diff(x[a:b], axis=0) for a, b in parts if b - a > 2])
-    return np.std(d, axis=0) / np.sqrt(2.0)
 
 
 def make_blocks(rec: Recording, block_s: float = BLOCK_S) -> Blocks:
@@ -279,8 +274,9 @@ def fit_thermal(rec: Recording, order: int | None = None, temp_ref: float = TEMP
         raise EstimationError(f"the usable data spans only {span:.1f} degC of temperature; a "
                               "thermal fit needs several temperatures (soak steps or a ramp)")
     parts = [(int(a), int(b)) for a, b in zip(bl.start, bl.stop)]
-    sig = {s: (np.broadcast_to(np.asarray(noise[s], float), (3,)).copy()
-               if noise is not None else _noise(getattr(rec, s), parts)) for s in sensors}
+    # first differences: white noise on the slow temperature trend (methods/noise.py)
+    sig = {s: (np.broadcast_to(np.asarray(noise[s], float), (3,)).copy() if noise is not None
+               else difference_sigma(getattr(rec, s), 1, parts, robust="std")) for s in sensors}
     base_params = None if base is None else {k: np.asarray(v, float)
                                              for k, v in base.params.items()}
     if base_params is not None and "accel_bias" in base_params and "accel" in sensors:

@@ -6,6 +6,6 @@ and data containers can hold a ``Site``; this module is the model's name for the
 
 from __future__ import annotations
 
-from calib_cli.geometry import _A, _E2, _F, _GE, _K, _M, EARTH_RATE, G0, Site, normal_gravity
+from calib_cli.geometry import EARTH_RATE, G0, Site, normal_gravity
 
-__all__ = ["EARTH_RATE", "G0", "Site", "normal_gravity", "_A", "_E2", "_F", "_GE", "_K", "_M"]
+__all__ = ["EARTH_RATE", "G0", "Site", "normal_gravity"]

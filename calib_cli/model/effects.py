@@ -87,7 +87,7 @@ class ParamSpec:
         return np.zeros(self.shape, bool) if self.fixed is None else self.fixed
 
 
-class _Ctx:
+class ApplyContext:
     """Working state of one sensor's forward pass."""
 
     def __init__(self, kin: Kinematics, layout: Layout, sensor: str):
@@ -152,13 +152,18 @@ class Effect:
             return text
         _, sp, i, v, sg = best
         f, unit = sp.display if sp.display != (1.0, "") else (1.0, sp.unit)
+        # a thermal polynomial's column k is the coefficient of dT^(k+1): its unit's power
+        shape = np.shape(params[sp.key])
+        power = int(np.unravel_index(i, shape)[-1]) + 1 if len(shape) == 2 and \
+            "^k" in unit else 1
+        unit = unit.replace("^k", "" if power == 1 else f"^{power}")
         return (f"{text} (largest term {sp.key}[{i}] = {v * f:.3g} +- {sg * f:.2g} "
                 f"{unit})").replace(" +- nan", "")
 
     def specs(self, layout: Layout) -> list[ParamSpec]:
         return []
 
-    def apply(self, p: dict, ctx: _Ctx) -> None:
+    def apply(self, p: dict, ctx: ApplyContext) -> None:
         """Add this effect's contribution to ctx (in place)."""
 
     def realisation(self, p: dict, layout: Layout, fs: float, seed: int):
@@ -479,10 +484,10 @@ class TemperatureDrift(Effect):
         shape = (layout.n,) if self.order == 1 else (layout.n, self.order)
         return [ParamSpec(self._key("temp_bias"), shape,
                           "m/s^2/degC^k" if acc else "rad/s/degC^k", 1e-3 if acc else 1e-4,
-                          display=(1e3 / 9.80665, "mg/degC") if acc else (180 / np.pi * 3600,
-                                                                          "deg/h/degC")),
+                          display=(1e3 / 9.80665, "mg/degC^k") if acc else (180 / np.pi * 3600,
+                                                                            "deg/h/degC^k")),
                 ParamSpec(self._key("temp_scale"), shape, "1/degC^k", 1e-4,
-                          display=(1e6, "ppm/degC"))]
+                          display=(1e6, "ppm/degC^k"))]
 
     def apply(self, p, ctx):
         if ctx.kin.temp is None:

@@ -14,10 +14,10 @@ from calib_cli.model.effects import (
     INPUT,
     STOCHASTIC,
     TRANSFER,
+    ApplyContext,
     Effect,
     Layout,
     ParamSpec,
-    _Ctx,
     lag_temperature,
     make_effect,
     shift_kinematics,
@@ -91,7 +91,7 @@ class ImuModel:
         for sensor in ("accel", "gyro"):
             if sensor not in sensors and not (sensor == "accel" and "gyro" in sensors):
                 continue
-            ctx = _Ctx(kin, self.layout, sensor)
+            ctx = ApplyContext(kin, self.layout, sensor)
             if sensor == "gyro" and acc_ctx is not None:
                 ctx.f_ref = acc_ctx.f_ref
             mine = [e for e in self.effects if e.sensor == sensor]

@@ -79,7 +79,7 @@ def effect_from_description(d: dict) -> Effect:
     return make_effect(d["name"], d.get("sensor") or "accel", **opts)
 
 
-def _key_owner(layout: Layout, options: dict) -> dict[str, Effect]:
+def key_owner(layout: Layout, options: dict) -> dict[str, Effect]:
     """param key -> the effect instance that owns it, for this layout."""
     owners = {}
     for name in CATALOGUE:
@@ -104,7 +104,7 @@ def _key_owner(layout: Layout, options: dict) -> dict[str, Effect]:
 def truth_from_dict(raw: dict, layout: Layout, path: str = "<truth>") -> Truth:
     params_raw = raw.get("params", {})
     options = raw.get("options", {})
-    owners = _key_owner(layout, options)
+    owners = key_owner(layout, options)
     # temperature drift of order N: (n, N) arrays (CONTRACT.md section 7); one
     # order per sensor, the lower-order key padded with zero columns
     orders = {}

@@ -12,8 +12,9 @@ Method-specific sections register themselves per method:
         return Section("Lever arms", text=["..."],
                        figures=[FigureItem("lever-arm-history", fig, "What to look for: ...")])
 
-Modules named ``calib_cli/report/sections_*.py`` are imported automatically,
-so a new method adds its sections in a new module without editing this one.
+The modules each method of the method table names (its ``report``,
+methods/registry.py) are imported when a report is built, so a new method adds its
+sections in a new module named by its declaration, without editing this one.
 A method with no registered section gets the generic report (parameters with
 sigma, statistics, provenance) and a note saying so. docs/report.md.
 """
@@ -23,71 +24,28 @@ from __future__ import annotations
 import base64
 import importlib
 import json
-import pkgutil
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from matplotlib.figure import Figure
 
 from calib_cli.data import CalibrationResult
 from calib_cli.io.escape import html_text, md_text
 from calib_cli.report.figures import png_bytes
-
-
-@dataclass
-class FigureItem:
-    """A figure with its file stem and caption (what to look for)."""
-
-    name: str
-    fig: Figure
-    caption: str
-
-
-@dataclass
-class Table:
-    caption: str
-    header: list
-    rows: list  # list of lists of str
-
-
-@dataclass
-class Section:
-    title: str
-    text: list = field(default_factory=list)  # paragraphs (plain text)
-    tables: list = field(default_factory=list)
-    figures: list = field(default_factory=list)
-
-
-@dataclass
-class ReportContext:
-    """What section builders see. raw_path/raw_kind: the optional second
-    input; allan: its Allan analysis when it is a free-running record;
-    notes: remarks for the summary."""
-
-    cal: CalibrationResult
-    cal_path: str
-    prov: dict
-    raw_path: str | None = None
-    raw_kind: str | None = None
-    allan: object | None = None
-    notes: list = field(default_factory=list)
-    tolerances: dict | None = None  # batch.tolerance.load_tolerances(), for the verdict
-    tolerances_path: str | None = None
-    _recording: object | None = None
-
-    def recording(self):
-        """The RAW recording, read into memory on first use (None without RAW)."""
-        if self._recording is None and self.raw_path and self.raw_kind in ("raw", "corrected"):
-            from calib_cli.io.h5 import read_raw
-
-            self._recording = read_raw(self.raw_path)
-        return self._recording
-
+from calib_cli.report.items import (  # noqa: F401  (re-exported for the section modules)
+    AddedEffect,
+    FigureItem,
+    ReportContext,
+    Section,
+    Table,
+    added_effects,
+)
 
 # method -> section builders, in order
 SECTIONS: dict[str, list[Callable]] = {}
+# effect name (model/effects.py) -> builder(ctx, AddedEffect) -> Section: the section of an
+# effect a fit added (`calib fit METHOD --with`, a diagnosis's steps)
+EFFECT_SECTIONS: dict[str, Callable] = {}
 _loaded = False
 
 
@@ -102,15 +60,30 @@ def register(*methods: str):
     return deco
 
 
+def register_effect(*names: str):
+    """Decorator: the section builder of the effects of these names."""
+
+    def deco(fn):
+        for n in names:
+            EFFECT_SECTIONS[n] = fn
+        return fn
+
+    return deco
+
+
 def _load_section_modules() -> None:
+    """Import the section modules the method table names (each method's ``report``,
+    methods/registry.py); their ``@register`` decorators fill SECTIONS."""
     global _loaded
     if _loaded:
         return
-    import calib_cli.report as pkg
+    from calib_cli.methods.registry import FITS
 
-    for mod in sorted(m.name for m in pkgutil.iter_modules(pkg.__path__)):
-        if mod.startswith("sections_"):
-            importlib.import_module(f"calib_cli.report.{mod}")
+    for m in FITS.values():
+        for mod in m.report:
+            importlib.import_module(mod)
+    # the sections of the effects a fit adds (--with, a diagnosis's steps), for every method
+    importlib.import_module("calib_cli.report.sections_effects")
     _loaded = True
 
 
@@ -125,23 +98,11 @@ def _fmt(x) -> str:
 
 
 def parameter_table(cal: CalibrationResult) -> Table:
-    from calib_cli.model.display import display_of
-    from calib_cli.report.format import ND
+    from calib_cli.model.display import entries
 
-    rows = []
-    for key, val in cal.params.items():
-        val = np.asarray(val, dtype=float)
-        sig = np.asarray(cal.sigma.get(key, np.full(val.shape, np.nan)), dtype=float)
-        factor, unit = display_of(key, cal.units.get(key, ""))
-        for idx in np.ndindex(val.shape):
-            name = f"{key}[{','.join(map(str, idx))}]" if val.ndim else key
-            s = sig[idx]
-            st = (f"{ND} (unobservable)" if not np.isfinite(s) else
-                  ("fixed" if s == 0 else f"{s * factor:.3g}"))
-            v = val[idx] * factor
-            rows.append([name, f"{v:.9g}" if np.isfinite(v) else ND, st,
-                         unit or cal.units.get(key, "") or "-"])
-    return Table("Parameters with their 1-sigma uncertainty (display units; files hold SI).",
+    rows = [[e.name, e.value, e.sigma, e.unit] for e in entries(cal.params, cal.sigma, cal.units)]
+    return Table("Parameters with their 1-sigma uncertainty (display units; files hold SI, or "
+                 "the recorded counts; 'fixed': set by the model, no uncertainty).",
                  ["parameter", "value", "1 sigma", "unit"], rows)
 
 
@@ -156,28 +117,37 @@ def verdict(ctx: ReportContext) -> tuple[str, str]:
     report was given some, else against the noise floor -- the |g| error after
     correction versus its floor (fits of the accelerometers), the normalized
     residual (residual RMS in units of the noise) for the others."""
-    from calib_cli.report.format import MG
+    from calib_cli.model.display import MG, g_error_label
 
     cal, st = ctx.cal, ctx.cal.stats
     if ctx.tolerances is not None:
-        from calib_cli.batch.history import CalEntry
-        from calib_cli.batch.tolerance import check
+        from calib_cli.io.history import entry_of
+        from calib_cli.io.tolerance import evaluate
 
-        entry = CalEntry(ctx.cal_path, ctx.cal_path, cal.serial or "", cal.method, "", "",
-                         cal.params, cal.sigma, cal.units)
-        res = check(entry, [], ctx.tolerances)
+        res = evaluate(entry_of(ctx.cal_path, cal, ctx.prov, ctx.history), ctx.history,
+                       ctx.tolerances)
         checked = [k for k in ctx.tolerances if k in cal.params]
+        skipped = ""
+        if res["not_evaluated"]:
+            skipped = "; not evaluated: " + "; ".join(res["not_evaluated"])
+        if res["not_reported"]:
+            skipped += f"; not reported by this calibration: {', '.join(res['not_reported'])}"
         if res["failures"]:
             return "fail", (f"FAIL against the tolerances ({len(res['failures'])} failing): "
                             + "; ".join(res["failures"][:5])
-                            + ("; ..." if len(res["failures"]) > 5 else ""))
+                            + ("; ..." if len(res["failures"]) > 5 else "") + skipped + ".")
+        if res["status"] == "incomplete":
+            return "undecided", (f"INCOMPLETE against the tolerances: the rules evaluated pass "
+                                 f"({len(checked)} parameters: {', '.join(checked)})"
+                                 + skipped + ".")
         return "pass", (f"PASS against the tolerances ({len(checked)} parameters checked: "
-                        f"{', '.join(checked) or 'none reported by this method'}).")
+                        f"{', '.join(checked) or 'none reported by this method'})"
+                        + skipped + ".")
     crit = []  # (ok, text)
     ga, gf = st.get("g_error_rms_after"), st.get("g_error_floor")
     if ga is not None and gf is not None and np.isfinite(ga) and np.isfinite(gf) and gf > 0:
         crit.append((ga <= G_FLOOR_LIMIT * gf,
-                     f"|g| error RMS after correction {ga * MG:.4g} mg vs its noise floor "
+                     f"{g_error_label(st)} after correction {ga * MG:.4g} mg vs its noise floor "
                      f"{gf * MG:.4g} mg (limit {G_FLOOR_LIMIT:g}x)"))
     r = None
     if st.get("normalized_innovation_rms") is not None:
@@ -246,22 +216,24 @@ def _maybe_json(v):
 
 
 def generic_sections(ctx: ReportContext) -> list[Section]:
-    from calib_cli.report.format import MG, num, value_text
+    from calib_cli.model.display import (
+        StatUnits,
+        counts_note,
+        g_error_line,
+        g_figures_line,
+        value_text,
+    )
 
     cal, prov = ctx.cal, ctx.prov
     st = cal.stats
     summary = [f"Method: {cal.method}. Unit serial: {cal.serial or 'not recorded'}."]
-    if st.get("g_error_rms_after") is not None:
-        b = st.get("g_error_rms_before")
-        fl = st.get("g_error_floor")
-        summary.append("|g| error RMS over the static positions: before "
-                       f"{'not determined (counts)' if b is None else num(b * MG) + ' mg'}, "
-                       f"after {num(st['g_error_rms_after'] * MG)} mg"
-                       + (f" (noise floor {num(fl * MG)} mg)." if fl is not None
-                          and np.isfinite(fl) else "."))
+    line = g_error_line(st)
+    if line:
+        summary.append(line + ".")
+    note = counts_note(cal.params, cal.units)
+    if note:
+        summary.append(note)
     if st.get("g_norm_std_after") is not None:
-        from calib_cli.units import g_figures_line
-
         summary.append(g_figures_line(st) + " (Avrutov et al.'s figures of merit).")
     if st.get("unobservable"):
         summary.append("Unobservable from this data: " + ", ".join(st["unobservable"]) + ".")
@@ -270,10 +242,11 @@ def generic_sections(ctx: ReportContext) -> list[Section]:
         summary.append(f"Sigma inflated by sqrt({infl:.3g}): the residuals "
                        "scatter more than the noise explains.")
     summary += ctx.notes
+    su = StatUnits.of(cal)
     stats = Table("Fit statistics in display units (accelerometer mg, gyro deg/h, noise "
-                  "densities ug/sqrt(Hz) and deg/sqrt(h), angles deg; files hold SI).",
-                  ["statistic", "value"],
-                  [[k, value_text(k, v)] for k, v in st.items()])
+                  "densities ug/sqrt(Hz) and deg/sqrt(h), angles deg; data recorded in counts "
+                  "stay counts; files hold SI).", ["statistic", "value"],
+                  [[k, value_text(k, v, units=su)] for k, v in st.items()])
     keys = ("kind", "format_version", "tool_version", "created_utc", "unit_serial", "command",
             "input_sha256")
     provt = Table("Provenance of the calibration file.", ["attribute", "value"],
@@ -326,22 +299,35 @@ def allan_section(ctx: ReportContext) -> Section | None:
 
 
 def build_report(ctx: ReportContext) -> list[Section]:
-    """All sections for this calibration: summary and method sections first."""
+    """All sections for this calibration: the verdict, the summary, the method's
+    sections (its registered ones, else the generic section built from its params,
+    sigma and units), a diagnosis's steps, one section per effect the fit added,
+    then the parameters, the Allan deviation, the statistics and the provenance."""
+    from calib_cli.report import generic
+
     _load_section_modules()
-    generic = generic_sections(ctx)
+    base = generic_sections(ctx)
     specific = []
-    builders = SECTIONS.get(ctx.cal.method, [])
-    if not builders:
-        generic[0].text.append(f"No method-specific section is registered for method "
-                               f"{ctx.cal.method!r}; this report shows the generic parts.")
-    for fn in builders:
+    for fn in SECTIONS.get(ctx.cal.method, [generic.method_section]):
         out = fn(ctx)
         if out is None:
             continue
         specific += out if isinstance(out, list) else [out]
+    if ctx.diagnosis is not None:
+        from calib_cli.report.diagnosis_section import diagnosis_section
+
+        specific.append(diagnosis_section(ctx))
+    added = added_effects(ctx.cal)
+    for sec in specific:
+        if not sec.figures:
+            # the base method's section of a --with fit or a diagnosis (its statistics
+            # differ from the method's own fit's): the base model's parameters as a figure
+            sec.figures.append(generic.base_parameter_figure(ctx, added))
+    for eff in added:
+        specific.append(EFFECT_SECTIONS.get(eff.name, generic.effect_section)(ctx, eff))
     allan = allan_section(ctx)
-    return [header_section(ctx), generic[0], *specific, generic[1],
-            *([allan] if allan else []), *generic[2:]]
+    return [header_section(ctx), base[0], *specific, base[1],
+            *([allan] if allan else []), *base[2:]]
 
 
 # ---------------------------------------------------------------------------

@@ -90,9 +90,11 @@ def _disagreement(d: Diagnosis, path: Path):
     rate = np.degrees(np.sqrt(pb.bin_mean((pb.kin.w ** 2).sum(axis=1))))
     tilt = np.degrees(np.arccos(np.clip(pb.bin_mean(pb.kin.f[:, 2]) / pb.g, -1, 1)))
     temp = pb.temp()
-    xs = [("time, s", pb.bin_t), ("segment", pb.bin_seg.astype(float)),
-          ("rate, deg/s", rate), ("tilt of z from up, deg", tilt)]
-    if temp is not None:
+    xs = [("time, s", pb.bin_t), ("segment", pb.bin_seg.astype(float))]
+    if np.nanmax(rate, initial=0.0) > 1.0:  # a static record has no rate to plot against
+        xs.append(("rate, deg/s", rate))
+    xs.append(("tilt of z from up, deg", tilt))
+    if temp is not None and np.ptp(temp) > 0.5:
         xs.append(("temperature, degC", temp))
     fig, axes = plt.subplots(len(xs), 1, figsize=(9, 2.3 * len(xs)))
     for ax, (lab, x) in zip(np.atleast_1d(axes), xs):
@@ -221,7 +223,7 @@ def calibration_section(d: Diagnosis, source: str = "") -> list[str]:
     and the before/after of the quantity the user cares about (|g| error per static
     position for accelerometer triads, the residual per segment (rotating cycles) in
     noise units for every method)."""
-    from calib_cli.methods.fit_with import g_error_per_position
+    from calib_cli.methods.with_effects import g_error_per_position
 
     lines = ["## The calibration", ""]
     cmd = d.fit_command(source or "RAW.h5", "CAL.h5")

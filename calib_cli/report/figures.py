@@ -98,7 +98,8 @@ def allan_figure(res: AllanResult, title: str = "Allan deviation") -> Figure:
     return fig
 
 
-def detection_figure(t, accel, gyro, rep, title: str = "Static detection") -> Figure:
+def detection_figure(t, accel, gyro, rep, title: str = "Static detection",
+                     units: dict | None = None) -> Figure:
     """The signal with the detected static intervals shaded and numbered, and
     the detector's own statistic: the moving standard deviation of each axis
     over the window, in multiples of its noise floor (worst axis), against the
@@ -118,8 +119,10 @@ def detection_figure(t, accel, gyro, rep, title: str = "Static detection") -> Fi
     rows = 3 if gyro is not None else 2
     fig = Figure(figsize=(11, 2.6 * rows + 0.6), layout="constrained")
     axs = fig.subplots(rows, 1, sharex=True)
-    series = [("accelerometer (m/s^2)", accel)] + ([("gyro (rad/s)", np.asarray(gyro, float))]
-                                                   if gyro is not None else [])
+    units = units or {}  # the recording's units: counts stay counts
+    series = [(f"accelerometer ({units.get('accel') or 'm/s^2'})", accel)] + (
+        [(f"gyro ({units.get('gyro') or 'rad/s'})", np.asarray(gyro, float))]
+        if gyro is not None else [])
     for ax, (lab, x) in zip(axs, series, strict=False):
         for j in range(x.shape[1]):
             ax.plot(ts, x[::step, j], lw=0.7, color=OKABE_ITO[j % len(OKABE_ITO)],
@@ -141,4 +144,61 @@ def detection_figure(t, accel, gyro, rep, title: str = "Static detection") -> Fi
     axs[0].set_title(mpl_text(f"{title}: {len(rep.intervals)} intervals (window "
                               f"{rep.window_s:g} s, threshold {rep.multiplier:g}x, min "
                               f"{rep.min_duration_s:g} s)"), pad=14)
+    return fig
+
+
+def parameter_figure(items: list, title: str = "") -> Figure:
+    """Any parameters with their 1-sigma, one panel per key: ``items`` is a list of
+    (key, values, sigmas, file unit). Each entry is a point with its error bar in
+    display units (calib_cli.model.display); a dimensionless matrix (K) is drawn as
+    its deviation from the identity in ppm; 'fixed' entries (sigma 0) are hollow,
+    unobservable ones (sigma not finite) are crosses without a bar."""
+    from calib_cli.model.display import display_of, is_matrix
+
+    n = max(len(items), 1)
+    cols = min(n, 3)
+    rows = -(-n // cols)
+    fig = Figure(figsize=(min(4.2 * cols, 12.5), 2.9 * rows + 0.5), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
+    for ax, (key, val, sig, unit) in zip(axes, items):
+        val = np.atleast_1d(np.asarray(val, float))
+        sig = np.atleast_1d(np.asarray(sig, float))
+        if sig.shape != val.shape:
+            sig = np.full(val.shape, np.nan)
+        mat = is_matrix(key, unit) and val.ndim == 2 and val.shape[0] == val.shape[1]
+        names, ys, es, shown = [], [], [], ""
+        for idx in np.ndindex(val.shape):
+            f, u = display_of(key, unit, idx)
+            v = val[idx] - (1.0 if mat and idx[0] == idx[1] else 0.0)
+            f, u = (1e6, "ppm") if mat else (f, u)
+            names.append(",".join(map(str, idx)) if val.ndim > 1 or len(val) > 1 else "")
+            ys.append(v * f)
+            es.append(sig[idx] * f)
+            shown = shown if shown == u or not shown else "display units"
+            shown = shown or u
+        x = np.arange(len(ys))
+        ys, es = np.asarray(ys), np.asarray(es)
+        free = np.isfinite(es) & (es > 0)
+        fixed = es == 0
+        unobs = ~np.isfinite(es)
+        ax.errorbar(x[free], ys[free], yerr=es[free], fmt="o", ms=4, color=BLUE, capsize=2,
+                    label="value +- 1 sigma")
+        if fixed.any():
+            ax.plot(x[fixed], ys[fixed], "o", ms=4, mfc="none", color=BLACK, label="fixed")
+        if unobs.any():
+            ax.plot(x[unobs], np.nan_to_num(ys[unobs]), "x", ms=6, color=VERMILION,
+                    label="unobservable")
+        ax.axhline(0.0, color="0.5", lw=0.7)
+        ax.set_xticks(x, [mpl_text(s) for s in names], fontsize=7,
+                      rotation=45 if len(x) > 9 else 0)
+        what = f"{key} - I" if mat else key
+        ax.set_title(mpl_text(what), fontsize=9)
+        ax.set_ylabel(mpl_text(shown or "-"))
+        ax.grid(alpha=0.3)
+        if fixed.any() or unobs.any():
+            ax.legend(fontsize=6)
+    for ax in axes[len(items):]:
+        ax.set_visible(False)
+    if title:
+        fig.suptitle(mpl_text(title), fontsize=10)
     return fig

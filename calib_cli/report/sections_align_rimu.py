@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.figure import Figure
 
+from calib_cli.model.display import data_units, num
 from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
 from calib_cli.report.sections_static import MG, residual_figure
 from calib_cli.units import SUFFIXES
@@ -22,9 +23,13 @@ def _labels(ctx: ReportContext, n: int) -> list:
 
 
 def _residual_items(ctx: ReportContext, units: dict, hint: str) -> list:
-    """One residual figure per sensor kind found in the calibration."""
+    """One residual figure per sensor kind found in the calibration (in the recorded
+    units where those are counts)."""
     items = []
+    du = data_units(ctx.cal.units)
     for sensor, (scale, unit) in units.items():
+        if "count" in du[sensor]:
+            scale, unit = 1.0, du[sensor]
         r = ctx.cal.residuals.get(f"{sensor}_segment")
         if r is None or np.ndim(r) != 2:
             continue
@@ -40,23 +45,41 @@ def _static_align_section(ctx: ReportContext):
     """--method static: no turn; conditioning and every position's attitude."""
     st = ctx.cal.stats
     deg = st.get("degeneracy")
-    text = [f"{st.get('n_positions', '?')} static positions, no turn used (static-only "
+    text = [f"{_positions(ctx)} static positions, no turn used (static-only "
             "alignment: both attitudes and the six biases from the static equations).",
             f"Condition number of the equations (normalised units) "
-            f"{st.get('condition_number', float('nan')):.3g}, limit "
-            f"{st.get('condition_max', float('nan')):.3g}"
-            + (f": degenerate, {deg}." if deg else ": well conditioned."),
-            f"Earth rate used: {st.get('earth_rate_used', '?')} ({st.get('grade_check', '')})."]
+            f"{num(st.get('condition_number'), 3)}, limit {num(st.get('condition_max'), 3)}"
+            + (f": degenerate, {deg}." if deg else ": well conditioned, no degeneracy."),
+            _earth_rate_line(st) + "."]
     labels = _labels(ctx, len(st.get("attitudes_all", [])))
     rows = []
     for lab, att, sig in zip(labels, st.get("attitudes_all", []),
                              st.get("attitudes_all_sigma", []), strict=False):
         rows.append([lab] + [f"{np.degrees(a):.4f} +- "
-                             + ("null" if s is None else f"{np.degrees(s):.4f}")
+                             + ("unobservable" if s is None else f"{np.degrees(s):.4f}")
                              for a, s in zip(att, sig, strict=False)])
-    tables = [Table("Attitude of every position, deg, with 1 sigma (null: not observable).",
+    tables = [Table("Attitude of every position, deg, with 1 sigma.",
                     ["position", "roll", "pitch", "yaw"], rows)] if rows else []
     return Section("Static-only alignment", text=text, tables=tables, figures=[])
+
+
+def _positions(ctx: ReportContext) -> str:
+    """The number of static positions: the fit's statistic, else the record's."""
+    n = ctx.cal.stats.get("n_positions")
+    if n is None:
+        rec = ctx.recording()
+        n = sum(1 for s in rec.segments if s.kind == "static") if rec is not None else None
+    return "The" if n is None else str(n)
+
+
+def _earth_rate_line(st: dict) -> str:
+    used = st.get("earth_rate_used")
+    why = f" ({st['grade_check']})" if st.get("grade_check") else ""
+    if used is None:
+        return "Fitted by the diagnose refit engine (the earth rate in the gyro equations)"
+    return ("The gyros resolve the earth rate: it gives the heading" if used else
+            "The gyros cannot resolve the earth rate (15 deg/h): it is treated as noise and "
+            "the heading is not determined") + why
 
 
 @register("align", "align-classic")
@@ -64,9 +87,10 @@ def align_sections(ctx: ReportContext):
     st = ctx.cal.stats
     if st.get("method") == "static":
         return _static_align_section(ctx)
-    text = [f"{st.get('n_positions', '?')} static positions; {st.get('observability', '')}.",
-            f"Earth rate used: {st.get('earth_rate_used', '?')} ({st.get('grade_check', '')}); "
-            f"chi-square per degree of freedom {st.get('chi2_dof', float('nan')):.2f}."]
+    text = [f"{_positions(ctx)} static positions"
+            + (f"; {st['observability']}." if st.get("observability") else "."),
+            _earth_rate_line(st) + f"; chi-square per degree of freedom "
+            f"{num(st.get('chi2_dof'), 3)}."]
     rows = [[r.get("from", ""), r.get("to", ""), r.get("source", ""),
              f"{np.degrees(float(r.get('angle', np.nan))):.3f}",
              " ".join(f"{v:+.4f}" for v in r.get("axis_body", []))] for r in st.get("rotations", [])]
@@ -116,8 +140,9 @@ def _sensor_figure(cal, sensor: str) -> Figure:
 @register("rimu")
 def rimu_sections(ctx: ReportContext):
     cal, st = ctx.cal, ctx.cal.stats
-    text = [f"{st.get('n_sensors', '?')} sensors of each kind, {st.get('n_positions', '?')} positions "
-            f"({', '.join(st.get('positions', []))})."]
+    n_pos = _positions(ctx)
+    text = [f"{cal.layout.n} sensors of each kind, {n_pos.lower()} positions"
+            + (f" ({', '.join(st['positions'])})." if st.get("positions") else ".")]
     rows = []
     for sensor, scale, unit in (("accel", MG, "mg"), ("gyro", DPS, "deg/s")):
         pred = st.get(f"{sensor}_body_error_predicted")

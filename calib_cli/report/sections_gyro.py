@@ -9,6 +9,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from calib_cli.io.escape import mpl_text
+from calib_cli.model.display import data_units
 from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
 from calib_cli.report.figures import BLUE, VERMILION
 from calib_cli.report.format import DEG, DPH, num
@@ -73,17 +74,21 @@ def gyro_sections(ctx: ReportContext):
                             ["segment", "kind", "residual (arcsec)"], rows))
     rs = cal.residuals.get("static_gyro")
     labels = list(cal.tables.get("segment_labels", []))
+    # the static residuals are in the recorded units: counts stay counts
+    du = data_units(cal.units)["gyro"]
+    scale, unit = (1.0, du) if "count" in du else (DPH, "deg/h")
     if rs is not None and np.ndim(rs) == 2 and len(labels) == len(rs):
         figs.append(FigureItem(
-            "gyro-static-residuals", residual_figure(labels, rs, DPH, "deg/h", "gyro: "),
+            "gyro-static-residuals", residual_figure(labels, rs, scale, unit, "gyro: "),
             "Gyro residual of every static position (mean reading minus the model's earth "
-            "rate, bias and g-sensitivity), deg/h, per axis. What to look for: scatter like "
+            f"rate, bias and g-sensitivity), {unit}, per axis. What to look for: scatter like "
             "the noise of the means; a pattern with the sign of gravity on one axis is a "
             "g-sensitivity the model lacks (fit with --g-sensitivity on)."))
+    rms = [f"{what} residual RMS {num(_arcsec(st.get(key)))} arcsec"
+           for what, key, n in (("transition", "transition_residual_rms_rad", len(tr)),
+                                ("turn", "turn_residual_rms_rad", len(turn))) if n]
     text = [f"{num(st.get('n_positions'))} static positions, {len(tr)} transitions and "
-            f"{len(turn)} turns used; transition residual RMS "
-            f"{num(_arcsec(st.get('transition_residual_rms_rad')))} arcsec, turn residual RMS "
-            f"{num(_arcsec(st.get('turn_residual_rms_rad')))} arcsec."]
+            f"{len(turn)} turns used" + (f"; {', '.join(rms)}." if rms else ".")]
     for s in st.get("transitions_skipped") or []:
         text.append(f"Transition not used: {s}.")
     return Section("Gyro fit", text=text, tables=tables, figures=figs)

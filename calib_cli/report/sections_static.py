@@ -3,14 +3,15 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from matplotlib.figure import Figure
 
 from calib_cli.io.escape import mpl_text
+from calib_cli.model.display import MG, data_units
 from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
 from calib_cli.report.figures import BLUE, VERMILION
-
-MG = 1e3 / 9.80665  # m/s^2 -> mg
 
 
 def g_figure(labels, before, after, sigma_after, g_ref) -> Figure:
@@ -98,11 +99,15 @@ def static_sections(ctx: ReportContext):
         "reference within about its error bar; a position far off points to a disturbed "
         "position or a wrong plan attitude, a pattern by axis to an effect the model lacks.")]
     resid = cal.residuals.get("accel_segment")
+    # the vector fit's residuals are in the recorded units (counts stay counts); the
+    # scalar fit's are of |f| after correction (SI)
+    du = data_units(cal.units)["accel"]
+    scale, unit = (1.0, du) if cal.method == "vector" and "count" in du else (MG, "mg")
     if resid is not None and len(np.atleast_1d(resid)) == len(labels):
         figs.append(FigureItem(
-            "residuals", residual_figure(labels, resid),
-            "Residuals of the fit (measured minus model) for each position, in mg, per axis "
-            "for the vector fit, of |f| for the scalar fit. What to look for: scatter like "
+            "residuals", residual_figure(labels, resid, scale, unit),
+            f"Residuals of the fit (measured minus model) for each position, in {unit}, per "
+            "axis for the vector fit, of |f| for the scalar fit. What to look for: scatter like "
             "the noise and no pattern; a residual that repeats with the sign of one axis "
             "suggests nonlinearity or scale asymmetry (try `calib diagnose`)."))
     det = _detection_item(ctx)
@@ -170,7 +175,8 @@ def _detection_item(ctx: ReportContext):
     n_static = sum(1 for sg in rec.segments if sg.kind == "static")
     return FigureItem(
         "static-detection",
-        detection_figure(rec.time, rec.accel, rec.gyro, rep, "Static detection of the record"),
+        detection_figure(rec.time, rec.accel, rec.gyro, rep, "Static detection of the record",
+                         units=rec.units),
         f"The record's signals with the static intervals the detector finds (green, numbered: "
         f"{len(rep.intervals)}; the record has {n_static} static segments) at window "
         f"{o['window_s']:g} s, threshold {o['multiplier']:g}x the noise floor, minimum "
@@ -178,3 +184,54 @@ def _detection_item(ctx: ReportContext):
         "against the threshold, as `calib detect --plot` draws it. What to look for: one "
         "interval per plan position; a dip that stays above the threshold line, or is "
         "shorter than the minimum, is a position detection missed.")
+
+
+@register("accel")
+def accel_model_section(ctx: ReportContext):
+    """The accelerometer base section of `fit accel --with` and of an accel diagnosis
+    (the diagnose refit engine, which keeps no |g| table): |g| per static position of
+    the RAW record before and after correction through the calibration's whole model."""
+    cal = ctx.cal
+    title = "Static accelerometer fit (" + (", ".join(
+        map(str, cal.stats.get("base_model") or [])) or "base model") + ")"
+    rec = ctx.recording()
+    segs = [sg for sg in rec.segments if sg.kind == "static"] if rec is not None else []
+    if not segs or rec.units.get("accel") not in ("m/s^2", "count"):
+        text = ["Give the raw record as second argument (calib report CAL RAW --out DIR) for "
+                "|g| per static position before and after correction."]
+        return Section(title, text=text)
+    from calib_cli.methods.apply import model_of
+    from calib_cli.model.correction import correct
+
+    means = np.array([rec.accel[sg.slice].mean(axis=0) for sg in segs])
+    var = np.array([rec.accel[sg.slice].var(axis=0) / max(sg.n, 1) for sg in segs])
+    temp = None if rec.temp is None else np.array([np.mean(rec.temp[sg.slice]) for sg in segs])
+    f = correct(model_of(cal), cal.params, "accel", means, temp=temp)
+    after = np.linalg.norm(f, axis=1)
+    counts = "count" in rec.units.get("accel", "")
+    before = None if counts else np.linalg.norm(means, axis=1)
+    u = f / after[:, None]
+    if counts:  # the noise of the counts through the scale factors
+        kd = np.abs(np.diag(np.asarray(cal.params.get("accel_K", np.eye(3)), float)))
+        var = var / kd ** 2
+    sig = np.sqrt(np.sum(u ** 2 * var, axis=1))
+    g_ref = float(cal.stats.get("g_reference") or rec.site.gravity)
+    labels = [sg.label for sg in segs]
+    fig = FigureItem(
+        "g-per-position", g_figure(labels, before, after, sig, g_ref),
+        "Top: |mean specific force| of each static position of the record, raw (red; absent "
+        "for data in counts) and corrected through the calibration's whole model (blue), "
+        "with the reference gravity. Bottom: corrected |f| - g in mg with each position's "
+        "1-sigma noise of the mean. What to look for: every position on the reference within "
+        "about its bar; a pattern by axis is an effect the model still lacks.")
+    rows = [[lab, str(sg.n), "-" if before is None else f"{b:.6f}", f"{a:.6f}",
+             f"{(a - g_ref) * MG:+.4f}", f"{s_ * MG:.4f}"]
+            for lab, sg, b, a, s_ in zip(labels, segs, before if before is not None
+                                         else after, after, sig, strict=True)]
+    table = Table("|g| per static position of the record (m/s^2; differences in mg).",
+                  ["position", "samples", "|f| before", "|f| after", "after - g (mg)",
+                   "1 sigma (mg)"], rows)
+    rms = float(np.sqrt(np.mean((after - g_ref) ** 2)))
+    return Section(title, text=[f"{len(segs)} static positions of {Path(ctx.raw_path).name}; "
+                                f"|g| error RMS after correction {rms * MG:.4g} mg."],
+                   tables=[table], figures=[fig])

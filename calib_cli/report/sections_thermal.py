@@ -62,7 +62,7 @@ def sensor_figure(cal, sensor: str) -> Figure | None:
     fb, ub = (MG, "mg") if acc else (180 / np.pi * 3600, "deg/h")
     scale_ok = np.all(np.isfinite(np.asarray(cal.sigma.get(f"{sensor}_temp_scale", np.nan))))
     ncol = 2 if scale_ok else 1
-    fig = Figure(figsize=(5.2 * ncol, 7.5), layout="constrained")
+    fig = Figure(figsize=(5.2 * ncol + 1.4, 7.5), layout="constrained")
     axes = np.atleast_2d(fig.subplots(3, ncol, sharex=True, squeeze=False))
     b0 = np.asarray(cal.params[f"{sensor}_bias"], float)
     for i in range(3):
@@ -98,7 +98,8 @@ def sensor_figure(cal, sensor: str) -> Figure | None:
                                  alpha=0.2)
             ax2.set_ylabel(f"{'xyz'[i]} scale change (ppm)")
             ax2.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=7)
+    # beside the axes, never over the data
+    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside right upper", fontsize=7)
     for ax in axes[-1]:
         ax.set_xlabel("temperature (degC)")
     fig.suptitle(f"{sensor}: bias{' and scale' if scale_ok else ''} versus temperature")
@@ -117,7 +118,7 @@ def g_figure(cal) -> Figure | None:
     f, _ = apply_triad(cal, A, None, temp=T)
     f0, _ = apply_triad(cal, A, None, temp=np.full(len(T), float(cal.stats.get("temp_ref_degC",
                                                                             25.0))))
-    fig = Figure(figsize=(6.4, 4.0), layout="constrained")
+    fig = Figure(figsize=(8.4, 4.0), layout="constrained")
     ax = fig.subplots()
     ax.plot(T, (np.linalg.norm(A, axis=1) - g) * MG, ".", ms=3, color=VERMILION, label="raw")
     ax.plot(T, (np.linalg.norm(f0, axis=1) - g) * MG, ".", ms=3, color=ORANGE,
@@ -128,7 +129,7 @@ def g_figure(cal) -> Figure | None:
     ax.set_xlabel("temperature (degC)")
     ax.set_ylabel("|f| - g (mg)")
     ax.set_title("|g| error versus temperature")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     ax.grid(alpha=0.3)
     return fig
 

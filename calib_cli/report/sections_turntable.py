@@ -9,7 +9,7 @@ from matplotlib.figure import Figure
 
 from calib_cli.io.escape import mpl_text
 from calib_cli.report.builder import FigureItem, ReportContext, Section, Table, register
-from calib_cli.report.figures import line_style
+from calib_cli.report.figures import LINESTYLES, OKABE_ITO, line_style
 from calib_cli.report.format import CHECK_POSITION_HEADER, DPH, MG, check_position_rows, value_text
 
 BLOCK_S = 0.5  # residuals are shown as means over blocks of this length
@@ -23,9 +23,29 @@ def sigma_history_figure(res, title: str | None = None) -> Figure:
     labels = list(res.tables.get("sigma_history_labels", []))
     fig = Figure(figsize=(9, 4.8), layout="constrained")
     ax = fig.subplots()
+    # lever arms: one look per free component (each cycle's curve drops in its own
+    # cycle, named at the top); proof-mass offsets: a colour each. A short legend.
+    seen: dict = {}  # cycle -> free components drawn so far
+    labelled: set = set()
+    pm_colours = [c for i, c in enumerate(OKABE_ITO) if i not in (0, 4)]
+    n_pm = 0
     for k, lab in enumerate(labels):
+        if str(lab).startswith("lever_arm["):
+            cyc = str(lab).split(".")[0]
+            comp = seen.get(cyc, 0)
+            seen[cyc] = comp + 1
+            style = {"color": OKABE_ITO[0] if comp == 0 else OKABE_ITO[4],
+                     "ls": "-" if comp == 0 else "--"}
+            lab_show = None if comp in labelled else (
+                f"lever arm of each cycle, {'first' if comp == 0 else 'second'} free component")
+            labelled.add(comp)
+        else:
+            style = {"color": pm_colours[n_pm % len(pm_colours)],
+                     "ls": LINESTYLES[(n_pm // len(pm_colours)) % len(LINESTYLES)]}
+            n_pm += 1
+            lab_show = f"proof-mass offset {lab}"
         ax.semilogy(t - (t[0] if len(t) else 0.0), sig[:, k] * 1e3, lw=1.0,
-                    label=mpl_text(lab), **line_style(k))
+                    label=None if lab_show is None else mpl_text(lab_show), **style)
     # cycle boundaries: the history is sampled within the cycles only, so the transitions
     # between them are the gaps of its time axis; each cycle named at the top
     t0 = t[0] if len(t) else 0.0
@@ -48,8 +68,7 @@ def sigma_history_figure(res, title: str | None = None) -> Figure:
                  pad=30 if names else 6)
     ax.grid(True, which="both", alpha=0.3)
     if labels:  # beside the axes, never over the data
-        ax.legend(fontsize=6, ncol=1 + len(labels) // 16, loc="upper left",
-                  bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     return fig
 
 
@@ -232,18 +251,36 @@ def residual_rate_figure(res) -> Figure:
                             "per cycle", "table rate (deg/s)", False)
 
 
+def _summary_line(ctx: ReportContext) -> str:
+    """Cycles and the fit's options: the turntable fit's own statistics, else (fit
+    --with, a diagnosis: the diagnose refit engine) the record's rotating segments and
+    the calibration's model."""
+    st = ctx.cal.stats
+    if st.get("n_cycles") is not None:
+        return (f"{st['n_cycles']} rotation cycles ({', '.join(st.get('cycles', []))}); lever "
+                f"arms: {st.get('lever_arm_mode', 'not recorded')}, proof masses: "
+                f"{st.get('proof_mass_mode', 'not recorded')}, tangential term: "
+                f"{value_text('tangential', st.get('tangential'))}.")
+    rec = ctx.recording()
+    cycles = [s.label for s in rec.segments if s.kind == "rotating"] if rec is not None else []
+    model = ", ".join(str(m) for m in st.get("base_model") or []) or "not recorded"
+    line = f"Fitted by the diagnose refit engine; base model: {model}"
+    if st.get("with"):
+        line += f"; added: {', '.join(map(str, st['with']))}"
+    if cycles:
+        line += f"; {len(cycles)} rotation cycles in the record ({', '.join(cycles)})"
+    return line + "."
+
+
 @register("turntable")
 def turntable_sections(ctx: ReportContext):
     cal, st = ctx.cal, ctx.cal.stats
-    text = [f"{st.get('n_cycles', '?')} rotation cycles ({', '.join(st.get('cycles', []))}); "
-            f"lever arms: {st.get('lever_arm_mode', '?')}, proof masses: "
-            f"{st.get('proof_mass_mode', '?')}, tangential term: "
-            f"{value_text('tangential', st.get('tangential'))}."]
+    text = [_summary_line(ctx)]
     if st.get("accel_noise_inflation", 1.0) > 1.0:
         text.append(f"The model did not explain the accelerometer data: noise widened "
                     f"x{st['accel_noise_inflation']:.1f} (lever arms or proof masses missing?).")
     tables = []
-    if "lever_arm" in cal.params:
+    if "lever_arm" in cal.params and "lever_arm" not in (st.get("with") or []):
         s = np.asarray(cal.params["lever_arm"], float)
         sd = cal.sigma.get("lever_arm")
         sd = np.full(s.shape, np.nan) if sd is None else np.asarray(sd, dtype=float)
@@ -256,13 +293,18 @@ def turntable_sections(ctx: ReportContext):
     if cpt is not None:
         tables.append(cpt)
     elif (st.get("check_positions") or {}).get("note"):
-        text.append("Check positions: " + st["check_positions"]["note"] + ".")
+        # the check positions are static segments of the plan the fit did not use; the
+        # |g| error of the summary is over the table's rests between rotations
+        text.append("Check positions (static segments of the plan, not used by the fit): "
+                    + st["check_positions"]["note"] + ".")
     figs = []
     if cal.tables.get("sigma_history_labels") is not None and len(cal.tables["sigma_history_labels"]):
         figs.append(FigureItem(
             "sigma-history", sigma_history_figure(cal),
             "1-sigma of each lever-arm component (lever_arm[cycle].axis) and proof-mass offset "
-            "(p_ij) over the record, mm, log scale; every curve has its own colour and dash. "
+            "(p_ij) over the record, mm, log scale: the lever arms in blue (solid: the first "
+            "free component of each cycle, dashed: the second; each drops in its own cycle, "
+            "named at the top), the proof-mass offsets a colour each. "
             "What to look for: each curve drops when its cycle "
             "excites it (rotation about the orthogonal axis); a curve that stays high was not "
             "excited by the experiment."))

@@ -145,7 +145,7 @@ def expected(case: str) -> str:
     return effect_key(name, sensor)
 
 
-def _effect(method, name, sensor):
+def effect_of(method, name, sensor):
     if method == "gyro":
         from calib_cli.methods.fit_with import gyro_effect
 
@@ -166,20 +166,20 @@ def effect_sigma(case: str) -> dict:
     """1-sigma of each entry of the case's effect, from base + effect refit on a pilot."""
     method, name, sensor, base = CASES[case]
     plan = plan_of(method)
-    rec = simulate(plan, _base_truth(plan, np.random.default_rng(12345), base), seed=12345)
+    rec = simulate(plan, base_truth(plan, np.random.default_rng(12345), base), seed=12345)
     if method == "gyro":
         from calib_cli.methods.fit_with import fit_with_gyro
 
         res = fit_with_gyro(rec, [(name, sensor)], base=base)
-        return {s.key: res.sigma[s.key] for s in _effect(method, name, sensor).specs(rec.layout)}
+        return {s.key: res.sigma[s.key] for s in effect_of(method, name, sensor).specs(rec.layout)}
     pb = build_problem(rec, method)
     spec, _ = base_spec(pb, base)
-    eff = _effect(method, name, sensor)
+    eff = effect_of(method, name, sensor)
     f = fit_model(pb, ModelSpec(spec.model.with_effect(eff), spec.mount), refresh=True)
     return {s.key: f.sigma[s.key] for s in eff.specs(pb.layout)}
 
 
-def _base_truth(plan, rng, base: str) -> Truth:
+def base_truth(plan, rng, base: str) -> Truth:
     if plan.kind == "align":  # the alignment's unit: navigation grade
         return align_cases.nav_truth(rng)
     t = default_truth(plan_layout(plan), rng)
@@ -203,8 +203,8 @@ def hidden_effect_truth(case: str, rng, scale=(5.0, 10.0), params: dict | None =
     """A random unit with the case's effect hidden in it."""
     method, name, sensor, base = CASES[case]
     plan = plan_of(method)
-    t = _base_truth(plan, rng, base)
-    eff = _effect(method, name, sensor)
+    t = base_truth(plan, rng, base)
+    eff = effect_of(method, name, sensor)
     p = dict(t.params)
     if params is None and name == "bias_random_walk":
         # no refit sigma for a process: a wander over the record of U(5, 10) times
@@ -253,7 +253,7 @@ def run_case(case: str | None, seed: int, method: str | None = None, truth=None)
     plan = plan_of(method)
     rng = np.random.default_rng(seed)
     if truth is None:
-        truth = hidden_effect_truth(case, rng) if case else _base_truth(plan, rng, "full")
+        truth = hidden_effect_truth(case, rng) if case else base_truth(plan, rng, "full")
     base = CASES[case][3] if case else "full"
     rec = simulate(plan, truth, seed=seed + 1)
     if method == "gyro":

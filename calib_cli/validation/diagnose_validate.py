@@ -67,7 +67,7 @@ def out_of_catalogue(kind: str, seed: int):
     rng = np.random.default_rng(seed)
     if kind in ("cubic", "thermal"):
         plan = C.plan_of("accel")
-        rec = simulate(plan, C._base_truth(plan, rng, "full"), seed=seed + 1)
+        rec = simulate(plan, C.base_truth(plan, rng, "full"), seed=seed + 1)
         acc = rec.accel.copy()
         if kind == "cubic":  # at constant temperature: the positions alone tell the form
             k3 = rng.choice([-1, 1], 3) * rng.uniform(4e-6, 6e-6, 3)  # 1/(m/s^2)^2
@@ -78,7 +78,7 @@ def out_of_catalogue(kind: str, seed: int):
             acc += np.outer((rec.temp - 27.0) ** 2, c)
         return diagnose(rec.with_(accel=acc), "accel")
     plan = C.plan_of("turntable")
-    rec = simulate(plan, C._base_truth(plan, rng, "full"), seed=seed + 1)
+    rec = simulate(plan, C.base_truth(plan, rng, "full"), seed=seed + 1)
     acc = rec.accel.copy()
     s1 = rng.normal(0, 1, 3) * 2e-3
     s2 = s1 + rng.normal(0, 1, 3) * 1e-3  # the unit slips by about 1 mm
@@ -321,7 +321,7 @@ def fit_with_z(job):
                 np.asarray(vals) / np.asarray(truth.params[key]), time.process_time() - t0, dof,
                 info)
     z = []
-    for sp in C._effect(method, name, sensor).specs(layout):
+    for sp in C.effect_of(method, name, sensor).specs(layout):
         est = np.asarray(res.params[sp.key], float)
         sig = np.asarray(res.sigma[sp.key], float)
         true = np.asarray(truth.params[sp.key], float)
