@@ -13,7 +13,7 @@ from rich.table import Table
 from calib_cli.cli.common import Ctx, info, out_console, print_json
 from calib_cli.cli.main import cli
 from calib_cli.errors import EstimationError, InputError
-from calib_cli.io.h5 import _attr_str, atomic_path, check_raw_header, open_checked, read_segments
+from calib_cli.io.h5 import atomic_path, attr_str, check_raw_header, open_checked, read_segments
 from calib_cli.methods import allan as A
 
 COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
@@ -133,9 +133,9 @@ def compute_allan(raw, segment=None, targets=(), stride_div=A.STRIDE_DIV,
 
         feed = track(chunks(), "Allan deviation", -(-n // CHUNK))  # a bar on a terminal
         return A.allan_of_chunks(feed, n, tau0, channels, chan_units, chan_tgt, stride_div,
-                                 meta={"source_kind": _attr_str(h5, "kind"), "segment": label,
+                                 meta={"source_kind": attr_str(h5, "kind"), "segment": label,
                                        "start": int(start), "stop": int(stop),
-                                       "serial": _attr_str(h5, "unit_serial") or None})
+                                       "serial": attr_str(h5, "unit_serial") or None})
 
 
 def allan_json(res: A.AllanResult) -> dict:

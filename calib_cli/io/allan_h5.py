@@ -21,7 +21,7 @@ import h5py
 import numpy as np
 
 from calib_cli.errors import InputError
-from calib_cli.io.h5 import _attr_str, open_checked, write_provenance
+from calib_cli.io.h5 import attr_str, open_checked, write_provenance
 from calib_cli.io.h5file import h5_output, put
 from calib_cli.methods.allan import CONFIDENCE, TERM_NAMES, AllanResult
 
@@ -63,7 +63,7 @@ def read_allan(path) -> AllanResult:
             c, t, a = h5["curve"], h5["terms"], h5["averaging"]
             terms = {name: {k: t[name][k][()] for k in t[name]} for name in TERM_NAMES
                      if name in t}
-            meta = {k: (_attr_str(h5, k)) for k in ("source_kind", "segment")
+            meta = {k: (attr_str(h5, k)) for k in ("source_kind", "segment")
                     if k in h5.attrs}
             for k in ("start", "stop"):
                 if k in h5.attrs:

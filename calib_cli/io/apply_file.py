@@ -8,7 +8,7 @@ import numpy as np
 
 from calib_cli.errors import InputError
 from calib_cli.io.h5 import (
-    _attr_str,
+    attr_str,
     check_raw_header,
     open_checked,
     read_calibration,
@@ -72,21 +72,21 @@ def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = F
             temp_eff = effective_temperature(c, time, temp_in)
         with h5_output(out) as dst:
             write_provenance(dst, "corrected", [cal, raw], c.serial or (
-                _attr_str(src, "unit_serial") or None),
-                {"plan_kind": _attr_str(src, "plan_kind", "static"),
+                attr_str(src, "unit_serial") or None),
+                {"plan_kind": attr_str(src, "plan_kind", "static"),
                  "corrected_channels": ",".join(chans)})
             # through the checked readers, not copied: a damaged input is not passed on
             write_segments(dst, segments)
             write_site_layout(dst, site, layout)
             if "plan" in src:
-                set_text(dst.create_group("plan"), "text", _attr_str(src["plan"], "text"))
+                set_text(dst.create_group("plan"), "text", attr_str(src["plan"], "text"))
             out_s = dst.create_group("samples")
             put(out_s, "time", time)
             for k in ("temp", "table_angle", "table_rate"):
                 if k in smp:
                     put(out_s, k, validate.load(smp[k], raw))
             if "sample_kind" in smp.attrs:
-                set_text(out_s, "sample_kind", _attr_str(smp, "sample_kind"))
+                set_text(out_s, "sample_kind", attr_str(smp, "sample_kind"))
             acc = out_s.create_dataset("accel", shape=smp["accel"].shape, dtype="f8", fletcher32=True,
                                        chunks=True)
             gyr = (out_s.create_dataset("gyro", shape=smp["gyro"].shape, dtype="f8", chunks=True,

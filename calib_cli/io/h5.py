@@ -145,7 +145,7 @@ def open_checked(path, kinds) -> h5py.File:
     try:
         # before any text is read: HDF5 loops forever on some damaged string heaps
         validate.check_global_heaps(h5, p)
-        kind = _attr_str(h5, "kind")
+        kind = attr_str(h5, "kind")
     except (KeyError, RuntimeError, OSError, ValueError, TypeError) as exc:
         h5.close()
         raise _structure(exc, p) from None
@@ -281,10 +281,10 @@ def check_untrusted_h5(h5: h5py.File, path: str) -> None:
 def file_kind(path) -> str:
     """The kind attribute of a calib HDF5 file (checked)."""
     with open_checked(path, KINDS) as h5:
-        return _attr_str(h5, "kind")
+        return attr_str(h5, "kind")
 
 
-def _attr_str(h5, name, default=""):
+def attr_str(h5, name, default=""):
     """A text attribute, decoded (io/validate.py: exit 3 naming it when it is not text)."""
     return validate.text(h5, name, h5.file.filename, default)
 
@@ -484,13 +484,13 @@ def read_raw(path, kinds=("raw", "corrected")) -> Recording:
                     else None)
             opt = {k: np.asarray(validate.load(smp[k], p), dtype=float) if k in smp else None
                    for k in SAMPLE_FIELDS}
-            sample_kind = _attr_str(smp, "sample_kind", "instant")
+            sample_kind = attr_str(smp, "sample_kind", "instant")
             if sample_kind not in SAMPLE_KINDS:
                 raise InputError(f"unknown sample kind {sample_kind!r} (expected "
                                  f"{' or '.join(SAMPLE_KINDS)})", p)
             segments = read_segments(h5, p, n)
-            plan_text = _attr_str(h5["plan"], "text") if "plan" in h5 else ""
-            plan_kind = _attr_str(h5, "plan_kind", "static")
+            plan_text = attr_str(h5["plan"], "text") if "plan" in h5 else ""
+            plan_kind = attr_str(h5, "plan_kind", "static")
             if plan_kind not in PLAN_KINDS:
                 raise InputError(f"attribute 'plan_kind' of / is {plan_kind!r}; expected "
                                  f"{', '.join(PLAN_KINDS)}", p)
@@ -498,7 +498,7 @@ def read_raw(path, kinds=("raw", "corrected")) -> Recording:
             if "counters" in h5:
                 for k in h5["counters"].attrs:
                     v = h5["counters"].attrs[k]
-                    counters[k] = (_attr_str(h5["counters"], k) if isinstance(v, (bytes, str))
+                    counters[k] = (attr_str(h5["counters"], k) if isinstance(v, (bytes, str))
                                    else v.item() if isinstance(v, np.generic) else v)
             truth = None
             if "truth" in h5:
@@ -508,14 +508,14 @@ def read_raw(path, kinds=("raw", "corrected")) -> Recording:
                                    if k.startswith("noise_")},
                          "attitudes": (np.asarray(validate.load(t["attitudes"], p), dtype=float)
                                        if "attitudes" in t else None),
-                         "effects": json.loads(_attr_str(t, "effects", "[]"))}
+                         "effects": json.loads(attr_str(t, "effects", "[]"))}
         except (KeyError, ValueError, TypeError, IndexError, OverflowError) as exc:
             raise InputError(f"malformed raw file: {exc}", p) from None
         except (RuntimeError, OSError) as exc:  # HDF5 refusing its own structure
             raise _structure(exc, p) from None
         rec = Recording(time=time, accel=accel, gyro=gyro, segments=segments, site=site,
                          plan_kind=plan_kind, plan_text=plan_text,
-                         serial=_attr_str(h5, "unit_serial") or None, units=units,
+                         serial=attr_str(h5, "unit_serial") or None, units=units,
                          layout=layout, truth=truth, counters=counters,
                          sample_kind=sample_kind, **opt)
     validate.check_recording(rec, p)
@@ -570,24 +570,24 @@ def read_calibration(path) -> CalibrationResult:
     each parameter they need present, finite and of its shape, K invertible)."""
     p = str(path)
     with open_checked(p, CAL_KINDS) as h5:
-        if _attr_str(h5, "kind") == "diagnosis" and "params" not in h5:
+        if attr_str(h5, "kind") == "diagnosis" and "params" not in h5:
             raise InputError("a diagnosis file without a calibration of its final model (written "
                              "by an older calib): run calib diagnose again", p)
         try:
             params = _read_params_group(_need(h5, "params", p))
             sigma = _read_params_group(_need(h5, "sigma", p))
             ug = _need(h5, "units", p)
-            units = {k: _attr_str(ug, k) for k in ug.attrs}
+            units = {k: attr_str(ug, k) for k in ug.attrs}
             c = _need(h5, "covariance", p)
             keys = validate.strings(_need(c, "order_key", p), p)
-            idx = validate._numeric(validate.load(_need(c, "order_index", p), p),
+            idx = validate.numeric(validate.load(_need(c, "order_index", p), p),
                                     "/covariance/order_index", p, integer=True)
             if len(keys) != len(idx) or idx.ndim != 1:
                 raise InputError("/covariance/order_key and order_index differ in length", p)
             order = [(k, int(i)) for k, i in zip(keys, idx)]
-            stats = json.loads(_attr_str(_need(h5, "stats", p), "json", "{}"))
+            stats = json.loads(attr_str(_need(h5, "stats", p), "json", "{}"))
             residuals = (_read_params_group(h5["residuals"]) if "residuals" in h5
-                         and _attr_str(h5, "kind") == "calibration" else {})
+                         and attr_str(h5, "kind") == "calibration" else {})
             tables = {}
             if "tables" in h5:
                 for k, d in h5["tables"].items():
@@ -595,13 +595,13 @@ def read_calibration(path) -> CalibrationResult:
                         tables[k] = validate.strings(d, p)
                     else:
                         tables[k] = validate.load(d, p)
-            model = json.loads(_attr_str(h5["model"], "effects", "[]")) if "model" in h5 else []
+            model = json.loads(attr_str(h5["model"], "effects", "[]")) if "model" in h5 else []
             _, layout = read_site_layout(h5, p) if "site" in h5 else (None, Layout())
-            raw_units = json.loads(_attr_str(h5, "raw_units", "{}")) or {
+            raw_units = json.loads(attr_str(h5, "raw_units", "{}")) or {
                 "accel": "m/s^2", "gyro": "rad/s"}
             cov = validate.load(_need(c, "matrix", p), p)
-            method = _attr_str(h5, "method")
-            serial = _attr_str(h5, "unit_serial") or None
+            method = attr_str(h5, "method")
+            serial = attr_str(h5, "unit_serial") or None
         except (KeyError, ValueError, TypeError, IndexError, OverflowError) as exc:
             raise InputError(f"malformed calibration file: {exc}", p) from None
         except (RuntimeError, OSError) as exc:  # HDF5 refusing its own structure

@@ -33,6 +33,7 @@ from calib_cli.io.h5 import (
     write_site_layout,
     write_source,
 )
+from calib_cli.io.h5file import h5_output, set_attrs, set_text
 from calib_cli.io.log_segments import (
     Chunk,
     check_time_range,
@@ -41,7 +42,6 @@ from calib_cli.io.log_segments import (
     segments_from_column,
     segments_from_detection,
 )
-from calib_cli.io.h5file import h5_output, set_attrs, set_text
 from calib_cli.methods.static_stream import OnlineFloors, StreamDetector
 from calib_cli.plan import Plan, plan_layout  # noqa: F401  (plan_layout re-exported)
 

@@ -507,7 +507,7 @@ UNITS = {"accel": ("m/s^2", "count"), "gyro": ("rad/s", "count")}
 SEGMENT_KINDS = ("static", "turn", "rotating")
 
 
-def _numeric(arr, where: str, path: str, integer: bool = False) -> np.ndarray:
+def numeric(arr, where: str, path: str, integer: bool = False) -> np.ndarray:
     a = np.asarray(arr)
     if a.dtype.kind not in ("iu" if integer else "fiu"):
         if integer and a.dtype.kind == "f" and np.all(np.isfinite(a)) and np.all(a == np.round(a)):
@@ -554,7 +554,7 @@ def layout_values(h5, path: str) -> dict:
     geo = {}
     for k in ("el0", "az0"):
         if k in lay:
-            v = _numeric(load(lay[k], path), f"/layout/{k}", path).astype(float)
+            v = numeric(load(lay[k], path), f"/layout/{k}", path).astype(float)
             if v.shape != (n,) or not np.all(np.isfinite(v)):
                 raise InputError(f"/layout/{k} must be {n} finite angles, has shape {v.shape}",
                                  path)
@@ -638,9 +638,9 @@ def segment_columns(g, path: str, n: int) -> dict:
     out = {"label": strings(g["label"], path), "kind": strings(g["kind"], path)}
     m = len(out["label"])
     for k in ("start", "stop", "plan_index"):
-        out[k] = _numeric(load(g[k], path), f"/segments/{k}", path, integer=True)
+        out[k] = numeric(load(g[k], path), f"/segments/{k}", path, integer=True)
     for k, lim in _SEG_VECTORS.items():
-        v = _numeric(load(g[k], path), f"/segments/{k}", path).astype(float)
+        v = numeric(load(g[k], path), f"/segments/{k}", path).astype(float)
         if v.shape != (m, 3):
             raise InputError(f"/segments/{k} has shape {v.shape}, expected ({m}, 3)", path)
         nan = np.isnan(v)
@@ -657,7 +657,7 @@ def segment_columns(g, path: str, n: int) -> dict:
                                  f"{row.tolist()}: expected all NaN (unknown) or {what}", path)
         out[k] = v
     for k, (lo, hi) in _SEG_SCALARS.items():
-        v = _numeric(load(g[k], path), f"/segments/{k}", path).astype(float)
+        v = numeric(load(g[k], path), f"/segments/{k}", path).astype(float)
         if v.shape != (m,):
             raise InputError(f"/segments/{k} has shape {v.shape}, expected ({m},)", path)
         bad = ~np.isnan(v) & ~((v >= lo) & (v <= hi))
