@@ -42,7 +42,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check calib_cli tests
 
 # each benchmark prints its figures against a baseline measured in the same run
-BENCHES := benchmarks.bench benchmarks.bench_acquire benchmarks.bench_batch benchmarks.bench_turntable benchmarks.bench_import benchmarks.bench_plan benchmarks.bench_cli
+BENCHES := benchmarks.bench benchmarks.bench_acquire benchmarks.bench_batch benchmarks.bench_turntable benchmarks.bench_import benchmarks.bench_plan benchmarks.bench_cli benchmarks.bench_fclogs
 
 bench: $(STAMP)
 	for b in $(BENCHES); do echo "== $$b"; MPLBACKEND=Agg $(BIN)/python -m $$b || exit 1; done

@@ -108,9 +108,11 @@ def test_cli_probe_and_record_auto(tmp_path):
 
     import h5py
 
+    from calib_cli.io.validate import text
+
     with h5py.File(out) as h5:  # what the recorder set on the unit and read back
-        acq = h5["acquisition"].attrs
-        assert acq["imu_profile"] == "xsens-mti" and acq["rate_hz"] == 400
-        rb = json.loads(acq["readback"])
+        acq = h5["acquisition"]  # text as checksummed fixed-length UTF-8 (io/h5file.py)
+        assert text(acq, "imu_profile", out) == "xsens-mti" and acq.attrs["rate_hz"] == 400
+        rb = json.loads(text(acq, "readback", out))
         assert rb["output_configuration"].startswith("FA FF C1 14")
-        assert any("GoToMeasurement" in line for line in json.loads(acq["exchange"]))
+        assert any("GoToMeasurement" in line for line in json.loads(text(acq, "exchange", out)))

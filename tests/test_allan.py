@@ -168,7 +168,7 @@ def test_allan_command_writes_file_plot_and_show(tmp_path):
     # white noise: averaging time where 1e-3 / sqrt(tau / 0.01) = 1e-4, i.e. 1 s
     assert gx["averaging_time"] == pytest.approx(1.0, rel=0.1)
     with h5py.File(out) as h5:
-        assert h5.attrs["kind"] == "allan" and "input_sha256" in h5.attrs
+        assert h5.attrs["kind"].decode() == "allan" and "input_sha256" in h5.attrs
     res = read_allan(out)
     assert res.channels[:3] == ["accel_x", "accel_y", "accel_z"]
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -70,9 +70,9 @@ def test_first_run_processes_good_reports_bad(arch):
         assert r["status"] == "done" and r["serial"].startswith("SN-")
         cal = arch["out"] / r["outputs"]["calibration"]
         with h5py.File(cal) as h5:
-            assert h5.attrs["kind"] == "calibration"
+            assert h5.attrs["kind"].decode() == "calibration"
             assert len(h5.attrs["batch_fingerprint"]) == 64
-            assert json.loads(h5.attrs["input_sha256"])
+            assert json.loads(h5.attrs["input_sha256"].decode())
         exp = json.loads((arch["out"] / r["outputs"]["export"]).read_text())
         assert exp["params"]["accel_K"] and exp["batch"]["batch_fingerprint"]
     # no calibration is left for a failed input; no temporary files anywhere

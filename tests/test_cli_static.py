@@ -64,8 +64,8 @@ def test_round_trip_csv_import_fit_apply(tmp_path, plan, run_cli):
             # within 4.5 sigma of the mean's noise (0.01 / sqrt(n)) plus the fit's own error
             assert abs(err) < 4.5 * (0.01 / np.sqrt(len(x))) * 1.5, (s.label, err)
         with h5py.File(cor) as h5:
-            assert h5.attrs["kind"] == "corrected"
-            assert "input_sha256" in h5.attrs and str(cal) in h5.attrs["input_sha256"]
+            assert h5.attrs["kind"].decode() == "corrected"
+            assert "input_sha256" in h5.attrs and str(cal) in h5.attrs["input_sha256"].decode()
     code, out, _ = run_cli("show", cal, "--json", "--covariance")
     cov = json.loads(out)["covariance"]
     assert len(cov["order"]) == 12 and np.array(cov["matrix"]).shape == (12, 12)

@@ -153,7 +153,7 @@ def test_cli_json_contract_and_report(tmp_path, capsys):
     import h5py
 
     with h5py.File(out) as h5:
-        assert h5.attrs["kind"] == "diagnosis"
+        assert h5.attrs["kind"].decode() == "diagnosis"
         assert "initial" in h5["residuals"] and "step1" in h5["residuals"]
 
 

@@ -65,7 +65,8 @@ def test_tables_are_full_width_in_a_pipe(tmp_path):
             method="vector", params={"accel_bias": np.array([0.01, 0.02, 0.03])},
             sigma={"accel_bias": np.full(3, 1e-4)}, units={"accel_bias": "m/s^2"},
             covariance=np.diag(np.full(3, 1e-8)), cov_order=[("accel_bias", i) for i in range(3)],
-            stats={"method": "vector", "note": long}, serial="SN-0004"))
+            stats={"method": "vector", "note": long}, serial="SN-0004",
+            model=[{"name": "bias", "sensor": "accel"}]))
     env = {"COLUMNS": "", "PATH": str(Path(sys.executable).parent)}
     r = subprocess.run([sys.executable, "-m", "calib_cli", "show", str(tmp_path / "a.h5")],
                        capture_output=True, text=True, timeout=120, env=env)
@@ -153,6 +154,7 @@ def test_report_says_figure_in_the_singular(n, word, monkeypatch, tmp_path, run_
     write_calibration(tmp_path / "c.h5", CalibrationResult(
         method="vector", params={"accel_bias": np.zeros(3)}, sigma={"accel_bias": np.ones(3)},
         units={"accel_bias": "m/s^2"}, covariance=np.eye(3),
-        cov_order=[("accel_bias", i) for i in range(3)], stats={}))
+        cov_order=[("accel_bias", i) for i in range(3)], stats={},
+        model=[{"name": "bias", "sensor": "accel"}]))
     code, _, err = run_cli("report", tmp_path / "c.h5", "--out", tmp_path / "r")
     assert code == 0 and f"report with {n} {word}" in err

@@ -34,8 +34,13 @@ def _cal(bias, K, gbias=None, G=None, **extra) -> CalibrationResult:
         p.update(gyro_bias=np.asarray(gbias, float), gyro_K=np.asarray(G, float))
     stats = extra.pop("stats", {})
     p.update(extra)
+    from calib_cli.model.imu_model import base_model
+    from calib_cli.model.truth import describe_effect
+
+    model = [describe_effect(e) for e in base_model(gyro=gbias is not None).effects]
     return CalibrationResult(method="vector", params=p, sigma={}, units={},
-                             covariance=np.zeros((0, 0)), cov_order=[], stats=stats)
+                             covariance=np.zeros((0, 0)), cov_order=[], stats=stats,
+                             model=model)
 
 
 def _px4_params(rot=0, lvl=(0.0, 0.0, 0.0), slot=0, tc=None):

@@ -80,7 +80,7 @@ def test_corrected_log_exports_composed(field, run_cli, target):
     assert src["device_ids"] == {"accel": 1234, "gyro": 5678}
     assert src["parameters"][fc_params.names(target, 0)["accel_off"][0]] == pytest.approx(OFF[0])
     with h5py.File(raw) as h5:  # the layout docs/file-formats.md describes
-        assert h5["source"].attrs["samples"] == "corrected"
+        assert h5["source"].attrs["samples"].decode() == "corrected"  # fixed-length UTF-8
         assert json.loads(h5["source"].attrs["parameters_changed"]) == []
     cal = d / f"cal_{target}.h5"
     code, _, err = run_cli("fit", "gyro", raw, "--out", cal)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import stat
 from pathlib import Path
@@ -79,13 +80,23 @@ def test_umask_and_stale_temps(files, run_cli, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.h5"]
 
 
-def test_report_directory_replaced_whole(files, run_cli, tmp_path):
+def test_report_directory_keeps_what_calib_did_not_write(files, run_cli, tmp_path):
+    """Issue 37 (was: the directory replaced whole, deleting the user's files): a
+    file calib did not write stays; a figure of calib's previous report that the
+    new one does not write goes (calib-manifest.json lists what calib wrote)."""
     rep = tmp_path / "rep"
     rep.mkdir()
     (rep / "old_figure.png").write_bytes(b"old")
     code, _, err = run_cli("report", files / "cal.h5", files / "raw.h5", "--out", rep)
     assert code == 0, err
-    assert not (rep / "old_figure.png").exists() and (rep / "report.html").exists()
+    assert (rep / "old_figure.png").read_bytes() == b"old" and (rep / "report.html").exists()
+    first = json.loads((rep / "calib-manifest.json").read_text())["files"]
+    assert "report.html" in first and "old_figure.png" not in first
+    code, _, err = run_cli("report", files / "cal.h5", "--out", rep)  # no RAW: fewer figures
+    assert code == 0, err
+    second = json.loads((rep / "calib-manifest.json").read_text())["files"]
+    assert all((rep / f).exists() == (f in second) for f in first)
+    assert (rep / "old_figure.png").read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["rep"]
 
 

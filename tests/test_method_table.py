@@ -52,7 +52,7 @@ def fit_toy(rec, o, noise=None):
         "toy", {"accel_bias": b}, {"accel_bias": sb}, {"accel_bias": "m/s^2"},
         np.diag(sb**2), [("accel_bias", i) for i in range(3)],
         {"accel_residual_rms": float(np.sqrt(np.mean((r - b) ** 2))), "unobservable": []},
-        layout=rec.layout, serial=rec.serial)
+        layout=rec.layout, serial=rec.serial, model=[{"name": "bias", "sensor": "accel"}])
 
 
 METHOD = Method(

@@ -221,7 +221,7 @@ def test_cli_fit_apply_show(tmp_path, calib):
 
     with h5py.File(tmp_path / "cor.h5") as h5:
         assert h5["samples/gyro_body"].shape[1] == 3 and h5["samples/gyro"].shape[1] == 9
-        assert h5.attrs["kind"] == "corrected"
+        assert h5.attrs["kind"].decode() == "corrected"
 
 
 def test_cli_wrong_kinds(tmp_path, calib):

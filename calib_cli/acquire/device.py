@@ -283,12 +283,12 @@ def write_device_info(path: str, prof, info: dict) -> None:
     ``rate_hz``, ``exchange`` and ``readback`` as JSON)."""
     import json
 
-    import h5py
+    from calib_cli.io.h5file import h5_writer, set_attrs
 
-    with h5py.File(path, "a") as h5:
+    # through the checked writer: a full disk is exit 2 naming the file (issue 37)
+    with h5_writer(path, "r+") as h5:
         g = h5.require_group("acquisition")
-        g.attrs["imu_profile"] = prof.name
-        g.attrs["profile_document"] = prof.document
-        g.attrs["rate_hz"] = float(info.get("rate_hz", prof.rate_hz))
-        g.attrs["exchange"] = json.dumps(info.get("exchange", []))
-        g.attrs["readback"] = json.dumps(info.get("readback", {}))
+        set_attrs(g, {"imu_profile": prof.name, "profile_document": prof.document,
+                      "rate_hz": float(info.get("rate_hz", prof.rate_hz)),
+                      "exchange": json.dumps(info.get("exchange", [])),
+                      "readback": json.dumps(info.get("readback", {}))})

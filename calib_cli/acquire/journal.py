@@ -12,6 +12,8 @@ last flush comes back.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import os
 import struct
@@ -20,7 +22,7 @@ import zlib
 
 import numpy as np
 
-from calib_cli.errors import InputError
+from calib_cli.errors import InputError, OutputError
 
 MAGIC = b"CALIBJ01"
 _HDR = struct.Struct("<cI")
@@ -32,24 +34,48 @@ class JournalWriter:
     def __init__(self, path: str, header: dict, flush_interval: float = 0.5):
         self.path = path
         try:  # never truncate an existing journal (a killed recording's data)
-            self.fh = open(path, "xb")
+            self.fh = open(path, "xb", buffering=0)  # unbuffered: nothing left to flush
         except FileExistsError:
             raise InputError(f"a journal exists (an earlier recording?): recover it with "
                              f"`calib recover {path} --out FILE.h5`, or pass --force to set "
                              "it aside", path) from None
         except OSError as exc:
-            raise InputError(f"cannot create the journal: {exc.strerror}", path) from None
+            raise OutputError(f"cannot create the journal: {exc.strerror}", path) from None
         blob = json.dumps(header).encode()
-        self.fh.write(MAGIC + _U32.pack(len(blob)) + blob)
         self.flush_interval = flush_interval
         self.last_flush = time.monotonic()
         self.n_rows = 0
         self.flushed_rows = 0
-        self.sync()
+        try:
+            self._write(MAGIC + _U32.pack(len(blob)) + blob)
+            self.sync()
+        except BaseException:  # the file this call made holds no data: leave nothing behind
+            self.fh.close()
+            with contextlib.suppress(OSError):
+                os.unlink(path)
+            raise
+
+    def _failed(self, exc: OSError):
+        """A full disk (or an I/O error) while recording: exit 2 naming the journal,
+        which keeps what reached the disk (issue 37: was exit 3 "No space left on
+        device", naming nothing)."""
+        what = ("disk full" if exc.errno in (errno.ENOSPC, errno.EDQUOT)
+                else f"cannot write ({exc.strerror or exc})")
+        if not self.n_rows:
+            return OutputError(f"{what} while recording: nothing was recorded", self.path)
+        return OutputError(f"{what} while recording; the journal keeps what reached the disk "
+                           f"(calib recover {self.path} --out FILE.h5)", self.path)
+
+    def _write(self, data: bytes) -> None:
+        mv = memoryview(data)
+        try:
+            while len(mv):
+                mv = mv[self.fh.write(mv):]
+        except OSError as exc:
+            raise self._failed(exc) from None
 
     def _record(self, kind: bytes, payload: bytes) -> None:
-        self.fh.write(_HDR.pack(kind, len(payload)) + payload
-                      + _U32.pack(zlib.crc32(payload)))
+        self._write(_HDR.pack(kind, len(payload)) + payload + _U32.pack(zlib.crc32(payload)))
 
     def append(self, rows: np.ndarray) -> None:
         if len(rows):
@@ -69,16 +95,21 @@ class JournalWriter:
         return False
 
     def sync(self) -> None:
-        self.fh.flush()
-        os.fsync(self.fh.fileno())
+        try:
+            self.fh.flush()
+            os.fsync(self.fh.fileno())
+        except OSError as exc:
+            raise self._failed(exc) from None
         self.last_flush = time.monotonic()
         self.flushed_rows = self.n_rows
 
     def close(self, counts: dict | None = None) -> None:
-        if counts is not None:
-            self.counters(counts)
-        self.sync()
-        self.fh.close()
+        try:
+            if counts is not None:
+                self.counters(counts)
+            self.sync()
+        finally:
+            self.fh.close()
 
 
 def _valid_at(data: bytes, pos: int, ncols: int):

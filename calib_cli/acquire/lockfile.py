@@ -32,8 +32,9 @@ def hold(path: str, what: str = "recorder"):
         raise InputError(f"another {what} (pid {holder}) is writing this file; wait for it "
                          "to end or choose another --out", path) from None
     try:
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
+        with contextlib.suppress(OSError):  # the holder's pid is a courtesy (a full disk)
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
         yield
     finally:
         with contextlib.suppress(OSError):

@@ -29,7 +29,7 @@ from calib_cli import __version__
 from calib_cli.batch.paths import inside
 from calib_cli.batch.pipeline import Pipeline, digest, fill_placeholders
 from calib_cli.batch.registry import StepRun
-from calib_cli.errors import CalibError, InputError
+from calib_cli.errors import CalibError, InputError, OutputError
 
 RAW_SUFFIXES = (".h5", ".hdf5")
 LOCK_NAME = ".calib-batch.lock"
@@ -62,11 +62,10 @@ def read_fingerprint(path: str) -> str | None:
 
 
 def _stamp_h5(path: str, stamp: dict) -> None:
-    import h5py
+    from calib_cli.io.h5file import h5_writer, set_attrs
 
-    with h5py.File(path, "r+") as h5:
-        for k, v in stamp.items():
-            h5.attrs[k] = v
+    with h5_writer(path, "r+") as h5:  # a full disk: exit 2 naming it, never a crash
+        set_attrs(h5, stamp)
 
 
 def _source_artifacts(src: str) -> dict:
@@ -121,6 +120,7 @@ def run_chain(task: dict) -> dict:
            "exit_code": 0, "serial": None, "outputs": {}, "steps_run": 0, "steps_skipped": 0}
     plan_of_step = [(s, s.definition(pipe.path)) for s in pipe.steps]
     failed_at, art = -1, {}  # -1: the input itself could not be read
+    out = None  # the step's output being written
     try:
         with _quiet_cli():
             art = _source_artifacts(src)
@@ -182,6 +182,10 @@ def run_chain(task: dict) -> dict:
                 art[d.makes] = out
             failed_at = None
         res["status"] = "done" if res["steps_run"] else "up to date"
+    except OutputError as exc:  # a full disk: not this input's fault; the batch stops (exit 2)
+        exc.path = out or exc.path
+        res["error"], res["exit_code"] = exc.line(), exc.exit_code
+        res["error_path"], res["error_message"] = exc.path, exc.message
     except CalibError as exc:  # the line always starts with the input it concerns
         where = f"{plan_of_step[failed_at][0].label}: " if failed_at not in (None, -1) else ""
         res["error"] = exc.line() if exc.path == src else f"{src}: {where}{exc.line()}"
@@ -312,8 +316,9 @@ def output_lock(out_dir: str):
                 holder = Path(path).read_text().strip()
             raise InputError("another calib batch is running on this output directory"
                              + (f" ({holder})" if holder else ""), str(out_dir)) from None
-        os.ftruncate(fd, 0)
-        os.write(fd, f"pid {os.getpid()} since {utc_now()}\n".encode())
+        with contextlib.suppress(OSError):  # the holder's line is a courtesy (a full disk)
+            os.ftruncate(fd, 0)
+            os.write(fd, f"pid {os.getpid()} since {utc_now()}\n".encode())
         yield
     finally:
         os.close(fd)

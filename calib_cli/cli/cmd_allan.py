@@ -13,7 +13,7 @@ from rich.table import Table
 from calib_cli.cli.common import Ctx, info, out_console, print_json
 from calib_cli.cli.main import cli
 from calib_cli.errors import EstimationError, InputError
-from calib_cli.io.h5 import _attr_str, atomic_path, open_checked, read_segments
+from calib_cli.io.h5 import atomic_path, attr_str, check_raw_header, open_checked, read_segments
 from calib_cli.methods import allan as A
 
 COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
@@ -90,18 +90,17 @@ def compute_allan(raw, segment=None, targets=(), stride_div=A.STRIDE_DIV,
         smp = h5["samples"]
         from calib_cli.io import validate
 
-        validate.check_samples_layout(smp, raw)  # issue 15: shapes before use
+        units = check_raw_header(h5, raw)[1]  # issues 15, 37: types, shapes, site before use
         start, stop, label = _span(h5, raw, segment, hint)
         n = stop - start
         sensors = [s for s in ("accel", "gyro") if s in smp]
-        units = {s: _attr_str(smp, f"{s}_units", "m/s^2" if s == "accel" else "rad/s")
-                 for s in sensors}
+        units = {s: units[s] for s in sensors}
         tgt = _parse_targets(targets, units, raw)
         if n < 2 * A.MIN_CLUSTERS + 1:
             raise EstimationError(f"segment {label!r} has {n} samples; an Allan "
                                   "deviation needs a free-running record (minutes to hours)",
                                   raw)
-        t_head = smp["time"][start:min(stop, start + 4096)]
+        t_head = validate.rows(smp["time"], start, min(stop, start + 4096), raw)
         tau0 = float(np.median(np.diff(t_head)))
         if not tau0 > 0:
             raise InputError("time does not increase", raw)
@@ -115,24 +114,28 @@ def compute_allan(raw, segment=None, targets=(), stride_div=A.STRIDE_DIV,
         def chunks():
             for a in range(start, stop, CHUNK):
                 b = min(stop, a + CHUNK)
-                tt = smp["time"][max(a - 1, start):b]
+                tt = validate.rows(smp["time"], max(a - 1, start), b, raw)
                 dt = np.diff(tt)
                 bad = np.flatnonzero(np.abs(dt - tau0) > 0.5 * tau0)
                 if len(bad):
                     raise InputError(f"irregular sampling at t = {tt[bad[0]]:.6g} s (step "
                                      f"{dt[bad[0]]:.3g} s, nominal {tau0:.3g} s): the Allan "
                                      "deviation needs an evenly sampled record without gaps", raw)
-                block = np.column_stack([np.asarray(smp[s][a:b], dtype=float) for s in sensors])
-                validate.check_finite(block, raw, "/samples/" + "+".join(sensors), a)
+                parts = [np.asarray(validate.rows(smp[s], a, b, raw), dtype=float)
+                         for s in sensors]
+                for s, x in zip(sensors, parts):  # issue 37: 1e300 in a cell is no sample
+                    validate.check_finite(x, raw, f"/samples/{s}", a)
+                    validate.check_magnitudes(x, s, units[s], raw, a)
+                block = np.column_stack(parts)
                 yield block
 
         from calib_cli.cli.progress import track
 
         feed = track(chunks(), "Allan deviation", -(-n // CHUNK))  # a bar on a terminal
         return A.allan_of_chunks(feed, n, tau0, channels, chan_units, chan_tgt, stride_div,
-                                 meta={"source_kind": _attr_str(h5, "kind"), "segment": label,
+                                 meta={"source_kind": attr_str(h5, "kind"), "segment": label,
                                        "start": int(start), "stop": int(stop),
-                                       "serial": _attr_str(h5, "unit_serial") or None})
+                                       "serial": attr_str(h5, "unit_serial") or None})
 
 
 def allan_json(res: A.AllanResult) -> dict:

@@ -12,7 +12,7 @@ from rich.table import Table
 
 from calib_cli.cli.common import Ctx, err_console, interactive, print_json
 from calib_cli.cli.main import cli
-from calib_cli.errors import InputError
+from calib_cli.errors import InputError, OutputError
 
 COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
 
@@ -148,19 +148,21 @@ def batch_cmd(pipeline, inputs, out, workers, force, as_json, log_path, tol_path
     from calib_cli.batch.paths import discover, vanished
     from calib_cli.batch.pipeline import load_pipeline
     from calib_cli.batch.runner import output_lock, run_tasks
+    from calib_cli.io.outpath import drop_if_empty
     from calib_cli.io.tolerance import load_tolerances
 
     pipe = load_pipeline(pipeline)
     tols = load_tolerances(tol_path) if tol_path else None
     if scheduler and not scheduler.startswith(("tcp://", "tls://", "ucx://", "inproc://")):
         raise click.BadParameter("expected tcp://HOST:PORT", param_hint="--scheduler")
+    created = not os.path.isdir(out)  # removed again on a failure that leaves it empty
     try:
         os.makedirs(out, exist_ok=True)
     except OSError as exc:
         raise InputError(f"cannot create the output directory: {exc.strerror}", out) from None
     out = str(Path(out).resolve())
     log = _logger(log_path)
-    with output_lock(out):
+    with drop_if_empty(out, created), output_lock(out):
         found = discover(inputs, pipe.globs, exclude=out)
         found += vanished(inputs, out, found)  # deleted from a directory: reported failed
         if not found:
@@ -175,6 +177,8 @@ def batch_cmd(pipeline, inputs, out, workers, force, as_json, log_path, tol_path
         from calib_cli.cli.progress import track
 
         for r in track(run_tasks(tasks, workers, scheduler), "calib batch", len(tasks)):
+            if r.get("exit_code") == 2:  # a full disk (issue 37): stop, exit 2 naming it
+                raise OutputError(r.get("error_message") or r["error"], r.get("error_path"))
             results.append(r)
             if r["status"] == "failed":
                 log.error("%s: failed: %s", r["input"], r["error"])

@@ -78,6 +78,8 @@ def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir, cal_
             raise click.UsageError("--calibration and --out name the same file (DIAG.h5 holds "
                                    "the calibration already)")
     rec = read_raw(raw)
+    if method != "gyro":  # static positions that do not see gravity: exit 3 (issue 37)
+        __import__("calib_cli.methods.segstats").methods.segstats.check_gravity_seen(rec, raw)
     from calib_cli.cli.progress import bar
     from calib_cli.errors import CalibError
 

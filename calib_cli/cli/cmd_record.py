@@ -23,7 +23,7 @@ from calib_cli.cli.common import (
     output_json,
 )
 from calib_cli.cli.main import cli
-from calib_cli.errors import InputError
+from calib_cli.errors import CalibError, InputError
 
 COMPLETE_COMMAND = True  # every subcommand lives here: loaded alone (cli/main.py)
 
@@ -316,14 +316,14 @@ def _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
                              f"{session.source}; nothing was recorded (check the port, the "
                              "baud rate or CAN channel, and that the unit is streaming)",
                              journal_path) from None
-    except BaseException:
+    except BaseException as exc:
         display.close()
         with contextlib.suppress(Exception):
             session.close()
         if driver is not None:
             with contextlib.suppress(Exception):
                 driver.stop()
-        if session.n_rows:
+        if session.n_rows and "calib recover" not in getattr(exc, "message", ""):
             err_console.print(f"calib: the journal {journal_path} keeps what was recorded "
                               "(calib recover)", markup=False)
         else:  # nothing recorded: leave nothing behind
@@ -344,11 +344,15 @@ def _record(imu, port, can_interface, can_channel, table, table_port, plan_path,
     rec = journal_to_recording(journal_path)
     inputs = [p for p in (plan_path, prof.path, tprof.path if tprof else None,
                          cprof.path if cprof and cprof.kind != "manual" else None) if p]
-    write_raw(out, rec, inputs)
-    if session.device_info:  # what the recorder set on the unit, and read back
-        from calib_cli.acquire.device import write_device_info
+    try:
+        write_raw(out, rec, inputs)
+        if session.device_info:  # what the recorder set on the unit, and read back
+            from calib_cli.acquire.device import write_device_info
 
-        write_device_info(out, prof, session.device_info)
+            write_device_info(out, prof, session.device_info)
+    except CalibError as exc:  # a full disk: the journal keeps the recording (issue 37)
+        exc.message += f"; the journal {journal_path} keeps the recording (calib recover)"
+        raise
     if not keep_journal:
         os.unlink(journal_path)
     info(f"recorded {len(rec)} samples, {len(rec.segments)} segments -> {out}; "

@@ -21,32 +21,35 @@ import h5py
 import numpy as np
 
 from calib_cli.errors import InputError
-from calib_cli.io.h5 import _attr_str, atomic_path, open_checked, write_provenance
+from calib_cli.io.h5 import attr_str, open_checked, write_provenance
+from calib_cli.io.h5file import h5_output, put
 from calib_cli.methods.allan import CONFIDENCE, TERM_NAMES, AllanResult
 
 _STR = h5py.string_dtype()
 
 
 def write_allan(path, res: AllanResult, inputs=(), serial=None) -> None:
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
+    with h5_output(path) as h5:
         meta = {k: v for k, v in res.meta.items() if v is not None and k != "serial"}
         write_provenance(h5, "allan", inputs, serial,
                          {**meta, "tau0": res.tau0, "n_samples": res.n_samples,
                           "stride_div": res.stride_div, "confidence": CONFIDENCE})
-        h5.create_dataset("channels", data=list(res.channels), dtype=_STR)
-        h5.create_dataset("units", data=list(res.units), dtype=_STR)
+        put(h5, "channels", list(res.channels), dtype=_STR)
+        put(h5, "units", list(res.units), dtype=_STR)
         c = h5.create_group("curve")
-        c["tau"], c["adev"] = res.tau, res.adev
-        c["adev_lo"], c["adev_hi"] = res.adev_lo, res.adev_hi
-        c["clusters"] = np.asarray(res.clusters, dtype=np.int64)
+        for k in ("tau", "adev", "adev_lo", "adev_hi"):
+            put(c, k, np.asarray(getattr(res, k)))
+        put(c, "clusters", np.asarray(res.clusters, dtype=np.int64))
         t = h5.create_group("terms")
         for name, d in res.terms.items():
             g = t.create_group(name)
             for k, v in d.items():
-                g[k] = np.asarray(v)
+                put(g, k, np.asarray(v))
         a = h5.create_group("averaging")
-        a["target"], a["time"], a["tau_min"] = res.target, res.averaging_time, res.tau_min
-        a["min_time"] = res.min_avg()
+        put(a, "target", np.asarray(res.target))
+        put(a, "time", np.asarray(res.averaging_time))
+        put(a, "tau_min", np.asarray(res.tau_min))
+        put(a, "min_time", np.asarray(res.min_avg()))
 
 
 def _strs(d):
@@ -60,7 +63,7 @@ def read_allan(path) -> AllanResult:
             c, t, a = h5["curve"], h5["terms"], h5["averaging"]
             terms = {name: {k: t[name][k][()] for k in t[name]} for name in TERM_NAMES
                      if name in t}
-            meta = {k: (_attr_str(h5, k)) for k in ("source_kind", "segment")
+            meta = {k: (attr_str(h5, k)) for k in ("source_kind", "segment")
                     if k in h5.attrs}
             for k in ("start", "stop"):
                 if k in h5.attrs:

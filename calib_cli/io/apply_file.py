@@ -4,11 +4,20 @@ long recordings. The corrections themselves are ``methods/apply.py``."""
 
 from __future__ import annotations
 
-import h5py
 import numpy as np
 
 from calib_cli.errors import InputError
-from calib_cli.io.h5 import atomic_path, open_checked, read_calibration, write_provenance
+from calib_cli.io.h5 import (
+    attr_str,
+    check_raw_header,
+    open_checked,
+    read_calibration,
+    read_segments,
+    write_provenance,
+    write_segments,
+    write_site_layout,
+)
+from calib_cli.io.h5file import h5_output, put, set_text
 from calib_cli.methods.apply import (
     apply_redundant,
     apply_triad,
@@ -41,37 +50,43 @@ def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = F
     with open_checked(raw, ("raw",)) as src:
         if "samples" not in src:
             raise InputError("missing group /samples (a recording is expected here)", raw)
+        n, units, site, layout = check_raw_header(src, raw)
         smp = src["samples"]
-        validate.check_segments_layout(src, raw, validate.check_samples_layout(smp, raw))
-        validate.check_time(validate.load(smp["time"], raw), raw)
-        units = {s: (smp.attrs.get(f"{s}_units", "") or "") for s in ("accel", "gyro")}
-        units = {k: v.decode() if isinstance(v, bytes) else str(v) for k, v in units.items()}
+        time = validate.load(smp["time"], raw)
+        validate.check_time(time, raw)
+        validate.check_rate(time, raw)
+        segments = read_segments(src, raw, n)
         check_units(c, units, raw)
         chans = corrected_channels(c)
         n = smp["time"].shape[0]
         temp_eff = None
         if is_thermal(c):
             if "temp" in smp:
-                temp_in = np.asarray(smp["temp"][...], dtype=float)
+                temp_in = np.asarray(validate.load(smp["temp"], raw), dtype=float)
             elif temp_c is not None:
                 temp_in = np.full(n, float(temp_c))
             else:
                 raise InputError("the calibration has temperature terms but the recording has "
                                  "no temperature column (give --temp DEGC)", raw)
             check_temperature(c, temp_in, raw, extrapolate)
-            temp_eff = effective_temperature(c, smp["time"][...], temp_in)
-        with atomic_path(out) as tmp, h5py.File(tmp, "w") as dst:
+            temp_eff = effective_temperature(c, time, temp_in)
+        with h5_output(out) as dst:
             write_provenance(dst, "corrected", [cal, raw], c.serial or (
-                src.attrs.get("unit_serial") or None),
-                {"plan_kind": src.attrs.get("plan_kind", "static"),
+                attr_str(src, "unit_serial") or None),
+                {"plan_kind": attr_str(src, "plan_kind", "static"),
                  "corrected_channels": ",".join(chans)})
-            for name in ("segments", "site", "layout", "plan"):
-                if name in src:
-                    src.copy(name, dst)
+            # through the checked readers, not copied: a damaged input is not passed on
+            write_segments(dst, segments)
+            write_site_layout(dst, site, layout)
+            if "plan" in src:
+                set_text(dst.create_group("plan"), "text", attr_str(src["plan"], "text"))
             out_s = dst.create_group("samples")
-            for k in smp:
-                if k not in ("accel", "gyro"):
-                    smp.copy(k, out_s)
+            put(out_s, "time", time)
+            for k in ("temp", "table_angle", "table_rate"):
+                if k in smp:
+                    put(out_s, k, validate.load(smp[k], raw))
+            if "sample_kind" in smp.attrs:
+                set_text(out_s, "sample_kind", attr_str(smp, "sample_kind"))
             acc = out_s.create_dataset("accel", shape=smp["accel"].shape, dtype="f8", fletcher32=True,
                                        chunks=True)
             gyr = (out_s.create_dataset("gyro", shape=smp["gyro"].shape, dtype="f8", chunks=True,
@@ -91,20 +106,19 @@ def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = F
                 if progress is not None:
                     progress(a // CHUNK, -(-n // CHUNK))
                 b = min(n, a + CHUNK)
-                try:
-                    a0, b0 = (max(0, a - 1), min(n, b + 1)) if size else (a, b)
-                    a_in = smp["accel"][a0:b0]
-                    g_in = smp["gyro"][a0:b0] if gyr is not None else None
-                except OSError:
-                    raise InputError("damaged data in /samples/accel or /samples/gyro (checksum) "
-                                     f"(samples {a}..{b})", raw) from None
+                a0, b0 = (max(0, a - 1), min(n, b + 1)) if size else (a, b)
+                a_in = np.asarray(validate.rows(smp["accel"], a0, b0, raw), dtype=float)
+                g_in = (np.asarray(validate.rows(smp["gyro"], a0, b0, raw), dtype=float)
+                        if gyr is not None else None)
                 validate.check_finite(a_in, raw, "/samples/accel", a0)
+                validate.check_magnitudes(a_in, "accel", units["accel"], raw, a0)
                 if g_in is not None:
                     validate.check_finite(g_in, raw, "/samples/gyro", a0)
+                    validate.check_magnitudes(g_in, "gyro", units["gyro"], raw, a0)
                 if size:  # one sample of context each side for the rate derivative
                     f, w = apply_triad(c, a_in, g_in, accel_si=units["accel"] != "count",
                                        temp=None if temp_eff is None else temp_eff[a0:b0],
-                                       time=smp["time"][a0:b0])
+                                       time=time[a0:b0])
                     f, w = f[a - a0:a - a0 + b - a], w[a - a0:a - a0 + b - a]
                 elif rimu:
                     res = (apply_redundant(c, a_in, g_in,
@@ -119,6 +133,6 @@ def apply_file(cal, raw, out, temp_c: float | None = None, extrapolate: bool = F
                 acc[a:b] = f
                 if gyr is not None:
                     gyr[a:b] = w
-            out_s.attrs["accel_units"] = "m/s^2" if "accel" in chans else units["accel"]
-            out_s.attrs["gyro_units"] = "rad/s" if "gyro" in chans else units["gyro"]
+            set_text(out_s, "accel_units", "m/s^2" if "accel" in chans else units["accel"])
+            set_text(out_s, "gyro_units", "rad/s" if "gyro" in chans else units["gyro"])
     return n, chans

@@ -23,7 +23,8 @@ import h5py
 import numpy as np
 
 from calib_cli.errors import InputError
-from calib_cli.io.h5 import atomic_path, open_checked, write_calibration_groups, write_provenance
+from calib_cli.io.h5 import open_checked, write_calibration_groups, write_provenance
+from calib_cli.io.h5file import h5_output, put
 
 _STR = h5py.string_dtype()
 
@@ -33,39 +34,52 @@ def write_diagnosis(path, summary: dict, bins: dict, residuals: dict, noise_sigm
     """summary: the JSON-able dict; bins: time/segment/count arrays;
     residuals: {stage: {sensor: (M, n)}}; calibration: the final model's
     CalibrationResult (written in the calibration layout)."""
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
+    with h5_output(path) as h5:
         extra = {"method": summary["method"]}
         if calibration is not None:
             extra["raw_units"] = json.dumps(calibration.raw_units)
         write_provenance(h5, "diagnosis", inputs, serial, extra)
         if calibration is not None:
             write_calibration_groups(h5, calibration, residuals=False)
-        h5.create_dataset("summary", data=json.dumps(summary), dtype=_STR)
+        put(h5, "summary", [json.dumps(summary)], dtype=_STR)  # (1,): checksummed
         b = h5.create_group("bins")
         for k, v in bins.items():
-            b[k] = np.asarray(v)
+            put(b, k, np.asarray(v))
         r = h5.create_group("residuals")
         for stage, per in residuals.items():
             g = r.create_group(stage)
             for s, v in per.items():
-                g[s] = np.asarray(v, float)
+                put(g, s, np.asarray(v, float))
         n = h5.create_group("noise_sigma")
         for s, v in noise_sigma.items():
-            n[s] = np.asarray(v, float)
+            put(n, s, np.asarray(v, float))
 
 
 def read_diagnosis(path) -> dict:
     """The summary JSON object of a diagnosis file."""
     p = str(path)
+    from calib_cli.io import validate
+
     with open_checked(p, "diagnosis") as h5:
-        try:
-            raw = h5["summary"][()]
-        except KeyError:
-            raise InputError("missing field /summary", p) from None
+        if "summary" not in h5:
+            raise InputError("missing field /summary", p)
+        ds = h5["summary"]
+        if not isinstance(ds, h5py.Dataset):
+            raise InputError("/summary is not a dataset", p)
+        if ds.shape == ():  # written before issue 37: a scalar string
+            raw = validate.decode(validate.load(ds, p), "/summary", p)
+        else:  # (1,) fixed-length text, checksummed
+            texts = validate.strings(ds, p)
+            if len(texts) != 1:
+                raise InputError(f"/summary holds {len(texts)} texts, expected 1", p)
+            raw = texts[0]
     try:
-        return json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
+        obj = json.loads(raw)
     except json.JSONDecodeError as exc:
         raise InputError(f"/summary is not valid JSON ({exc})", p) from None
+    if not isinstance(obj, dict):
+        raise InputError("/summary is not a JSON object", p)
+    return obj
 
 
 def read_diagnosis_arrays(path) -> dict:

@@ -42,7 +42,7 @@ import numpy as np
 
 from calib_cli import __version__
 from calib_cli.data import CalibrationResult
-from calib_cli.errors import InputError
+from calib_cli.errors import InputError, OutputError
 from calib_cli.io import escape
 from calib_cli.methods.apply import model_of
 from calib_cli.model.kinematics import Kinematics
@@ -346,24 +346,49 @@ def to_csv(cal: CalibrationResult, obj: dict) -> str:
 # C header
 
 
-def _c_lit(x: float, single: bool) -> str:
+FLT_MAX = 3.4028234663852886e38
+FLT_TRUE_MIN = 1.401298464324817e-45
+
+
+def _c_lit(x: float, single: bool, what: str = "a value") -> str:
+    """A C literal of x: double %.17g (exact round trip); float %.9g of the nearest
+    float, which must exist (issue 37): beyond FLT_MAX exit 2 naming the value
+    (export without --float); below the smallest float the nearest float, 0,
+    written as 0 (gcc -Werror refused the truncated literal)."""
     x = float(x)
     if not math.isfinite(x):
-        raise InputError("non-finite value in the correction")
+        raise InputError(f"non-finite value in the correction ({what})")
     if single:
+        if abs(x) > FLT_MAX:
+            raise OutputError(f"{what} is {x:.6g}, beyond what a float holds (3.4e+38): "
+                                  "export without --float (double)")
+        x = float(np.float32(x))  # the float the compiler would make of it (0 below 1.4e-45)
         s = "%.9g" % x
         return s + ("f" if any(c in s for c in ".eE") else ".0f")
     s = "%.17g" % x
     return s if any(c in s for c in ".eEn") else s + ".0"
 
 
+def _c_limit(x, single: bool, lo: bool) -> str:
+    """A temperature bound of the header: the calibrated one, or the largest value of
+    the type where the calibration states none (float: FLT_MAX, not 1e300)."""
+    if x is None:
+        x = -(FLT_MAX if single else 1e300) if lo else (FLT_MAX if single else 1e300)
+    return _c_lit(x, single, "a temperature bound")
+
+
 def _c_vec(name, v, single, T):
-    return f"static const {T} {name}[3] = {{{', '.join(_c_lit(x, single) for x in v)}}};"
+    v = np.asarray(v, dtype=float).reshape(-1)
+    return (f"static const {T} {name}[{len(v)}] = "
+            f"{{{', '.join(_c_lit(x, single, f'{name}[{i}]') for i, x in enumerate(v))}}};")
 
 
 def _c_mat(name, m, single, T):
-    rows = ",\n    ".join("{" + ", ".join(_c_lit(x, single) for x in r) + "}" for r in m)
-    return f"static const {T} {name}[3][3] = {{\n    {rows}\n}};"
+    m = np.asarray(m, dtype=float)
+    rows = ",\n    ".join("{" + ", ".join(_c_lit(x, single, f"{name}[{i}][{j}]")
+                                           for j, x in enumerate(r)) + "}"
+                          for i, r in enumerate(m))
+    return f"static const {T} {name}[{m.shape[0]}][{m.shape[1]}] = {{\n    {rows}\n}};"
 
 
 # the string constants of the header: name suffix -> what it holds
@@ -372,12 +397,23 @@ C_STRINGS = ("SOURCE_FILE", "SOURCE_SHA256", "SOURCE_CREATED_UTC", "SOURCE_COMMA
 
 
 def c_header_symbols(prefix: str = "calib", accel: bool = True, gyro: bool = True,
-                     thermal: bool = False, lag: bool = False, size_effect: bool = False) -> dict:
+                     thermal: bool = False, lag: bool = False, size_effect: bool = False,
+                     redundant: bool = False) -> dict:
     """The names a c-header export defines (docs/export.md): {"macros",
     "types", "objects", "functions"}; the header defines nothing else."""
     P, p = prefix.upper(), prefix.lower()
     objects = [f"{P}_{n}" for n in C_STRINGS]
     macros, functions = [f"{P}_CORRECTION_H"], []
+    if redundant:  # a redundant unit (RIMU): per-channel correction and body estimate
+        macros.append(f"{P}_RIMU_CHANNELS")
+        for s_, on in (("accel", accel), ("gyro", gyro)):
+            if on:
+                S = s_.upper()
+                macros.append(f"{P}_HAS_{S}")
+                objects += [f"{P}_{S}_UNITS", f"{P}_{S}_BIAS", f"{P}_{S}_SCALE", f"{P}_{S}_PINV"]
+                functions.append(f"{p}_correct_{s_}")
+        return {"macros": macros, "types": [f"{p}_real_t"], "objects": objects,
+                "functions": functions}
     if thermal:
         macros += [f"{P}_HAS_THERMAL", f"{P}_TEMP_ORDER"]
         objects += [f"{P}_TEMP_REF", f"{P}_TEMP_MIN", f"{P}_TEMP_MAX"]
@@ -414,6 +450,8 @@ def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = 
     text from the file appears only inside string constants (escape.c_string);
     comments hold only the tool's own text."""
     escape.c_identifier(prefix, "--prefix")
+    if cal.layout.redundant:
+        return _c_header_rimu(cal, prov, source, single, prefix)
     corr = affine_correction(cal, source)
     P, p = prefix.upper(), prefix.lower()
     T = f"{p}_real_t"
@@ -448,16 +486,7 @@ def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = 
         "",
         f"typedef {'float' if single else 'double'} {T};",
         "",
-        "/* provenance: the calibration file this header was exported from */",
-        _c_str_const(f"{P}_SOURCE_FILE", _text(source)),
-        _c_str_const(f"{P}_SOURCE_SHA256", _text(prov.get("sha256"))),
-        _c_str_const(f"{P}_SOURCE_CREATED_UTC", _text(prov.get("created_utc"))),
-        _c_str_const(f"{P}_SOURCE_COMMAND", _text(prov.get("command"))),
-        _c_str_const(f"{P}_SOURCE_TOOL_VERSION", _text(prov.get("tool_version"))),
-        _c_str_const(f"{P}_METHOD", _text(cal.method)),
-        _c_str_const(f"{P}_UNIT_SERIAL", _text(cal.serial) or "unknown"),
-        "",
-    ]
+    ] + _c_provenance(cal, prov, source, P)
     th = thermal_info(cal)
     size = _c_size_effect(size_effect_offsets(cal), single, P, p, T)
     body = [] if th is None else _c_thermal_common(corr, th, single, P, p, T)
@@ -469,6 +498,85 @@ def to_c_header(cal: CalibrationResult, prov: dict, source: str, single: bool = 
             line for s_, name in (("accel", "ACCEL"), ("gyro", "GYRO")) if "k2" in corr.get(s_, {})
             for line in _c_nonaffine_arrays(corr[s_], name, single, P, T)]
     return "\n".join(head + body + size + [f"#endif /* {P}_CORRECTION_H */", ""])
+
+
+def _c_provenance(cal, prov, source, P) -> list[str]:
+    return ["/* provenance: the calibration file this header was exported from */",
+            _c_str_const(f"{P}_SOURCE_FILE", _text(source)),
+            _c_str_const(f"{P}_SOURCE_SHA256", _text(prov.get("sha256"))),
+            _c_str_const(f"{P}_SOURCE_CREATED_UTC", _text(prov.get("created_utc"))),
+            _c_str_const(f"{P}_SOURCE_COMMAND", _text(prov.get("command"))),
+            _c_str_const(f"{P}_SOURCE_TOOL_VERSION", _text(prov.get("tool_version"))),
+            _c_str_const(f"{P}_METHOD", _text(cal.method)),
+            _c_str_const(f"{P}_UNIT_SERIAL", _text(cal.serial) or "unknown"), ""]
+
+
+def _c_header_rimu(cal, prov, source, single, prefix) -> str:
+    """The header of a redundant unit (issue 37): per channel i the corrected
+    single-axis input a_i = (A_i - b_i) / (1 + ks_i), and the least-squares body
+    vector f = PINV a, PINV = (H^T H)^-1 H^T of the calibrated directions H, as
+    ``calib apply`` computes them (methods/rimu.py). A model with further effects
+    (fit rimu --with) is applied by calib apply only."""
+    from calib_cli.methods.apply import redundant_extra
+    from calib_cli.methods.rimu import measurement_matrix
+
+    if redundant_extra(cal):
+        raise InputError("the redundant unit's model has effects beyond bias and installation "
+                         "(fit rimu --with), which the header's per-channel correction cannot "
+                         "express; use `calib apply`", source)
+    P, p = prefix.upper(), prefix.lower()
+    T = f"{p}_real_t"
+    n = cal.layout.n
+    units = _raw_units(cal)
+    lines = ["/*",
+             f" * Calibration correction of a redundant unit ({n} single-axis channels per "
+             "sensor)",
+             f" * exported by calib {__version__} (docs/export.md). Provenance is in the",
+             f" * {P}_SOURCE_*, {P}_METHOD and {P}_UNIT_SERIAL string constants below.",
+             " *",
+             " *   a_i = (A_i - b_i) / (1 + ks_i)   the input along channel i's axis",
+             " *   f = PINV a                       least-squares body vector, PINV = (H^T H)^-1 H^T",
+             f" * Literals: {'float, %.9g' if single else 'double, %.17g (exact round trip)'}.",
+             " */",
+             f"#ifndef {P}_CORRECTION_H", f"#define {P}_CORRECTION_H", "",
+             f"typedef {'float' if single else 'double'} {T};", "",
+             f"#define {P}_RIMU_CHANNELS {n}", ""] + _c_provenance(cal, prov, source, P)
+    done = 0
+    for s_ in ("accel", "gyro"):
+        if f"{s_}_bias" not in cal.params:
+            continue
+        S = s_.upper()
+        b = np.asarray(cal.params[f"{s_}_bias"], float)
+        scale = 1.0 + np.asarray(cal.params[f"{s_}_scale_error"], float)
+        H = measurement_matrix(cal.params, cal.layout, s_)
+        if np.linalg.matrix_rank(H) < 3:
+            raise InputError(f"the {s_} channel directions do not span three axes: no body "
+                             "estimate", source)
+        pinv = np.linalg.pinv(H)
+        lines += [f"#define {P}_HAS_{S} 1",
+                  _c_str_const(f"{P}_{S}_UNITS", units.get(s_) or ("m/s^2" if s_ == "accel"
+                                                                    else "rad/s")),
+                  "/* per-channel bias b and scale 1 + ks */",
+                  _c_vec(f"{P}_{S}_BIAS", b, single, T),
+                  _c_vec(f"{P}_{S}_SCALE", scale, single, T),
+                  "/* body estimate: PINV[r][i], row r = body axis x, y, z */",
+                  _c_mat(f"{P}_{S}_PINV", pinv, single, T),
+                  f"static inline void {p}_correct_{s_}(const {T} A[{n}], {T} a[{n}], "
+                  f"{T} f[3])",
+                  "{",
+                  f"    for (int i = 0; i < {n}; ++i) a[i] = (A[i] - {P}_{S}_BIAS[i]) / "
+                  f"{P}_{S}_SCALE[i];",
+                  "    for (int r = 0; r < 3; ++r) {",
+                  f"        {T} s = 0;",
+                  f"        for (int i = 0; i < {n}; ++i) s += {P}_{S}_PINV[r][i] * a[i];",
+                  "        f[r] = s;",
+                  "    }",
+                  "}", ""]
+        done += 1
+    if not done:
+        raise InputError("the calibration holds no accelerometer or gyroscope correction",
+                         source)
+    return "\n".join(lines + [f"#endif /* {P}_CORRECTION_H */", ""])
 
 
 def _c_size_effect(pm, single, P, p, T) -> list[str]:
@@ -523,9 +631,7 @@ def _c_nonaffine(d, NAME, INV, x, single, P, T) -> list[str]:
 
 
 def _c_rows(name, m, single, T):
-    m = np.asarray(m, dtype=float)
-    rows = ",\n    ".join("{" + ", ".join(_c_lit(x, single) for x in r) + "}" for r in m)
-    return f"static const {T} {name}[3][{m.shape[1]}] = {{\n    {rows}\n}};"
+    return _c_mat(name, m, single, T)
 
 
 def _c_thermal_common(corr, th, single, P, p, T) -> list[str]:
@@ -537,8 +643,8 @@ def _c_thermal_common(corr, th, single, P, p, T) -> list[str]:
            f"#define {P}_TEMP_ORDER {N}",
            "/* reference temperature T_ref and the calibrated range, degC */",
            f"static const {T} {P}_TEMP_REF = {_c_lit(th['temp_ref_degC'], single)};",
-           f"static const {T} {P}_TEMP_MIN = {_c_lit(lo if lo is not None else -1e300, single)};",
-           f"static const {T} {P}_TEMP_MAX = {_c_lit(hi if hi is not None else 1e300, single)};",
+           f"static const {T} {P}_TEMP_MIN = {_c_limit(lo, single, True)};",
+           f"static const {T} {P}_TEMP_MAX = {_c_limit(hi, single, False)};",
            "",
            "/* sum_k c[k] dT^(k+1), k = 0 .. ORDER-1 (Horner) */",
            f"static inline {T} {p}_temp_poly(const {T} c[{N}], {T} dT)",

@@ -20,11 +20,13 @@ import numpy as np
 
 from calib_cli import __version__
 from calib_cli.data import SAMPLE_KINDS, CalibrationResult, Recording, Segment
-from calib_cli.errors import InputError
+from calib_cli.errors import DamagedInput, InputError
 from calib_cli.geometry import Layout
 from calib_cli.io import validate
 from calib_cli.io.escape import line_text
+from calib_cli.io.h5file import h5_output, put, set_attrs, set_text
 from calib_cli.model.earth import Site
+from calib_cli.plan import KINDS as PLAN_KINDS
 
 FORMAT_VERSION = 1
 KINDS = ("raw", "calibration", "corrected", "diagnosis", "allan")
@@ -46,17 +48,16 @@ def sha256_file(path) -> str:
 def write_provenance(h5: h5py.File, kind: str, inputs=(), serial: str | None = None,
                      extra: dict | None = None) -> None:
     """Root attributes: kind, version, tool, command, UTC time, serial, input hashes."""
-    h5.attrs["kind"] = kind
+    set_text(h5, "kind", kind)
     h5.attrs["format_version"] = FORMAT_VERSION
-    h5.attrs["tool"] = "calib"
-    h5.attrs["tool_version"] = __version__
-    h5.attrs["command"] = " ".join([Path(sys.argv[0]).name] + sys.argv[1:])
-    h5.attrs["created_utc"] = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
-    h5.attrs["unit_serial"] = serial or ""
+    set_text(h5, "tool", "calib")
+    set_text(h5, "tool_version", __version__)
+    set_text(h5, "command", " ".join([Path(sys.argv[0]).name] + sys.argv[1:]))
+    set_text(h5, "created_utc", datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"))
+    set_text(h5, "unit_serial", serial or "")
     hashes = {str(p): sha256_file(p) for p in inputs if p and Path(p).is_file()}
-    h5.attrs["input_sha256"] = json.dumps(hashes)
-    for k, v in (extra or {}).items():
-        h5.attrs[k] = v
+    set_text(h5, "input_sha256", json.dumps(hashes))
+    set_attrs(h5, extra or {})
     if kind in ("calibration", "diagnosis"):  # a fit carries its data's origin on
         copy_source(h5, inputs)
 
@@ -70,23 +71,27 @@ SOURCE_JSON = ("parameters", "parameters_changed", "device_ids")
 def write_source(h5, source: dict) -> None:
     """/source: where the samples come from and whether the device had already
     corrected them ("samples": "raw", "corrected" or "unknown") and by which
-    parameters; dicts and lists as JSON text."""
+    parameters; dicts and lists as JSON text (long text checksummed, io/h5file.py)."""
     g = h5.require_group("source")
-    for k, v in source.items():
-        if v is None:
-            continue
-        g.attrs[k] = json.dumps(v) if isinstance(v, (dict, list, tuple)) else v
+    set_attrs(g, {k: json.dumps(v) if isinstance(v, (dict, list, tuple)) else v
+                  for k, v in source.items() if v is not None})
 
 
-def _read_source_group(g) -> dict:
+def _read_source_group(g, path: str) -> dict:
     out = {}
-    for k, v in g.attrs.items():
-        v = v.decode() if isinstance(v, bytes) else (v.item() if isinstance(v, np.generic) else v)
+    names = list(g.attrs) + [n for n in g if isinstance(g[n], h5py.Dataset)]  # long text
+    for k in names:
+        v = g.attrs[k] if k in g.attrs else None
+        if v is None or isinstance(v, (bytes, str, np.bytes_)) or (
+                isinstance(v, np.ndarray) and v.dtype.kind in "SUO"):
+            v = validate.text(g, k, path)
+        elif isinstance(v, np.generic):
+            v = v.item()
         if k in SOURCE_JSON and isinstance(v, str):
             try:
                 v = json.loads(v)
             except ValueError:
-                raise InputError(f"/source/{k} is not valid JSON", g.file.filename) from None
+                raise InputError(f"/source/{k} is not valid JSON", path) from None
         out[k] = v
     return out
 
@@ -96,7 +101,7 @@ def read_source(path) -> dict:
     a CSV import, a simulation)."""
     p = str(path)
     with h5py.File(p, "r") as h5:
-        return _read_source_group(h5["source"]) if "source" in h5 else {}
+        return _read_source_group(h5["source"], p) if "source" in h5 else {}
 
 
 def copy_source(h5, inputs) -> None:
@@ -107,7 +112,7 @@ def copy_source(h5, inputs) -> None:
                 continue
             with h5py.File(p, "r") as src:
                 if "source" in src:
-                    write_source(h5, _read_source_group(src["source"]))
+                    write_source(h5, _read_source_group(src["source"], str(p)))
                     return
         except OSError:
             continue
@@ -137,7 +142,16 @@ def open_checked(path, kinds) -> h5py.File:
         from calib_cli.io.sniff import hint_for_non_hdf5
 
         raise InputError(f"not an HDF5 file (or damaged){hint_for_non_hdf5(p)}", p) from None
-    kind = _attr_str(h5, "kind")
+    try:
+        # before any text is read: HDF5 loops forever on some damaged string heaps
+        validate.check_global_heaps(h5, p)
+        kind = attr_str(h5, "kind")
+    except (KeyError, RuntimeError, OSError, ValueError, TypeError) as exc:
+        h5.close()
+        raise _structure(exc, p) from None
+    except BaseException:
+        h5.close()
+        raise
     if kind not in kinds:
         h5.close()
         what = f"a {kind!r} file" if kind else "not a calib file (no 'kind' attribute)"
@@ -147,10 +161,10 @@ def open_checked(path, kinds) -> h5py.File:
         # calib_cli/io/validate.py (issue 15): version parsed, each dataset's declared size
         validate.format_version(h5, p, FORMAT_VERSION)
         validate.check_declared_sizes(h5, p)
+        validate.check_root_text(h5, p)  # issue 37: provenance text decodes as UTF-8
     except (KeyError, RuntimeError, OSError, ValueError, TypeError) as exc:
         h5.close()  # HDF5 refuses its own damaged metadata this way: bad input, not a bug
-        raise InputError(f"damaged HDF5 structure ({str(exc).split('(')[0].strip()})",
-                         p) from None
+        raise _structure(exc, p) from None
     except BaseException:
         h5.close()
         raise
@@ -193,6 +207,11 @@ def _ref_attrs(obj, where: str, p: str) -> None:
                              "references; calib does not follow references (docs/security.md)", p)
 
 
+def _structure(exc, path) -> DamagedInput:
+    """HDF5 refusing its own damaged metadata: bad input (exit 3), not a bug."""
+    return DamagedInput(f"damaged HDF5 structure ({str(exc).split('(')[0].strip()})", path)
+
+
 def check_untrusted_h5(h5: h5py.File, path: str) -> None:
     """Refuse what would make reading an input reach outside it or cost more
     than it is worth, before anything is read (exit 3 naming the object):
@@ -224,6 +243,14 @@ def check_untrusted_h5(h5: h5py.File, path: str) -> None:
             if not isinstance(link, (h5py.HardLink, h5py.SoftLink)):
                 raise InputError(f"{full} is a user-defined link; refused (docs/security.md)",
                                  path)
+            if isinstance(link, h5py.SoftLink):  # must lead to an object of this file
+                try:
+                    ok = g.get(name) is not None
+                except (RuntimeError, KeyError, OSError, ValueError):
+                    ok = False
+                if not ok:
+                    raise InputError(f"{full} is a soft link to {line_text(link.path)} that "
+                                     "leads nowhere (dangling, or a cycle of links)", path)
     declared = 0
     for ds in datasets:
         if not isinstance(ds, h5py.Dataset):
@@ -254,24 +281,33 @@ def check_untrusted_h5(h5: h5py.File, path: str) -> None:
 def file_kind(path) -> str:
     """The kind attribute of a calib HDF5 file (checked)."""
     with open_checked(path, KINDS) as h5:
-        return _attr_str(h5, "kind")
+        return attr_str(h5, "kind")
 
 
-def _attr_str(h5, name, default=""):
-    v = h5.attrs.get(name, default)
-    return v.decode() if isinstance(v, bytes) else str(v)
+def attr_str(h5, name, default=""):
+    """A text attribute, decoded (io/validate.py: exit 3 naming it when it is not text)."""
+    return validate.text(h5, name, h5.file.filename, default)
 
 
 def provenance(path) -> dict:
-    """Root attributes of a calib file as a dict of plain values."""
-    with open_checked(path, KINDS) as h5:
+    """Root attributes of a calib file as a dict of plain values (text decoded,
+    long text read from its dataset, io/h5file.py)."""
+    p = str(path)
+    with open_checked(p, KINDS) as h5:
         out = {}
-        for k, v in h5.attrs.items():
-            if isinstance(v, bytes):
-                v = v.decode()
+        for k in h5.attrs:
+            try:
+                v = h5.attrs[k]
+            except (OSError, RuntimeError, ValueError, TypeError, UnicodeDecodeError):
+                v = None
+            if isinstance(v, (bytes, np.bytes_, str)) or v is None:
+                v = validate.text(h5, k, p)
             elif isinstance(v, np.generic):
                 v = v.item()
             out[k] = v
+        for k in ("command", "input_sha256", "plan_kind", "unit_serial"):
+            if k not in out and k in h5:
+                out[k] = validate.text(h5, k, p)
         return out
 
 
@@ -301,31 +337,31 @@ SAMPLE_FIELDS = ("temp", "table_angle", "table_rate")
 
 def write_segments(h5, segments) -> None:
     g = h5.create_group("segments")
-    g.create_dataset("label", data=[s.label for s in segments], dtype=_STR)
-    g.create_dataset("kind", data=[s.kind for s in segments], dtype=_STR)
-    g["start"] = np.array([s.start for s in segments], dtype=np.int64)
-    g["stop"] = np.array([s.stop for s in segments], dtype=np.int64)
-    g["plan_index"] = np.array([s.plan_index for s in segments], dtype=np.int64)
+    put(g, "label", [s.label for s in segments], dtype=_STR)
+    put(g, "kind", [s.kind for s in segments], dtype=_STR)
+    put(g, "start", np.array([s.start for s in segments], dtype=np.int64))
+    put(g, "stop", np.array([s.stop for s in segments], dtype=np.int64))
+    put(g, "plan_index", np.array([s.plan_index for s in segments], dtype=np.int64))
     for name in ("attitude", "table_axis_enu", "lever_arm", "rotation_axis_body"):
-        g[name] = np.array([_vec_or_nan(getattr(s, name)) for s in segments]).reshape(-1, 3)
+        put(g, name, np.array([_vec_or_nan(getattr(s, name)) for s in segments],
+                              dtype=float).reshape(-1, 3))
     for name in ("attitude_sigma", "table_rate", "rotation_angle"):
-        g[name] = np.array([np.nan if getattr(s, name) is None else getattr(s, name)
-                            for s in segments], dtype=float)
+        put(g, name, np.array([np.nan if getattr(s, name) is None else getattr(s, name)
+                               for s in segments], dtype=float))
 
 
-def read_segments(h5, path) -> tuple[Segment, ...]:
+def read_segments(h5, path, n: int | None = None) -> tuple[Segment, ...]:
+    """The segments, checked (io/validate.py: types, spans within the ``n``
+    samples, NaN only as a whole unknown vector)."""
     g = _need(h5, "segments", path)
-    try:
-        labels = [x.decode() if isinstance(x, bytes) else x for x in g["label"][()]]
-        kinds = [x.decode() if isinstance(x, bytes) else x for x in g["kind"][()]]
-        cols = {k: g[k][()] for k in ("start", "stop", "plan_index", "attitude", "table_axis_enu",
-                                      "lever_arm", "rotation_axis_body", "attitude_sigma",
-                                      "table_rate", "rotation_angle")}
-    except KeyError as exc:
-        raise InputError(f"missing field /segments/{exc.args[0]}", path) from None
+    if n is None:
+        smp = h5.get("samples")
+        t = smp.get("time") if isinstance(smp, h5py.Group) else None
+        n = t.shape[0] if isinstance(t, h5py.Dataset) and t.shape else 0
+    cols = validate.segment_columns(g, path, n)
     out = []
-    for i, label in enumerate(labels):
-        out.append(Segment(label=label, kind=kinds[i], start=int(cols["start"][i]),
+    for i, label in enumerate(cols["label"]):
+        out.append(Segment(label=label, kind=cols["kind"][i], start=int(cols["start"][i]),
                            stop=int(cols["stop"][i]), plan_index=int(cols["plan_index"][i]),
                            attitude=_opt_vec(cols["attitude"][i]),
                            attitude_sigma=_opt_num(cols["attitude_sigma"][i]),
@@ -340,12 +376,22 @@ def read_segments(h5, path) -> tuple[Segment, ...]:
 def _write_params_group(h5, name, params: dict) -> None:
     g = h5.create_group(name)
     for k, v in params.items():
-        v = np.asarray(v, dtype=float)
-        g.create_dataset(k, data=v, fletcher32=bool(v.ndim and v.size))
+        put(g, k, np.asarray(v, dtype=float))
 
 
 def _read_params_group(g) -> dict:
-    return {k: np.asarray(validate.load(g[k], g.file.filename), dtype=float) for k in g}
+    p = g.file.filename
+    if not isinstance(g, h5py.Group):
+        raise InputError(f"{g.name} is not a group", p)
+    out = {}
+    for k in g:
+        v = validate.load(g[k], p)
+        if not isinstance(v, np.ndarray) and not isinstance(v, (float, int, np.number)) \
+                or np.asarray(v).dtype.kind not in "fiu":
+            raise InputError(f"{g.name}/{k} must hold numbers, holds "
+                             f"{getattr(v, 'dtype', type(v).__name__)}", p)
+        out[k] = np.asarray(v, dtype=float)
+    return out
 
 
 def write_site_layout(h5, site: Site, layout: Layout) -> None:
@@ -358,22 +404,17 @@ def write_site_layout(h5, site: Site, layout: Layout) -> None:
     lay.attrs["n"] = layout.n
     lay.attrs["n_cycles"] = layout.n_cycles
     if layout.redundant:
-        lay["el0"] = layout.el0
-        lay["az0"] = layout.az0
+        put(lay, "el0", np.asarray(layout.el0, dtype=float))
+        put(lay, "az0", np.asarray(layout.az0, dtype=float))
 
 
 def read_site_layout(h5, path) -> tuple[Site, Layout]:
-    s = _need(h5, "site", path)
-    g = float(s.attrs.get("g", np.nan))
-    site = Site(latitude=float(s.attrs.get("latitude", 0.0)),
-                height=float(s.attrs.get("height", 0.0)), g=None if np.isnan(g) else g)
-    lay = h5.get("layout")
-    if lay is None:
-        return site, Layout()
-    el0 = lay["el0"][()] if "el0" in lay else None
-    az0 = lay["az0"][()] if "az0" in lay else None
-    return site, Layout(n=int(lay.attrs.get("n", 3)), el0=el0, az0=az0,
-                        n_cycles=int(lay.attrs.get("n_cycles", 0)))
+    _need(h5, "site", path)
+    sv = validate.site_values(h5, path)
+    site = Site(latitude=sv["latitude"], height=sv["height"],
+                g=None if np.isnan(sv["g"]) else sv["g"])
+    lv = validate.layout_values(h5, path)
+    return site, Layout(n=lv["n"], el0=lv["el0"], az0=lv["az0"], n_cycles=lv["n_cycles"])
 
 
 def write_raw(path, rec: Recording, inputs=(), kind: str = "raw") -> None:
@@ -381,7 +422,7 @@ def write_raw(path, rec: Recording, inputs=(), kind: str = "raw") -> None:
     Its content is validated first (io/validate.py): a NaN, a time going back
     is an error naming the input it came from."""
     validate.check_recording(rec, str(inputs[0]) if inputs else str(path))
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
+    with h5_output(path) as h5:
         write_provenance(h5, kind, inputs, rec.serial, {"plan_kind": rec.plan_kind})
         smp = h5.create_group("samples")
         chunks = (min(len(rec.time), 65536),) if len(rec.time) else None
@@ -396,70 +437,85 @@ def write_raw(path, rec: Recording, inputs=(), kind: str = "raw") -> None:
             arr = getattr(rec, name)
             if arr is not None:
                 smp.create_dataset(name, data=arr, chunks=chunks, fletcher32=ck)
-        smp.attrs["accel_units"] = rec.units.get("accel", "m/s^2")
-        smp.attrs["gyro_units"] = rec.units.get("gyro", "rad/s")
-        smp.attrs["sample_kind"] = rec.sample_kind
+        set_attrs(smp, {"accel_units": rec.units.get("accel", "m/s^2"),
+                        "gyro_units": rec.units.get("gyro", "rad/s"),
+                        "sample_kind": rec.sample_kind})
         write_segments(h5, rec.segments)
         write_site_layout(h5, rec.site, rec.layout)
-        h5.create_group("plan").attrs["text"] = rec.plan_text
+        set_text(h5.create_group("plan"), "text", rec.plan_text)
         if rec.counters:
-            c = h5.create_group("counters")
-            for k, v in rec.counters.items():
-                c.attrs[k] = v
+            set_attrs(h5.create_group("counters"), rec.counters)
         if rec.truth is not None:
             t = h5.create_group("truth")
             _write_params_group(t, "params", rec.truth.get("params", {}))
             for k, v in rec.truth.get("noise", {}).items():
                 t.attrs["noise_" + k] = np.asarray(v, dtype=float)
             if rec.truth.get("attitudes") is not None:
-                t["attitudes"] = np.asarray(rec.truth["attitudes"], dtype=float)
-            t.attrs["effects"] = json.dumps(rec.truth.get("effects", []))
+                put(t, "attitudes", np.asarray(rec.truth["attitudes"], dtype=float))
+            set_text(t, "effects", json.dumps(rec.truth.get("effects", [])))
+
+
+def check_raw_header(h5, p: str):
+    """The checks of a recording's structure, nothing of the samples read (the
+    chunked readers of apply and allan call it too): (n, units, site, layout)."""
+    try:
+        smp = _need(h5, "samples", p)
+        n = validate.check_samples_layout(smp, p)
+        units = validate.sample_units(smp, p)
+        site, layout = read_site_layout(h5, p)
+        validate.check_sample_types(smp, p, units, layout.n)
+        validate.check_segments_layout(h5, p, n)
+    except (RuntimeError, OSError) as exc:  # HDF5 refusing its own structure
+        raise _structure(exc, p) from None
+    return n, units, site, layout
 
 
 def read_raw(path, kinds=("raw", "corrected")) -> Recording:
-    """Read a raw (or corrected) recording, fully into memory."""
+    """Read a raw (or corrected) recording, fully into memory, every field
+    checked (io/validate.py)."""
     p = str(path)
     with open_checked(p, kinds) as h5:
         try:
-            smp = _need(h5, "samples", p)
-            n = validate.check_samples_layout(smp, p)
-            validate.check_segments_layout(h5, p, n)
+            n, units, site, layout = check_raw_header(h5, p)
+            smp = h5["samples"]
             time = np.asarray(validate.load(smp["time"], p), dtype=float)
             accel = np.asarray(validate.load(smp["accel"], p), dtype=float)
             gyro = (np.asarray(validate.load(smp["gyro"], p), dtype=float) if "gyro" in smp
                     else None)
             opt = {k: np.asarray(validate.load(smp[k], p), dtype=float) if k in smp else None
                    for k in SAMPLE_FIELDS}
-            units = {"accel": _attr_str(smp, "accel_units", "m/s^2"),
-                     "gyro": _attr_str(smp, "gyro_units", "rad/s")}
-            sample_kind = _attr_str(smp, "sample_kind", "instant")
+            sample_kind = attr_str(smp, "sample_kind", "instant")
             if sample_kind not in SAMPLE_KINDS:
                 raise InputError(f"unknown sample kind {sample_kind!r} (expected "
                                  f"{' or '.join(SAMPLE_KINDS)})", p)
-            segments = read_segments(h5, p)
-            site, layout = read_site_layout(h5, p)
-            plan_text = _attr_str(h5["plan"], "text") if "plan" in h5 else ""
-            counters = {k: (v.item() if isinstance(v, np.generic) else v)
-                        for k, v in h5["counters"].attrs.items()} if "counters" in h5 else {}
+            segments = read_segments(h5, p, n)
+            plan_text = attr_str(h5["plan"], "text") if "plan" in h5 else ""
+            plan_kind = attr_str(h5, "plan_kind", "static")
+            if plan_kind not in PLAN_KINDS:
+                raise InputError(f"attribute 'plan_kind' of / is {plan_kind!r}; expected "
+                                 f"{', '.join(PLAN_KINDS)}", p)
+            counters = {}
+            if "counters" in h5:
+                for k in h5["counters"].attrs:
+                    v = h5["counters"].attrs[k]
+                    counters[k] = (attr_str(h5["counters"], k) if isinstance(v, (bytes, str))
+                                   else v.item() if isinstance(v, np.generic) else v)
             truth = None
             if "truth" in h5:
                 t = h5["truth"]
                 truth = {"params": _read_params_group(t["params"]) if "params" in t else {},
-                         "noise": {k[6:]: np.asarray(v) for k, v in t.attrs.items()
+                         "noise": {k[6:]: np.asarray(v, dtype=float) for k, v in t.attrs.items()
                                    if k.startswith("noise_")},
-                         "attitudes": t["attitudes"][()] if "attitudes" in t else None,
-                         "effects": json.loads(_attr_str(t, "effects", "[]"))}
+                         "attitudes": (np.asarray(validate.load(t["attitudes"], p), dtype=float)
+                                       if "attitudes" in t else None),
+                         "effects": json.loads(attr_str(t, "effects", "[]"))}
         except (KeyError, ValueError, TypeError, IndexError, OverflowError) as exc:
             raise InputError(f"malformed raw file: {exc}", p) from None
-        n = len(time)
-        if accel.ndim != 2 or accel.shape[0] != n or (gyro is not None and gyro.shape[0] != n):
-            raise InputError("samples/accel and samples/gyro must have one row per time", p)
-        for s in segments:
-            if not (0 <= s.start <= s.stop <= n):
-                raise InputError(f"segment {s.label!r} points outside the samples", p)
+        except (RuntimeError, OSError) as exc:  # HDF5 refusing its own structure
+            raise _structure(exc, p) from None
         rec = Recording(time=time, accel=accel, gyro=gyro, segments=segments, site=site,
-                         plan_kind=_attr_str(h5, "plan_kind", "static"), plan_text=plan_text,
-                         serial=_attr_str(h5, "unit_serial") or None, units=units,
+                         plan_kind=plan_kind, plan_text=plan_text,
+                         serial=attr_str(h5, "unit_serial") or None, units=units,
                          layout=layout, truth=truth, counters=counters,
                          sample_kind=sample_kind, **opt)
     validate.check_recording(rec, p)
@@ -471,7 +527,7 @@ def read_raw(path, kinds=("raw", "corrected")) -> Recording:
 
 
 def write_calibration(path, res: CalibrationResult, inputs=()) -> None:
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
+    with h5_output(path) as h5:
         write_provenance(h5, "calibration", inputs, res.serial,
                          {"method": res.method, "raw_units": json.dumps(res.raw_units)})
         write_calibration_groups(h5, res)
@@ -483,23 +539,21 @@ def write_calibration_groups(h5, res: CalibrationResult, residuals: bool = True)
     diagnosis file (its final model, docs/diagnose.md)."""
     _write_params_group(h5, "params", res.params)
     _write_params_group(h5, "sigma", res.sigma)
-    u = h5.create_group("units")
-    for k, v in res.units.items():
-        u.attrs[k] = v
+    set_attrs(h5.create_group("units"), {k: str(v) for k, v in res.units.items()})
     c = h5.create_group("covariance")
-    c["matrix"] = np.asarray(res.covariance, dtype=float)
-    c.create_dataset("order_key", data=[k for k, _ in res.cov_order], dtype=_STR)
-    c["order_index"] = np.array([i for _, i in res.cov_order], dtype=np.int64)
-    h5.create_group("stats").attrs["json"] = json.dumps(res.stats)
+    put(c, "matrix", np.asarray(res.covariance, dtype=float))
+    put(c, "order_key", [k for k, _ in res.cov_order], dtype=_STR)
+    put(c, "order_index", np.array([i for _, i in res.cov_order], dtype=np.int64))
+    set_text(h5.create_group("stats"), "json", json.dumps(res.stats))
     if residuals:  # (a diagnosis file's /residuals are its stages)
         _write_params_group(h5, "residuals", res.residuals)
     tables = h5.create_group("tables")
     for k, v in res.tables.items():
         if isinstance(v, (list, tuple)) and v and isinstance(v[0], str):
-            tables.create_dataset(k, data=list(v), dtype=_STR)
+            put(tables, k, list(v), dtype=_STR)
         else:
-            tables[k] = np.asarray(v)
-    h5.create_group("model").attrs["effects"] = json.dumps(res.model)
+            put(tables, k, np.asarray(v))
+    set_text(h5.create_group("model"), "effects", json.dumps(res.model))
     write_site_layout(h5, _site_placeholder(), res.layout)
 
 
@@ -511,38 +565,50 @@ CAL_KINDS = ("calibration", "diagnosis")  # a diagnosis file holds its final mod
 
 
 def read_calibration(path) -> CalibrationResult:
+    """Read a calibration (or a diagnosis file's final model), every field
+    checked (io/validate.py ``check_calibration``: the model's effects known,
+    each parameter they need present, finite and of its shape, K invertible)."""
     p = str(path)
     with open_checked(p, CAL_KINDS) as h5:
-        if _attr_str(h5, "kind") == "diagnosis" and "params" not in h5:
+        if attr_str(h5, "kind") == "diagnosis" and "params" not in h5:
             raise InputError("a diagnosis file without a calibration of its final model (written "
                              "by an older calib): run calib diagnose again", p)
         try:
             params = _read_params_group(_need(h5, "params", p))
             sigma = _read_params_group(_need(h5, "sigma", p))
-            units = {k: (v.decode() if isinstance(v, bytes) else str(v))
-                     for k, v in _need(h5, "units", p).attrs.items()}
+            ug = _need(h5, "units", p)
+            units = {k: attr_str(ug, k) for k in ug.attrs}
             c = _need(h5, "covariance", p)
-            order = [(k.decode() if isinstance(k, bytes) else k, int(i))
-                     for k, i in zip(c["order_key"][()], c["order_index"][()])]
-            stats = json.loads(_attr_str(_need(h5, "stats", p), "json", "{}"))
+            keys = validate.strings(_need(c, "order_key", p), p)
+            idx = validate.numeric(validate.load(_need(c, "order_index", p), p),
+                                    "/covariance/order_index", p, integer=True)
+            if len(keys) != len(idx) or idx.ndim != 1:
+                raise InputError("/covariance/order_key and order_index differ in length", p)
+            order = [(k, int(i)) for k, i in zip(keys, idx)]
+            stats = json.loads(attr_str(_need(h5, "stats", p), "json", "{}"))
             residuals = (_read_params_group(h5["residuals"]) if "residuals" in h5
-                         and _attr_str(h5, "kind") == "calibration" else {})
+                         and attr_str(h5, "kind") == "calibration" else {})
             tables = {}
             if "tables" in h5:
                 for k, d in h5["tables"].items():
-                    v = d[()]
-                    if d.dtype.kind in "OS":
-                        v = [x.decode() if isinstance(x, bytes) else x for x in v]
-                    tables[k] = v
-            model = json.loads(_attr_str(h5["model"], "effects", "[]")) if "model" in h5 else []
+                    if isinstance(d, h5py.Dataset) and d.dtype.kind in "OS":
+                        tables[k] = validate.strings(d, p)
+                    else:
+                        tables[k] = validate.load(d, p)
+            model = json.loads(attr_str(h5["model"], "effects", "[]")) if "model" in h5 else []
             _, layout = read_site_layout(h5, p) if "site" in h5 else (None, Layout())
-            raw_units = json.loads(_attr_str(h5, "raw_units", "{}")) or {
+            raw_units = json.loads(attr_str(h5, "raw_units", "{}")) or {
                 "accel": "m/s^2", "gyro": "rad/s"}
             cov = validate.load(_need(c, "matrix", p), p)
+            method = attr_str(h5, "method")
+            serial = attr_str(h5, "unit_serial") or None
         except (KeyError, ValueError, TypeError, IndexError, OverflowError) as exc:
             raise InputError(f"malformed calibration file: {exc}", p) from None
-        return CalibrationResult(method=_attr_str(h5, "method"), params=params, sigma=sigma,
-                                 units=units, covariance=cov, cov_order=order,
-                                 stats=stats, residuals=residuals, tables=tables, model=model,
-                                 raw_units=raw_units, layout=layout,
-                                 serial=_attr_str(h5, "unit_serial") or None)
+        except (RuntimeError, OSError) as exc:  # HDF5 refusing its own structure
+            raise _structure(exc, p) from None
+    res = CalibrationResult(method=method, params=params, sigma=sigma, units=units,
+                            covariance=cov, cov_order=order, stats=stats, residuals=residuals,
+                            tables=tables, model=model, raw_units=raw_units, layout=layout,
+                            serial=serial)
+    validate.check_calibration(res, p)
+    return res

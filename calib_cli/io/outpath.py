@@ -104,7 +104,7 @@ def temp_name(path, directory: bool = False) -> Path:
     return parent / f".{path.name}.calib-{os.getpid()}-{_seq}.tmp{'dir' if directory else ''}"
 
 
-def check_output(out, inputs=(), directory: bool = False) -> None:
+def check_output(out, inputs=(), directory: bool = False, option: str = "--out") -> None:
     """Refuse an output that is an input (exit 2), that cannot be written
     (exit 2), or that is a directory where a file is expected (exit 3)."""
     if out is None or str(out) in ("", "-"):
@@ -124,7 +124,7 @@ def check_output(out, inputs=(), directory: bool = False) -> None:
                 continue
             if _same_file(st_out, st_in):
                 same = "is" if os.path.abspath(i) == os.path.abspath(p) else "resolves to"
-                raise OutputError(f"the output {same} the input {i}: choose another --out "
+                raise OutputError(f"the output {same} the input {i}: choose another {option} "
                                   "(nothing was written)", str(out))
         import stat as _stat
 
@@ -142,6 +142,56 @@ def check_output(out, inputs=(), directory: bool = False) -> None:
         os.unlink(probe)
     except OSError as exc:
         raise OutputError(f"cannot write here: {exc.strerror or exc}", str(out)) from None
+
+
+# files inside an input directory that a command may read (and must never overwrite)
+DATA_SUFFIXES = {".h5", ".hdf5", ".csv", ".tsv", ".txt", ".toml", ".json", ".yaml", ".yml",
+                 ".ulg", ".bin", ".bag", ".mcap", ".db3", ".journal"}
+_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+
+
+def _looks_like_data(path: str) -> bool:
+    if Path(path).suffix.lower() in DATA_SUFFIXES:
+        return True
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(8) == _HDF5_MAGIC
+    except OSError:
+        return False
+
+
+def _same_place(a: str, b: str) -> bool:
+    """Same file: by inode where both exist (hard links), else by the resolved path."""
+    try:
+        return _same_file(os.stat(a), os.stat(b))
+    except OSError:
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
+def check_outputs_apart(named, inputs=()) -> None:
+    """The outputs of one command (``named``: (option, path, directory)) must be
+    distinct files (``--journal`` equal to ``--out`` lost the recording); an
+    output file must not overwrite a data file inside an input directory
+    (``history DIR --plot DIR/cal.h5``); a directory output must not be an input
+    directory. Exit 2 before anything is written."""
+    named = [(o, str(p), d) for o, p, d in named if p is not None and str(p) not in ("", "-")]
+    for i, (oa, pa, _) in enumerate(named):
+        for ob, pb, _ in named[i + 1:]:
+            if _same_place(pa, pb):
+                raise OutputError(f"{oa} and {ob} name the same file; give each its own "
+                                  "(nothing was written)", pa)
+    dirs = [str(i) for i in inputs if i is not None and os.path.isdir(str(i))]
+    for o, p, directory in named:
+        rp = os.path.realpath(p)
+        for d in dirs:
+            rd = os.path.realpath(d)
+            if directory and rp == rd:
+                raise OutputError(f"{o} is the input directory {d}; choose another (nothing "
+                                  "was written)", p)
+            if not directory and rp.startswith(rd + os.sep) and os.path.isfile(p) \
+                    and _looks_like_data(p):
+                raise OutputError(f"{o} would overwrite a file inside the input directory "
+                                  f"{d}; choose another (nothing was written)", p)
 
 
 def _lock_name(path: Path) -> Path:
@@ -213,14 +263,28 @@ def output_lock(path):
         os.close(fd)
 
 
-def _write_error(exc: OSError, path) -> None:
+_WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EIO, errno.EACCES,
+                 errno.EPERM}
+
+
+def _is_write_error(exc: OSError, paths) -> bool:
+    """Whether ``exc`` comes from writing one of ``paths`` (or a file inside one)
+    rather than from reading an input while an output was open."""
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) or "No space" in str(exc):
+        return True
+    if exc.filename is not None:
+        f = os.path.abspath(str(exc.filename))
+        return any(f == os.path.abspath(p) or f.startswith(os.path.abspath(p) + os.sep)
+                   for p in paths)
+    return exc.errno in _WRITE_ERRNOS
+
+
+def write_error(exc: OSError, path) -> OutputError:
     """An OS error while writing an output: exit 2 naming it (a full disk says so)."""
     if exc.errno in (errno.ENOSPC, errno.EDQUOT) or "No space" in str(exc):
-        raise OutputError("disk full while writing; nothing was left behind",
-                          str(path)) from None
-    if exc.errno in (errno.EACCES, errno.EROFS, errno.EPERM, errno.EFBIG):
-        raise OutputError(f"cannot write: {exc.strerror}", str(path)) from None
-    raise exc
+        return OutputError("disk full while writing; nothing was left behind", str(path))
+    what = exc.strerror or type(exc).__name__
+    return OutputError(f"cannot write: {what}; nothing was left behind", str(path))
 
 
 @contextlib.contextmanager
@@ -261,11 +325,16 @@ def _atomic_file(path):
     except OSError as exc:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
-        _write_error(exc, path)
+        if not _is_write_error(exc, (tmp, path)):
+            raise  # an input's error, raised while this output was open
+        raise write_error(exc, path) from None
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+MANIFEST = "calib-manifest.json"  # in a directory calib writes: the files it wrote there
 
 
 @contextlib.contextmanager
@@ -281,35 +350,131 @@ def atomic_dir(path):
         yield tmp
 
 
+def read_manifest(path) -> dict[str, str]:
+    """{file name: sha256} of the files calib wrote into directory ``path``
+    (its ``calib-manifest.json``); empty when there is none."""
+    import json
+
+    m = Path(path) / MANIFEST
+    if not m.is_file():
+        return {}
+    try:
+        obj = json.loads(m.read_text(encoding="utf-8"))
+        files = obj["files"] if obj.get("tool") == "calib" else None
+        if not isinstance(files, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                                  for k, v in files.items()):
+            raise ValueError
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, UnicodeDecodeError):
+        raise OutputError(f"{MANIFEST} there was not written by calib (or is damaged): "
+                          "calib does not know which files are its own; choose another "
+                          "directory (nothing was written)", str(path)) from None
+    return {k: v for k, v in files.items() if k and "/" not in k and k not in (".", "..")}
+
+
+def _sha256(path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 @contextlib.contextmanager
 def _atomic_dir(path):
-    """A temporary directory beside ``path`` that replaces ``path`` whole on
-    success (an older report's files do not survive), removed on failure."""
+    """Write a command's files into directory ``path`` (issue 37): they are made
+    in a temporary directory inside it, then each is renamed into place. Only
+    files calib wrote there before (listed in its ``calib-manifest.json``) are
+    replaced; a file of another name is refused before anything is moved (exit
+    2), and nothing else in the directory is touched. Files of the previous run
+    that this run does not write are removed when unchanged since. On failure
+    the temporary directory goes (and ``path``, when this call created it)."""
+    import json
+
     path = Path(path)
     parent = path.parent if str(path.parent) else Path(".")
     if path.exists() and not path.is_dir():
         raise InputError("exists and is not a directory", str(path))
     if not parent.is_dir():
         raise OutputError(f"cannot write: the directory {parent} does not exist", str(path))
-    clean_stale_temps(path)
-    tmp = temp_name(path, directory=True)
+    created = not path.exists()
     try:
+        if created:
+            os.mkdir(path)
+        old = read_manifest(path)
+        clean_stale_temps(path / ".calib-out")
+        tmp = temp_name(path / ".calib-out", directory=True)
         os.mkdir(tmp)
     except OSError as exc:
+        if created:
+            with contextlib.suppress(OSError):
+                os.rmdir(path)
         raise OutputError(f"cannot write here: {exc.strerror or exc}", str(path)) from None
+    except BaseException:
+        if created:
+            with contextlib.suppress(OSError):
+                os.rmdir(path)
+        raise
     try:
         yield tmp
-        follow_umask(tmp, directory=True)
-        old = None
-        if path.exists():
-            old = temp_name(path, directory=True)
-            os.replace(path, old)
-        os.replace(tmp, path)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except OSError as exc:
+        names = sorted(os.listdir(tmp))
+        for n in names:
+            if not os.path.isfile(tmp / n) or os.path.islink(tmp / n):
+                raise OutputError(f"internal: {n} is not a file", str(path))
+            dst = path / n
+            if (os.path.lexists(dst) and n not in old) or os.path.isdir(dst) or n == MANIFEST:
+                raise OutputError(f"{n} exists there and was not written by calib (no "
+                                  f"{MANIFEST} lists it): nothing was written; move it or "
+                                  "choose another directory", str(path))
+        files = {}
+        for n in names:
+            files[n] = _sha256(tmp / n)
+            follow_umask(tmp / n)
+            os.replace(tmp / n, path / n)
+        import sys
+        from datetime import datetime, timezone
+
+        man = {"tool": "calib", "command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:]),
+               "written_utc": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+               "files": files}
+        mtmp = tmp / MANIFEST
+        mtmp.write_text(json.dumps(man, indent=1, ensure_ascii=True) + "\n", encoding="utf-8")
+        follow_umask(mtmp)
+        os.replace(mtmp, path / MANIFEST)
+        for n, digest in old.items():  # the previous run's files this run did not write
+            if n not in files:
+                with contextlib.suppress(OSError):
+                    if os.path.isfile(path / n) and not os.path.islink(path / n) \
+                            and _sha256(path / n) == digest:
+                        os.unlink(path / n)
         shutil.rmtree(tmp, ignore_errors=True)
-        _write_error(exc, path)
+        if created:
+            follow_umask(path, directory=True)
+    except BaseException as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if created:
+            with contextlib.suppress(OSError):
+                os.rmdir(path)  # only when empty
+        if isinstance(exc, OSError) and _is_write_error(exc, (path,)):
+            raise write_error(exc, path) from None
+        raise
+
+
+@contextlib.contextmanager
+def drop_if_empty(path, created: bool):
+    """On a failure, remove directory ``path`` when this command ``created`` it and
+    it holds no file but calib's own hidden lock files (empty subdirectories
+    go too): a full disk leaves nothing behind; outputs already written stay."""
+    try:
+        yield
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if created:
+            with contextlib.suppress(OSError):
+                for d, _, files in os.walk(path, topdown=False):
+                    if d == str(path) and all(f.startswith(".calib") for f in files):
+                        for f in files:
+                            os.unlink(os.path.join(d, f))
+                    with contextlib.suppress(OSError):
+                        os.rmdir(d)  # only when empty
         raise

@@ -17,14 +17,95 @@ from calib_cli.plan import KINDS, Plan, PlanSegment, plan_layout, same_layout  #
 
 D2R = np.pi / 180.0
 
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 def _num_vec(value, n, where, path):
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"{where} must be {n} numbers, got {value!r}", path) from None
+    # a number is a number: not a bool (true is no 1.0), not a string ("90")
+    if not isinstance(value, list) or not all(_is_num(x) for x in value):
+        raise InputError(f"{where} must be {n} numbers, got {value!r}", path)
+    arr = np.asarray(value, dtype=float)
     if arr.shape != (n,) or not np.all(np.isfinite(arr)):
         raise InputError(f"{where} must be {n} finite numbers, got {value!r}", path)
     return arr
+
+
+# the types of the plan keys calib reads (issue 37): "num" a finite number (not a
+# bool, not a string), "vec3" three of them, "str" text, "bool" true/false,
+# "sign" a list of +1/-1 per axis; keys not listed are checked where they are read
+_TYPES = {
+    "": {"name": "str", "kind": "str", "protocol": "str", "description": "str",
+         "sample_rate_hz": "num", "transition_s": "num", "temperature_c": "num",
+         "sample_kind": "str", "unit_tau_s": "num", "chamber_ramp_dpm": "num",
+         "chamber_soak_tol_degC": "num", "chamber_soak_s": "num",
+         "chamber_soak_timeout_s": "num", "site": "table", "unit": "table", "rimu": "table",
+         "segment": "list"},
+    "site": {"latitude_deg": "num", "height_m": "num", "g": "num", "longitude_deg": "num",
+             "name": "str", "allow_any_g": "bool"},
+    "unit": {"serial": "str", "model": "str", "name": "str", "profile": "str",
+             "accel_range_g": "num", "gyro_range_dps": "num", "accel_axis_sign": "sign",
+             "gyro_axis_sign": "sign"},
+    "rimu": {"profile": "str"},
+    "segment": {"label": "str", "attitude_deg": "vec3", "attitude_sigma_deg": "num",
+                "table_axis_enu": "vec3", "table_rate_dps": "num", "lever_arm_m": "vec3",
+                "duration_s": "num", "rotation_axis_body": "vec3", "rotation_angle_deg": "num",
+                "repeat": "str", "rate_shape": "str", "rate_jerk_dps3": "num",
+                "transition_s": "num", "chamber_temp_degC": "num", "chamber_soak": "bool",
+                "chamber_ramp_dpm": "num", "chamber_soak_tol_degC": "num",
+                "chamber_soak_s": "num", "chamber_soak_timeout_s": "num", "sample_kind": "str",
+                "sim_attitude_deg": "vec3", "sim_table_axis_enu": "vec3",
+                "sim_lever_arm_m": "vec3"},
+}
+_WORDS = {"num": "a finite number", "vec3": "three finite numbers", "str": "text",
+          "bool": "true or false", "table": "a table", "list": "a list of [[segment]] tables",
+          "sign": "a list of 1 and -1, one per axis"}
+
+
+def _type_ok(t: str, v) -> bool:
+    if t == "num":
+        return _is_num(v) and np.isfinite(v)
+    if t == "vec3":
+        return isinstance(v, list) and len(v) == 3 and all(_is_num(x) and np.isfinite(x)
+                                                           for x in v)
+    if t == "sign":
+        return isinstance(v, list) and len(v) >= 1 and all(_is_num(x) and x in (1, -1)
+                                                           for x in v)
+    return isinstance(v, {"str": str, "bool": bool, "table": dict, "list": list}[t])
+
+
+def _no_nul(v, where: str, path: str) -> None:
+    """No NUL character in any text of the plan (HDF5 cannot store it)."""
+    if isinstance(v, str):
+        if "\x00" in v:
+            raise InputError(f"{where} holds a NUL character (\\u0000); calib stores plan text "
+                             "in HDF5, which cannot hold it", path)
+    elif isinstance(v, dict):
+        for k, x in v.items():
+            _no_nul(k, f"the key {where + '.' if where else ''}{k!r}", path)
+            _no_nul(x, f"{where + '.' if where else ''}{k}", path)
+    elif isinstance(v, list):
+        for i, x in enumerate(v):
+            _no_nul(x, f"{where}[{i}]", path)
+
+
+def check_plan_types(raw: dict, path: str) -> None:
+    """Every key calib reads of its type (_TYPES), no NUL anywhere (issue 37)."""
+    _no_nul(raw, "", path)
+
+    def table(t: dict, known: dict, where: str):
+        for k, ty in known.items():
+            if k in t and not _type_ok(ty, t[k]):
+                raise InputError(f"{where}{k} must be {_WORDS[ty]}, got {t[k]!r}", path)
+
+    table(raw, _TYPES[""], "")
+    for name in ("site", "unit", "rimu"):
+        if isinstance(raw.get(name), dict):
+            table(raw[name], _TYPES[name], f"{name}.")
+    for i, seg in enumerate(raw.get("segment") or []):
+        if not isinstance(seg, dict):
+            raise InputError(f"segment {i + 1} is not a table", path)
+        table(seg, _TYPES["segment"], f"segment {i + 1}: ")
 
 
 def _num(value, where, path, positive=False):
@@ -89,6 +170,7 @@ def parse_plan(text: str, path: str = "<plan>") -> Plan:
         raise InputError("not valid TOML: nested too deeply", path) from None
     from calib_cli.io.schema import check_plan_values  # issue 15: range checks
 
+    check_plan_types(raw, path)
     check_plan_values(raw, path)
     kind = raw.get("kind")
     if kind not in KINDS:
@@ -100,14 +182,14 @@ def parse_plan(text: str, path: str = "<plan>") -> Plan:
     if abs(lat) > 90:
         raise InputError(f"site.latitude_deg must lie in [-90, 90], got {lat}", path)
     height = _num(site_raw.get("height_m", 0.0), "site.height_m", path)
+    if not -1e3 <= height <= 1e4:  # where a bench stands (normal gravity overflowed at 1e300)
+        raise InputError(f"site.height_m must lie in [-1000, 10000] m, got {height:g}", path)
     g = site_raw.get("g")
     if g is not None:
         g = _num(g, "site.g", path, positive=True)
     site = Site(latitude=lat * D2R, height=height, g=g)
     unit = raw.get("unit", {})
     serial = unit.get("serial") if isinstance(unit, dict) else None
-    if serial is not None:
-        serial = str(serial)
     segs_raw = raw.get("segment")
     if not isinstance(segs_raw, list) or not segs_raw:
         raise InputError("plan has no [[segment]] entries", path)

@@ -35,7 +35,8 @@ PLAN_TOP = {"name", "kind", "protocol", "description", "site", "unit", "segment"
 CHAMBER_KEYS = ("chamber_ramp_dpm", "unit_tau_s", "chamber_soak_tol_degC", "chamber_soak_s",
                 "chamber_soak_timeout_s")
 PLAN_SITE = {"latitude_deg", "height_m", "g", "longitude_deg", "name", "allow_any_g"}
-PLAN_UNIT = {"serial", "model", "name", "profile", "accel_range_g", "gyro_range_dps"}
+PLAN_UNIT = {"serial", "model", "name", "profile", "accel_range_g", "gyro_range_dps",
+             "accel_axis_sign", "gyro_axis_sign"}
 PLAN_RIMU = {"el0_deg", "az0_deg", "profile"}
 PLAN_SEGMENT = {"label", "attitude_deg", "attitude_sigma_deg", "table_axis_enu",
                 "table_rate_dps", "lever_arm_m", "duration_s", "rotation_axis_body",

@@ -25,14 +25,15 @@ import numpy as np
 from calib_cli.data import Segment
 from calib_cli.errors import InputError
 from calib_cli.geometry import Layout
+from calib_cli.io import validate
 from calib_cli.io.h5 import (
-    atomic_path,
     sha256_file,
     write_provenance,
     write_segments,
     write_site_layout,
     write_source,
 )
+from calib_cli.io.h5file import h5_output, set_attrs, set_text
 from calib_cli.io.log_segments import (
     Chunk,
     check_time_range,
@@ -274,7 +275,7 @@ def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_st
 
     layout = plan_layout(plan)
     units = convert_units(np.zeros((1, 3)), np.zeros((1, 3)), accel_units, gyro_units, path)[2]
-    with atomic_path(out) as tmp, h5py.File(tmp, "w") as h5:
+    with h5_output(out) as h5:
         smp = h5.create_group("samples")
         sink = _Sink(smp)
         runs = None
@@ -289,6 +290,10 @@ def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_st
             else:
                 a, g, _ = convert_units(ch.accel, ch.gyro, accel_units, gyro_units, path)
             check_time_range(ch.time, path)  # 1e20 s: one line, exit 3 (issue 15)
+            # a cell of 1e300 is no sample: exit 3 naming it (issue 37)
+            validate.check_magnitudes(np.asarray(a), "accel", units["accel"], path, sink.n)
+            if g is not None:
+                validate.check_magnitudes(np.asarray(g), "gyro", units["gyro"], path, sink.n)
             sink.append("time", ch.time)
             sink.append("accel", a)
             if runs is None and ch.segment is None:
@@ -326,18 +331,15 @@ def _import_to_raw(out, source, plan, path, inputs, window_s, multiplier, min_st
         layout = Layout(layout.n, layout.el0, layout.az0, n_cycles)
         write_provenance(h5, "raw", [], plan.serial, {"plan_kind": plan.kind})
         known = hashes() if hashes else {}
-        h5.attrs["input_sha256"] = json.dumps(
-            {str(p): known.get(str(p)) or sha256_file(p) for p in inputs if p and Path(p).is_file()})
-        smp.attrs["accel_units"] = units["accel"]
-        smp.attrs["gyro_units"] = units["gyro"]
-        smp.attrs["sample_kind"] = sample_kind
+        set_text(h5, "input_sha256", json.dumps(
+            {str(p): known.get(str(p)) or sha256_file(p) for p in inputs if p and Path(p).is_file()}))
+        set_attrs(smp, {"accel_units": units["accel"], "gyro_units": units["gyro"],
+                        "sample_kind": sample_kind})
         write_segments(h5, segments)
         write_site_layout(h5, plan.site, layout)
-        h5.create_group("plan").attrs["text"] = plan.text
+        set_text(h5.create_group("plan"), "text", plan.text)
         if counters:
-            c = h5.create_group("counters")
-            for k, v in counters.items():
-                c.attrs[k] = v
+            set_attrs(h5.create_group("counters"), counters)
         if provenance:
             write_source(h5, provenance)
     return ImportSummary(n, tuple(segments), units, counters)

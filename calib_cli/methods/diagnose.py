@@ -25,6 +25,7 @@ import numpy as np
 from scipy import stats
 
 from calib_cli.data import Recording
+from calib_cli.errors import EstimationError
 from calib_cli.methods import diagnose_candidates as dc
 from calib_cli.methods import diagnose_stoch as ds
 from calib_cli.methods.blas_threads import one_blas_thread
@@ -218,8 +219,8 @@ def _new_entries(cand_fit: Fit, cur: Fit, keys: set) -> tuple[dict, dict, int]:
     k = sum(1 for j, lab in enumerate(cand_fit.labels)
             if lab[0] in keys and not cand_fit.unobs[j])
     if "lever_arm" in keys:
-        k -= cand_fit.n_constraints
-    return params, sigma, k
+        k -= cand_fit.lever_constraints
+    return params, sigma, max(k, 0)
 
 
 def neg2ll(fit: Fit, pb: Problem, skip_first: str | None = None) -> float:
@@ -306,11 +307,19 @@ def diagnose(rec: Recording, method: str, base: str = "full", alpha: float = ALP
              max_steps: int = MAX_STEPS, noise: str = "auto") -> Diagnosis:
     """Run the workflow on a recording (module docstring)."""
     with one_blas_thread():
-        return _diagnose(rec, method, base, alpha, max_steps, noise)
+        try:
+            return _diagnose(rec, method, base, alpha, max_steps, noise)
+        except np.linalg.LinAlgError as exc:  # degenerate data (issue 37): never exit 70
+            raise EstimationError(f"diagnose: the data do not determine the base model (a "
+                                  f"singular system: {exc}); check that the positions differ "
+                                  "as the plan says") from None
 
 
 def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: int,
               noise: str) -> Diagnosis:
+    from calib_cli.methods.segstats import check_gravity_seen
+
+    check_gravity_seen(rec)  # static positions that do not see gravity: exit 3 (issue 37)
     pb = build_problem(rec, method, noise=noise)
     spec, names = base_spec(pb, base)
     cur = fit_model(pb, spec, start=start_params(pb, base), refresh=True)

@@ -65,9 +65,21 @@ class Fit:
         return float(self.r @ self.r)
 
     @property
+    def lever_constraints(self) -> int:
+        """Axial conventions that pin an entry the data leave free: one per
+        lever-arm row (cycle) with an observable entry. Not one per cycle: the
+        rows the data do not reach have no observable entry to pin (an 18-cycle
+        rimu plan gave 6 observable entries minus 18, issue 37)."""
+        if not self.n_constraints:
+            return 0
+        rows = {int(i) // 3 for j, (k, i) in enumerate(self.labels)
+                if k == "lever_arm" and not self.unobs[j]}
+        return min(len(rows), self.n_constraints)
+
+    @property
     def n_free(self) -> int:
         """Parameters the data determine (conventions excluded)."""
-        return int((~self.unobs).sum()) - self.n_constraints
+        return int((~self.unobs).sum()) - self.lever_constraints
 
     def residual_blocks(self, pb: Problem) -> dict:
         """sensor -> (M, n) whitened residual, data - model (the sign a user reads)."""

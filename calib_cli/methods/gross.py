@@ -100,6 +100,21 @@ def _range_of(rec, key, default):
         return default
 
 
+def _axis_sign(rec, sensor: str, n: int) -> np.ndarray:
+    """The plan's ``[unit] accel_axis_sign`` / ``gyro_axis_sign`` (+1 or -1 per
+    axis: -1 an axis inverted by design); +1 each where not given."""
+    try:
+        import tomllib
+
+        v = tomllib.loads(rec.plan_text or "").get("unit", {}).get(f"{sensor}_axis_sign")
+        if isinstance(v, list) and len(v) == n and all(x in (1, -1) and not isinstance(x, bool)
+                                                       for x in v):
+            return np.asarray(v, dtype=float)
+    except Exception:  # no plan, or one already refused by the plan check
+        pass
+    return np.ones(n)
+
+
 def check_result(res, rec=None) -> None:
     """Refuse an impossible calibration (exit 4); see the module docstring."""
     p, st = res.params, res.stats or {}
@@ -111,9 +126,19 @@ def check_result(res, rec=None) -> None:
         if K is not None and not counts:
             K = np.asarray(K, dtype=float)
             if K.ndim == 2 and K.shape[0] == K.shape[1]:
-                d = np.abs(np.diag(K))
+                sign = _axis_sign(rec, s, K.shape[0])
+                d = np.diag(K) * sign  # positive unless the plan declares the axis inverted
                 bad = np.flatnonzero((d < K_RANGE[0]) | (d > K_RANGE[1]) | ~np.isfinite(d))
                 for i in bad:
+                    if np.isfinite(d[i]) and K_RANGE[0] <= -d[i] <= K_RANGE[1]:
+                        want = [int(x) for x in sign]
+                        want[i] = -want[i]
+                        problems.append(
+                            f"{s}_K[{i},{i}] = {float(K[i, i]):.6g}: axis {i} reads with the "
+                            "opposite sign (wired or mounted inverted, or the plan's attitudes "
+                            "mirrored); when the unit's axis is inverted by design, the plan "
+                            f"says so: [unit] {s}_axis_sign = {want}")
+                        continue
                     problems.append(f"{s}_K[{i},{i}] = {float(K[i, i]):.6g} (a scale factor "
                                     f"outside {K_RANGE[0]}..{K_RANGE[1]})")
         b = p.get(f"{s}_bias")

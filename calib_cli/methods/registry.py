@@ -134,6 +134,10 @@ def check_recording(method: str, rec: Recording, path: str | None = None) -> Non
         if rec.in_counts(s):
             raise InputError(f"`calib fit {method}` needs {s} data in SI units, the recording "
                              "is in raw counts (import with a scale)", path)
+    if "accel" in req.sensors:  # static positions that do not see gravity (issue 37)
+        from calib_cli.methods.segstats import check_gravity_seen
+
+        check_gravity_seen(rec, path)
     n_static = len(rec.static_segments())
     if n_static < req.min_static:
         from calib_cli.methods.static_detect import too_few_hint
@@ -264,6 +268,10 @@ def run(method: str, rec: Recording, options=None, path: str | None = None,
     except (InputError, EstimationError) as exc:
         exc.path = exc.path or path
         raise
+    except __import__("numpy").linalg.LinAlgError as exc:  # degenerate data the checks let through
+        raise EstimationError(f"`calib fit {method}`: the data do not determine the "
+                              f"parameters (a singular system: {exc}); check that the "
+                              "positions differ as the plan says", path) from None
     return res
 
 

@@ -39,3 +39,28 @@ def static_stats(rec: Recording, sensor: str = "accel", segments=None) -> Static
     data = rec.accel if sensor == "accel" else rec.gyro
     pooled = pooled_within((data[s.slice] for s in segs), data.shape[1])
     return StaticStats(segs, pooled.means, pooled.counts, pooled.sigma)
+
+
+# |mean f| of a static position, in units of g, that a fit can still explain: the
+# scale factors it accepts are 0.5..2 (methods/gross.py); a little beyond for the bias
+GRAVITY_SEEN = (0.4, 2.5)
+
+
+def check_gravity_seen(rec: Recording, path: str | None = None) -> None:
+    """Each static position of an SI triad record must measure about g (issue
+    37): all-zero, constant or mislabelled data (g stored as m/s^2) are refused
+    with exit 3 before a fit meets a singular matrix."""
+    from calib_cli.errors import InputError
+
+    if rec.accel is None or rec.layout.redundant or rec.in_counts("accel"):
+        return
+    g = rec.site.gravity
+    for s in rec.static_segments():
+        if s.stop <= s.start:
+            continue
+        f = float(np.linalg.norm(rec.accel[s.slice].mean(axis=0)))
+        if not GRAVITY_SEEN[0] * g <= f <= GRAVITY_SEEN[1] * g:
+            raise InputError(f"static segment {s.label!r} measures |f| = {f:.4g} m/s^2, not about "
+                             f"g ({g:.4g} m/s^2): the accelerometer data are not specific force "
+                             "in m/s^2 (zero, stuck, or in another unit: see the import's "
+                             "--accel-units)", path)
