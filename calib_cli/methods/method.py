@@ -238,7 +238,8 @@ class Diagnose:
     misalignment: the structure of the accelerometer misalignment candidate ("lower"
     where the accelerometers fix the instrument frame). fixed_scale: why the base model
     has no scale factors ("" where it has). without: catalogue effects the method never
-    takes (left out of ``calib fit NAME --list-effects`` without a record).
+    takes (left out of ``calib fit NAME --list-effects`` without a record). nuisance:
+    what the base model's nuisance angles are, in a calibration's ``stats.nuisance``.
     """
 
     engine: str = "engine"
@@ -254,6 +255,7 @@ class Diagnose:
     misalignment: str = "full"
     fixed_scale: str = ""
     without: tuple = ()
+    nuisance: str = "gravity-direction nuisance of each position (rad)"
 
     def __post_init__(self):
         if self.engine == "engine" and self.base is None:

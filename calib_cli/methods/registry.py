@@ -41,9 +41,9 @@ from calib_cli.methods.method import (
 if TYPE_CHECKING:
     from calib_cli.data import CalibrationResult, Recording
 
-__all__ = ["FITS", "AtLeast", "Diagnose", "FileInput", "Method", "Option", "Requires", "WithRequest", "check_recording",
-           "get", "information", "method_of_plan_kind", "method_of_result", "options_from",
-           "register", "run"]
+__all__ = ["FITS", "AtLeast", "Diagnose", "FileInput", "Method", "Option", "Requires",
+           "WithRequest", "check_recording", "get", "information", "method_of_plan_kind",
+           "method_of_result", "options_from", "register", "run"]
 
 FITS: dict[str, Method] = {}
 
@@ -601,7 +601,8 @@ register(Method(
         needs=(AtLeast("static", 2, "the alignment needs at least 2 static positions"),),
         fixed_scale="the alignment takes K as the identity (a navigation-grade unit): scale "
                     "and misalignment are not estimated from two positions",
-        without=("misalignment", "lever_arm", "proof_mass_offsets", "time_offset")),
+        without=("misalignment", "lever_arm", "proof_mass_offsets", "time_offset"),
+        nuisance="attitude correction (rotation of the navigation frame, rad)"),
     report=("calib_cli.report.sections_align_rimu",), options_name="AlignOptions",
     docs="docs/align.md"))
 
@@ -675,7 +676,7 @@ register(Method(
         base="calib_cli.methods.diagnose_models:turntable_base", segments=("static", "rotating"),
         needs=(AtLeast("rotating", 1, "no rotating segment with a table axis and a known "
                        "start attitude: not a turntable recording"),),
-        misalignment="lower"),
+        misalignment="lower", nuisance="mount angles of the unit on the table (rad)"),
     report=("calib_cli.report.sections_turntable",), options_base=TurntableOptionsBase,
     options_name="TurntableFitOptions",
     cli_outputs=((Option("plot", None, "Write the sigma history of the lever arms and "

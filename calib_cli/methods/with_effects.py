@@ -155,10 +155,7 @@ def calibration_of(pb: Problem, fit: Fit, method: str, rec: Recording | None, ba
         stats["residual_rms_initial_noise_units"] = float(np.sqrt(np.mean(initial.r ** 2)))
     stats["chi2_dof"] = float(fit.chi2 / max(n - fit.n_free, 1))
     if fit.mount is not None and len(fit.mount):
-        what = {"align": "attitude correction (rotation of the navigation frame, rad)",
-                "turntable": "mount angles of the unit on the table (rad)"}.get(
-            method, "gravity-direction nuisance of each position (rad)")
-        stats["nuisance"] = {"what": what, "values": np.asarray(fit.mount, float).tolist(),
+        stats["nuisance"] = {"what": pb.how.nuisance, "values": np.asarray(fit.mount, float).tolist(),
                              "sigma": np.asarray(fit.sigma.get(MOUNT_KEY, []), float).tolist()}
     if wander:
         stats["noise_model"] = {
