@@ -4,7 +4,8 @@ check``, ``calib diagnose``, ``calib report`` -- with the same checks in the sam
 
 The toy-method test adds a method as docs/architecture.md's recipe says -- one new
 module and one registration line, in a copy of the package -- and runs it through the
-command line, the batch, the Python API, plan check and the report."""
+command line, the batch, the Python API, plan check, the report and diagnose (its own
+``Diagnose`` description)."""
 
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ PLAN = ROOT / "sample_data" / "twelve_position.toml"
 TOY = '''"""A toy method: the accelerometer bias at known attitudes (the mean of the static
 positions' specific force minus gravity's), scaled by a toy option."""
 
-from calib_cli.methods.method import Method, Option, Requires
+from calib_cli.methods.method import AtLeast, Diagnose, Method, Option, Requires
 
 
 def fit_toy(rec, o, noise=None):
@@ -55,10 +56,19 @@ def fit_toy(rec, o, noise=None):
         layout=rec.layout, serial=rec.serial, model=[{"name": "bias", "sensor": "accel"}])
 
 
+def toy_base(pb, base="full"):
+    """The toy's own model in catalogue effects, for calib diagnose: the bias alone."""
+    from calib_cli.model.effects import make_effect
+
+    return [make_effect("bias", "accel")], ["accel_bias"], False
+
+
 METHOD = Method(
     "toy", "a toy: the accelerometer bias at known attitudes", fit_toy,
     options=(Option("scale", 1.0, "A toy factor on the bias.", "float", lo=0.0, lo_open=True),),
-    requires=Requires("triad", ("accel",), min_static=1), plan_kinds=("static",))
+    requires=Requires("triad", ("accel",), min_static=1), plan_kinds=("static",),
+    diagnose=Diagnose(base="calib_cli.methods.toy:toy_base", sensors=("accel",),
+                      needs=(AtLeast("static", 2, "{count} static positions: the toy needs 2"),)))
 '''
 REGISTRATION = '\nregister(resolve("calib_cli.methods.toy:METHOD"))\n'
 
@@ -95,6 +105,8 @@ r["api"] = api.fit("toy", api.read_raw(d / "raw.h5"), scale=1.0).params["accel_b
 r["show"] = calib("show", d / "toy.h5", "--json")
 r["plan"] = calib("plan", "check", plan, "--method", "toy", "--json", "--like", d / "raw.h5")
 r["report"] = calib("report", d / "toy.h5", "--out", d / "rep")
+r["diagnose"] = calib("diagnose", d / "raw.h5", "--method", "toy", "--out", d / "diag.h5",
+                      "--json")
 print(json.dumps(r))
 '''
 
@@ -113,7 +125,8 @@ def test_toy_method_is_one_module_and_one_line(tmp_path):
                        cwd=root, env=env, capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stderr
     r = json.loads(p.stdout)
-    for k in ("simulate", "help", "help_toy", "fit", "batch", "show", "plan", "report"):
+    for k in ("simulate", "help", "help_toy", "fit", "batch", "show", "plan", "report",
+              "diagnose"):
         assert r[k]["code"] == 0, (k, r[k]["err"])
     # the command line: listed, its option generated and checked (exit 3 naming it)
     assert "toy" in r["help"]["out"] and "--scale" in r["help_toy"]["out"]
@@ -131,6 +144,11 @@ def test_toy_method_is_one_module_and_one_line(tmp_path):
     # the report
     md = (d / "rep" / "report.md").read_text()
     assert "toy" in md and "accel_bias" in md
+    # calib diagnose: through the toy's own Diagnose description (its base model, the
+    # bias alone), no diagnose code touched
+    diag = json.loads(r["diagnose"]["out"])
+    assert diag["method"] == "toy" and diag["base_model"] == ["accel_bias"]
+    assert diag["residual_rms_final"] < diag["residual_rms_initial"]
 
 
 def test_every_way_in_offers_the_table():
@@ -153,6 +171,43 @@ def test_every_way_in_offers_the_table():
         assert set(batch_fits[m.name].options) >= set(m.option_names())
         assert [f.name for f in dataclasses.fields(m.options_type)] == [o.name for o in m.options]
     assert design.resolve_method(api.load_plan(PLAN)) == "vector"
+
+
+def test_diagnose_reads_the_description_and_refuses_a_method_without_one():
+    """calib diagnose has no list of methods: a method's requirements and their messages
+    come from its Diagnose description (exit 4 naming the shortfall), and a method
+    without one is refused (InputError, exit 3) naming the methods that have one."""
+    import pytest
+
+    from calib_cli.errors import EstimationError, InputError
+    from calib_cli.io.h5 import read_raw
+    from calib_cli.methods.diagnose_problem import build_problem
+    from calib_cli.methods.method import AtLeast, Diagnose, Method
+
+    rec = read_raw(Path(__file__).parent / "fixtures" / "v0.1.0" / "raw_static.h5")
+    fit = registry.FITS["accel"].fit
+    picky = Method("picky", "needs many positions", fit, diagnose=Diagnose(
+        base="calib_cli.methods.diagnose_models:accel_base", sensors=("accel",),
+        needs=(AtLeast("static", 99, "{count} positions; picky needs 99"),)))
+    mute = Method("mute", "no diagnosis", fit)
+    for m in (picky, mute):
+        registry.register(m)
+    try:
+        with pytest.raises(EstimationError) as e:
+            registry.diagnose("picky", rec)
+        n = len([s for s in rec.segments if s.kind == "static" and s.n >= 3])
+        assert e.value.exit_code == 4 and e.value.message == f"{n} positions; picky needs 99"
+        for name in ("mute", "thermal"):
+            with pytest.raises(InputError) as e:
+                registry.diagnose(name, rec)
+            assert e.value.exit_code == 3 and "has no diagnosis" in e.value.message
+            assert "accel" in e.value.message and "picky" in e.value.message
+            with pytest.raises(InputError):
+                build_problem(rec, name)
+        assert "picky" in registry.diagnosable() and "mute" not in registry.diagnosable()
+    finally:
+        for m in (picky, mute):
+            registry.FITS.pop(m.name)
 
 
 def test_start_up_imports_no_numpy_for_the_table():

@@ -1,4 +1,4 @@
-"""calib diagnose RAW --method accel|gyro|align|turntable|rimu --out DIAG.h5 [--json] [--report DIR]
+"""calib diagnose RAW --method METHOD --out DIAG.h5 [--json] [--report DIR]
 
 Find the effect the model lacks, name it, add it and show the gap shrink
 (docs/diagnose.md)."""
@@ -83,7 +83,7 @@ def diagnose_cmd(raw, method, out, base, alpha, noise, as_json, report_dir, cal_
     from calib_cli.cli.progress import bar
     from calib_cli.errors import CalibError
 
-    own = FITS[method].diagnose != "engine"  # the gyro fit's own equations, not bins
+    own = FITS[method].diagnose.own  # the method's own equations (gyro), not bins
     with bar("diagnose"):
         try:
             d = run_diagnose(method, rec, base=base, alpha=alpha, noise=noise)

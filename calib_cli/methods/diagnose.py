@@ -31,7 +31,7 @@ from calib_cli.methods import diagnose_stoch as ds
 from calib_cli.methods.blas_threads import one_blas_thread
 from calib_cli.methods.diagnose_fit import MOUNT_KEY, Fit, ModelSpec, columns, fit_model
 from calib_cli.methods.diagnose_problem import BIN_S, Problem, build_problem
-from calib_cli.model.effects import make_effect
+from calib_cli.methods.method import resolve
 from calib_cli.model.imu_model import ImuModel
 
 ALPHA = 0.01  # false-alarm probability per round, shared over its candidates
@@ -150,36 +150,9 @@ class Diagnosis:
 
 
 def base_spec(pb: Problem, base: str = "full") -> tuple[ModelSpec, list]:
-    """The method's base model: (spec, its names for the JSON)."""
-    effects = [make_effect("bias", "accel")]
-    if pb.method == "accel":
-        st = "diagonal" if base == "diagonal" else ("lower" if pb.scalar else "full")
-        effects.append(make_effect("scale_misalignment", "accel", structure=st))
-        names = ["accel_bias", f"accel_K ({st})"]
-        if pb.scalar:
-            names.append("gravity direction of each position (nuisance: attitudes unknown)")
-        mount = False
-    elif pb.method == "align":  # biases and attitude (the positions' common attitude)
-        effects.append(make_effect("bias", "gyro"))
-        names = ["accel_bias", "gyro_bias",
-                 "attitude (from the two-position alignment; 3 angles refitted)"]
-        mount = True
-    elif pb.method == "rimu":  # b, ks, dEl, dAz per sensor (a common rotation is in them)
-        effects = []
-        names = []
-        for s in pb.sensors:
-            effects += [make_effect("bias", s), make_effect("installation", s)]
-            names += [f"{s}_bias", f"{s}_scale_error", f"{s}_dEl", f"{s}_dAz"]
-        mount = False
-    else:  # turntable: lower-triangular accel K, the unit's mount angles as nuisance
-        st = "diagonal" if base == "diagonal" else "lower"
-        gst = "diagonal" if base == "diagonal" else "full"
-        effects += [make_effect("scale_misalignment", "accel", structure=st),
-                    make_effect("bias", "gyro"),
-                    make_effect("scale_misalignment", "gyro", structure=gst)]
-        names = ["accel_bias", f"accel_K ({st})", "gyro_bias", f"gyro_K ({gst})",
-                 "mount angles (nuisance)"]
-        mount = True
+    """The method's base model: (spec, its names for the JSON), as its ``Diagnose``
+    description in the method table names it (methods/diagnose_models.py)."""
+    effects, names, mount = resolve(pb.how.base)(pb, base)
     return ModelSpec(ImuModel(tuple(effects), pb.layout), mount), names
 
 
@@ -305,7 +278,8 @@ def _clean(c: dc.Candidate, params: dict, sigma: dict) -> tuple[dict, dict]:
 
 def diagnose(rec: Recording, method: str, base: str = "full", alpha: float = ALPHA,
              max_steps: int = MAX_STEPS, noise: str = "auto") -> Diagnosis:
-    """Run the workflow on a recording (module docstring)."""
+    """Run the workflow on a recording (module docstring) for a method (its name or
+    ``Method``: its ``Diagnose`` description in the method table)."""
     with one_blas_thread():
         try:
             return _diagnose(rec, method, base, alpha, max_steps, noise)
@@ -455,7 +429,7 @@ def _diagnose(rec: Recording, method: str, base: str, alpha: float, max_steps: i
                          f"would explain {100 * max(near['score'], 0) / max(excess, 1e-300):.0f}"
                          " % of the remaining excess")
     out_base = names
-    out = Diagnosis(method, out_base, steps, r0, n_after, floor, untested_all, rounds, pb,
+    out = Diagnosis(pb.method, out_base, steps, r0, n_after, floor, untested_all, rounds, pb,
                     fits, notes, {s: pb.sigma[s] for s in pb.sensors})
     out.final_p_value = p_fit
     out.base = base

@@ -58,7 +58,8 @@ def excitation(pb: Problem, base_structure: str = "full") -> Excitation:
     if pb.kin.temp is not None and np.all(np.isfinite(pb.kin.temp)):
         span = float(np.ptp(pb.kin.temp))
     return Excitation(pb.method, tuple(pb.sensors), base_structure, int(levels), bool(both),
-                      span, pb.n_bins, pb.layout.n_cycles > 0, pb.layout.redundant)
+                      span, pb.n_bins, pb.layout.n_cycles > 0, pb.layout.redundant,
+                      fixed_scale=pb.how.fixed_scale)
 
 
 def catalogue_order(pb: Problem, base_structure: str = "full") -> list[Candidate]:
@@ -70,8 +71,10 @@ def catalogue_order(pb: Problem, base_structure: str = "full") -> list[Candidate
     def add(name, sensor, **opts):
         out.append(Candidate(name, sensor, make_effect(name, sensor or "accel", **opts)))
 
+    # "lower" where the accelerometers fix the instrument frame (the method's description
+    # says so, or the positions' attitudes are unknown)
     add("misalignment", "accel",
-        structure="lower" if (pb.method == "turntable" or pb.scalar) else "full")
+        structure="lower" if (pb.how.misalignment == "lower" or pb.scalar) else "full")
     if has_gyro:
         add("misalignment", "gyro", structure="full")
     add("accel_nonlinearity", "accel")

@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib_cli.data import Recording
-from calib_cli.errors import EstimationError
+from calib_cli.errors import EstimationError, InputError
+from calib_cli.methods.method import Diagnose, Method, method_named, resolve, table
 from calib_cli.methods.noise import difference_sigma
 from calib_cli.methods.rimu import segment_kinematics
 from calib_cli.model import kinematics as kn
@@ -70,6 +71,7 @@ class Problem:
     # the attitude nuisance is a rotation of the navigation frame common to all positions
     seg_rot: dict | None = None
     sigma_hf: dict | None = None  # the high-frequency estimate, before apply_noise
+    how: Diagnose | None = None  # the method's diagnose description (the method table)
 
     def scale_of(self, key: str) -> float:
         """Factor on a parameter's typical size for this data's output units."""
@@ -115,23 +117,26 @@ class Problem:
         return None if self.kin.temp is None else self.bin_mean(self.kin.temp)
 
 
-def build_problem(rec: Recording, method: str, bin_s: float = BIN_S,
+def build_problem(rec: Recording, method, bin_s: float = BIN_S,
                   noise: str = "auto") -> Problem:
-    """The usable samples of a recording for the given method.
+    """The usable samples of a recording for the given method (its name or ``Method``),
+    as its ``Diagnose`` description in the method table says (methods/method.py).
 
     noise: "hf" (white noise from the high-frequency content) or "auto" (the
     same, raised to the within-segment scatter of the bin means where that
     is significantly larger: coloured or drifting noise; see apply_noise)."""
-    start = None
-    if method == "align":
-        rec, start = _aligned(rec)
-    pb = _build(rec, method, bin_s)
-    if start is not None:
-        pb.start = start
-    if method == "align":
-        pb.seg_rot = {i: attitude_to_rotation(s.attitude).as_matrix()
-                      for i, s in enumerate(rec.segments)
-                      if s.kind == "static" and s.attitude is not None}
+    m = method if isinstance(method, Method) else method_named(method)
+    how = m.diagnose
+    if how is None or how.own:
+        raise InputError(f"the {m.name} method has no base model for the diagnose engine "
+                         "(its description in the method table has none)")
+    extra = {}
+    if how.prepare is not None:
+        rec, extra = resolve(how.prepare)(rec)
+    pb = _build(rec, m.name, how, bin_s)
+    pb.how = how
+    for k, v in extra.items():
+        setattr(pb, k, v)
     pb.noise_mode = noise
     if noise == "auto":
         apply_noise(pb)
@@ -149,67 +154,47 @@ def apply_noise(pb: Problem) -> None:
         pb.sigma[s] = pb.sigma[s] * np.where(np.isfinite(ratio) & (ratio > lim), ratio, 1.0)
 
 
-def _aligned(rec: Recording) -> Recording:
-    """An align recording with the attitude of every static position from the
-    two-position alignment (calib fit align); the base model then refits the
-    biases and a common attitude correction (the mount nuisance)."""
-    from dataclasses import replace
-
-    from calib_cli.methods.align import fit_align
-
-    # the plan's stated turns where it has them: an attitude integrated through the turn
-    # would carry the gyro errors under diagnosis (a scale drift over a 130 deg turn)
-    stated = any(s.kind == "turn" and s.rotation_angle is not None for s in rec.segments)
-    res = fit_align(rec, rotation="plan" if stated else "auto")
-    atts = res.stats.get("attitudes_all") or []
-    statics = [i for i, s in enumerate(rec.segments) if s.kind == "static"]
-    if len(atts) != len(statics):
-        raise EstimationError(f"the alignment used {len(atts)} of the {len(statics)} static "
-                              "positions; diagnose --method align needs all of them")
-    segs = list(rec.segments)
-    for i, a in zip(statics, atts):
-        segs[i] = replace(segs[i], attitude=np.asarray(a, float))
-    start = {k: np.asarray(res.params[k], float) for k in ("accel_bias", "gyro_bias")}
-    return rec.with_(segments=tuple(segs)), start
+def _wrong_layout(name: str, how: Diagnose) -> str:
+    if how.wrong_layout:
+        return how.wrong_layout
+    if how.layout == "redundant":
+        return f"--method {name} needs a redundant-unit recording"
+    others = [n for n, m in table().items() if m.diagnose and m.diagnose.layout == "redundant"]
+    return ("a redundant-unit recording: " + (f"use --method {' or '.join(others)}" if others
+                                              else "no method diagnoses one"))
 
 
-def _build(rec: Recording, method: str, bin_s: float) -> Problem:
-    if method == "rimu" and not rec.layout.redundant:
-        raise EstimationError("--method rimu needs a redundant-unit recording (plan kind "
-                              "\"rimu\" with a [rimu] geometry)")
-    if method != "rimu" and rec.layout.redundant:
-        raise EstimationError("a redundant-unit recording: use --method rimu")
-    sensors = ("accel",) if method == "accel" else ("accel", "gyro")
-    if method == "rimu" and rec.gyro is None:
-        sensors = ("accel",)
-    if "gyro" in sensors and rec.gyro is None:
-        raise EstimationError("the recording has no gyro data (turntable needs both sensors)")
+def _check_needs(how: Diagnose, use: list, scalar: bool) -> None:
+    """The description's requirements on the segments used (exit 4 with its message)."""
+    for need in how.needs:
+        if need.attitudes == ("unknown" if not scalar else "known"):
+            continue
+        count = sum(need.kind in ("any", s.kind) for s in use)
+        if count < need.n:
+            raise EstimationError(need.message.format(count=count))
+
+
+def _build(rec: Recording, method: str, how: Diagnose, bin_s: float) -> Problem:
+    if rec.layout.redundant != (how.layout == "redundant"):
+        raise EstimationError(_wrong_layout(method, how))
+    sensors = tuple(how.sensors) + tuple(s for s in how.optional_sensors
+                                         if getattr(rec, s) is not None)
+    for s in how.sensors:
+        if getattr(rec, s) is None:
+            raise EstimationError(f"the recording has no {s} data ({method} needs "
+                                  f"{'both sensors' if len(how.sensors) == 2 else 'it'})")
     use, skipped = [], []
     statics = [s for s in rec.segments if s.kind == "static" and s.n >= 3]
-    scalar = method == "accel" and any(s.attitude is None for s in statics)
+    scalar = how.unknown_attitudes and any(s.attitude is None for s in statics)
     for s in rec.segments:
         ok = (s.attitude is not None or scalar) and s.n >= 3
-        if method in ("accel", "align"):
-            ok = ok and s.kind == "static"
-        else:
-            ok = ok and (s.kind == "static" or (s.kind == "rotating"
-                                                and s.table_axis_enu is not None))
+        ok = ok and ((s.kind == "static" and "static" in how.segments)
+                     or (s.kind == "rotating" and "rotating" in how.segments
+                         and s.table_axis_enu is not None))
         (use if ok else skipped).append(s)
-    n_static = sum(s.kind == "static" for s in use)
-    if method == "accel" and n_static < (9 if scalar else 6):
-        raise EstimationError(f"{n_static} static segments{'' if scalar else ' with a known attitude'};"
-                              " the accel base model needs at least "
-                              f"{9 if scalar else 6} positions")
+    _check_needs(how, use, scalar)
     if scalar:
-        return _scalar_problem(rec, use, skipped, bin_s)
-    if method == "align" and n_static < 2:
-        raise EstimationError("the alignment needs at least 2 static positions")
-    if method == "rimu" and len(use) < 4:
-        raise EstimationError(f"{len(use)} segments with a known attitude; the RIMU base model "
-                              "needs at least 4 positions")
-    if method == "turntable" and not any(s.kind == "rotating" for s in use):
-        raise EstimationError("no rotating segment with a table axis and a known start "
-                              "attitude: not a turntable recording")
+        return _scalar_problem(rec, method, use, skipped, bin_s)
     parts, ys = [], {s: [] for s in sensors}
     starts, counts, bin_seg, bounds = [], [], [], []
     fs = rec.sample_rate
@@ -294,7 +279,7 @@ def _scatter(pb: Problem, rec: Recording) -> None:
     pb.sigma_hf = {s: v.copy() for s, v in pb.sigma.items()}
 
 
-def _scalar_problem(rec: Recording, use, skipped, bin_s: float) -> Problem:
+def _scalar_problem(rec: Recording, method: str, use, skipped, bin_s: float) -> Problem:
     """Static positions of unknown attitude: each position's gravity direction is a
     nuisance (two tilt angles), started from the ellipsoid fit of the position means
     (the scalar method's start, lower-triangular K)."""
@@ -336,7 +321,7 @@ def _scalar_problem(rec: Recording, use, skipped, bin_s: float) -> Problem:
         n0 += m
     kin = kn.Kinematics.concatenate(parts)
     y = {"accel": np.concatenate(ys)}
-    pb = Problem("accel", ("accel",), kin, y, np.array(starts), np.array(counts, float),
+    pb = Problem(method, ("accel",), kin, y, np.array(starts), np.array(counts, float),
                  np.array(bin_seg), np.zeros(len(starts)),
                  {"accel": difference_sigma(y["accel"], 2, bounds)}, {},
                  [s.label for s in rec.segments], [s.kind for s in rec.segments],

@@ -22,11 +22,12 @@ contract's order, the effects' descriptions): ``fit --with`` and
 from __future__ import annotations
 
 from calib_cli.data import CalibrationResult, Recording
-from calib_cli.errors import EstimationError
+from calib_cli.errors import EstimationError, InputError
 from calib_cli.methods import diagnose_candidates as dc
 from calib_cli.methods.blas_threads import one_blas_thread
 from calib_cli.methods.diagnose_fit import Fit, ModelSpec, columns, fit_model, settle_noise
 from calib_cli.methods.diagnose_problem import Problem, build_problem
+from calib_cli.methods.method import Method, method_named
 from calib_cli.methods.with_effects import (
     EFFECTS,
     GYRO_EFFECTS,
@@ -51,22 +52,22 @@ def _candidate(pb: Problem, base: str, name: str, sensor: str) -> dc.Candidate:
                           "can take")
 
 
-def effect_lines(pb: Problem | None, method: str, base: str = "full") -> list[dict]:
-    """One entry per effect the method accepts: {"with", "excites", "record",
-    "excited" (None without a record), "why"}."""
+def effect_lines(pb: Problem | None, method, base: str = "full") -> list[dict]:
+    """One entry per effect the method (its name or ``Method``) accepts: {"with",
+    "excites", "record", "excited" (None without a record), "why"}. Without a record:
+    the catalogue's effects on the sensors of the method's ``Diagnose`` description
+    (an effect of the whole unit only where it fits both), less its ``without``."""
     if pb is None:
+        m = method if isinstance(method, Method) else method_named(method)
+        if m.diagnose is None:
+            raise InputError(f"the {m.name} method takes no catalogue effects (--with)")
+        sensors = m.diagnose.with_sensors
         out = []
         for name, fixed in EFFECTS.items():
-            if method == "accel" and fixed in ("gyro", ""):
+            if name in m.diagnose.without or (fixed and fixed not in sensors) \
+                    or (fixed == "" and not {"accel", "gyro"} <= set(sensors)):
                 continue
-            if method == "rimu" and name in ("misalignment", "proof_mass_offsets"):
-                continue
-            if method == "align" and name in ("misalignment", "lever_arm", "proof_mass_offsets",
-                                              "time_offset"):
-                continue
-            if method == "gyro" and name not in GYRO_WITH:
-                continue
-            sens = [fixed] if fixed is not None else list(method_sensors(method))
+            sens = [fixed] if fixed is not None else list(sensors)
             for s in sens:
                 e = make_effect(name, s or "accel")
                 out.append({"with": with_arg(name, s), "excites": e.excites,
@@ -185,7 +186,7 @@ def fit_with(rec: Recording, method: str, effects, base: str = "full", noise: st
                 continue
             cur = add_effect(pb, cur, c)
         pb, cur, r0 = settle_noise(pb, cur, r0)
-        res = calibration_of(pb, cur, method, rec, names, wander,
+        res = calibration_of(pb, cur, pb.method, rec, names, wander,
                              [with_arg(n, s) for n, s in effects], base, initial=r0)
     return res, pb, cur
 

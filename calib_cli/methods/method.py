@@ -200,6 +200,92 @@ class Requires:
     advice: str = ""  # appended to a too-few-positions message
 
 
+@dataclass(frozen=True)
+class AtLeast:
+    """One requirement of a diagnosis on the segments it uses: at least ``n`` of ``kind``
+    ("static", "rotating" or "any"), else EstimationError (exit 4) with ``message``
+    formatted with ``count`` (how many there are). attitudes: "known" (the positions
+    have attitudes), "unknown" (some have none: the scalar problem) or "any"."""
+
+    kind: str
+    n: int
+    message: str
+    attitudes: str = "any"
+
+
+@dataclass(frozen=True)
+class Diagnose:
+    """How ``calib diagnose --method NAME`` sees a method, and ``calib fit NAME --with``
+    where the method's ``with_engine`` is "engine" (docs/architecture.md, "A new fit
+    method").
+
+    engine: "engine" -- the catalogue refit engine of methods/diagnose.py on 0.5 s bin
+    means of the recording (methods/diagnose_problem.py), from the base model below; or
+    a "module:function(rec, base=, alpha=) -> diagnosis" of the method's own (the gyro
+    fit's equations, methods/diagnose_gyro.py).
+    base: "module:function(pb, base) -> (effects, names, mount)": the base model, the
+    fit's own model in catalogue effects (``base``: "full" or "diagonal" scale factors),
+    its names for the JSON, and whether the unit's mount angles are a nuisance.
+    sensors: the data the base model fits, each required; optional_sensors: also fitted
+    where the recording has them. layout: "triad" or "redundant"; wrong_layout: the
+    message for a recording of the other (default: generated from the table).
+    segments: the segment kinds the engine uses ("static"; "rotating": those with a
+    table axis), each with a known attitude and >= 3 samples; unknown_attitudes: static
+    positions without an attitude are taken, each gravity direction a nuisance (the
+    scalar problem). needs: ``AtLeast`` requirements on the segments used.
+    prepare: "module:function(rec) -> (rec, {Problem attribute: value})", the recording
+    before binning (align: each position's attitude from the two-position alignment).
+    misalignment: the structure of the accelerometer misalignment candidate ("lower"
+    where the accelerometers fix the instrument frame). fixed_scale: why the base model
+    has no scale factors ("" where it has). without: catalogue effects the method never
+    takes (left out of ``calib fit NAME --list-effects`` without a record). nuisance:
+    what the base model's nuisance angles are, in a calibration's ``stats.nuisance``.
+    """
+
+    engine: str = "engine"
+    base: Any = None
+    sensors: tuple = ("accel", "gyro")
+    optional_sensors: tuple = ()
+    layout: str = "triad"
+    wrong_layout: str = ""
+    segments: tuple = ("static",)
+    unknown_attitudes: bool = False
+    needs: tuple = ()
+    prepare: Any = None
+    misalignment: str = "full"
+    fixed_scale: str = ""
+    without: tuple = ()
+    nuisance: str = "gravity-direction nuisance of each position (rad)"
+
+    def __post_init__(self):
+        if self.engine == "engine" and self.base is None:
+            raise ValueError("a diagnosis on the refit engine needs its base model (base=)")
+        if self.layout not in ("triad", "redundant"):
+            raise ValueError(f"layout: triad or redundant, got {self.layout!r}")
+
+    @property
+    def own(self) -> bool:
+        """The method's own diagnosis (not the refit engine's bins)."""
+        return self.engine != "engine"
+
+    @property
+    def with_sensors(self) -> tuple:
+        """The sensors an unqualified ``--with`` effect goes to."""
+        return tuple(self.sensors) + tuple(self.optional_sensors)
+
+
+def table() -> dict:
+    """The method table {name: Method}. It sits above the engines that read it
+    (methods/registry.py imports their modules to run them), so they reach it by a
+    "module:attribute" string rather than an import (tests/test_import_cycles.py)."""
+    return resolve("calib_cli.methods.registry:FITS")
+
+
+def method_named(name: str) -> "Method":
+    """The registered method of that name (InputError naming the known ones)."""
+    return resolve("calib_cli.methods.registry:get")(name)
+
+
 class OptionsBase:
     """Base of the options dataclasses generated from a method's ``Option``s: the
     values in the command line's names and units; ``check()`` raises InputError
@@ -242,8 +328,10 @@ class Method:
     records go to this method by default; claims: a "module:function" predicate
     on a Plan for plans of another method's kind this method takes (a static plan
     with turns goes to gyro). with_engine: "engine" (the diagnose engine, methods/
-    fit_with.py), "gyro", "own" (``with_fit(rec, options, effects)``) or None;
-    diagnose: "engine", "gyro" or None. report: modules of report sections.
+    fit_with.py, on the ``diagnose`` description's base model), "gyro", "own"
+    (``with_fit(rec, options, effects)``) or None; diagnose: its ``Diagnose``
+    description (None: ``calib diagnose`` does not take it). report: modules of report
+    sections.
     export: "firmware" (affine triad: every format) or "json" (no firmware tables).
     notes(res) -> lines the command line prints after the fit. prepare(options, rec)
     -> options: fills what the options imply (the gyro fit's accel independence).
@@ -269,7 +357,7 @@ class Method:
     with_effects: tuple = ()  # with_engine "own": the effects its with_fit takes
     with_excluded: dict = field(default_factory=dict)  # effect -> why this method has none
     with_uses: tuple = ()  # options the --with fit uses (the others apply to the plain fit)
-    diagnose: str | None = None
+    diagnose: Diagnose | None = None
     report: tuple = ()
     export: str = "firmware"
     notes: Any = None
@@ -283,6 +371,9 @@ class Method:
     docs: str = ""
 
     def __post_init__(self):
+        if self.with_engine == "engine" and (self.diagnose is None or self.diagnose.own):
+            raise ValueError(f"method {self.name}: with_engine \"engine\" fits the diagnose "
+                             "description's base model (diagnose=Diagnose(base=...))")
         cls = options_class(self.options_name or f"{self.name.capitalize()}Options",
                             tuple(self.options), self.cross_check, self.options_base,
                             f"``calib fit {self.name}``'s options (command line names and units).")

@@ -27,14 +27,23 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from calib_cli.errors import EstimationError, InputError
-from calib_cli.methods.method import FileInput, Method, Option, OptionsBase, Requires, resolve
+from calib_cli.methods.method import (
+    AtLeast,
+    Diagnose,
+    FileInput,
+    Method,
+    Option,
+    OptionsBase,
+    Requires,
+    resolve,
+)
 
 if TYPE_CHECKING:
     from calib_cli.data import CalibrationResult, Recording
 
-__all__ = ["FITS", "FileInput", "Method", "Option", "Requires", "WithRequest", "check_recording",
-           "get", "information", "method_of_plan_kind", "method_of_result", "options_from",
-           "register", "run"]
+__all__ = ["FITS", "AtLeast", "Diagnose", "FileInput", "Method", "Option", "Requires",
+           "WithRequest", "check_recording", "get", "information", "method_of_plan_kind",
+           "method_of_result", "options_from", "register", "run"]
 
 FITS: dict[str, Method] = {}
 
@@ -302,20 +311,20 @@ def information(method: str, rec: Recording, options=None, noise: dict | None = 
 
 def diagnose(method: str, rec: Recording, base: str = "full", alpha: float | None = None,
              noise: str = "auto"):
-    """``calib diagnose --method METHOD``: the method's diagnosis (its ``diagnose``
-    engine: "engine", the catalogue refit engine of methods/diagnose.py on the method's
-    base model; "gyro", the gyro fit's own equations, methods/diagnose_gyro.py)."""
+    """``calib diagnose --method METHOD``: the method's diagnosis as its ``Diagnose``
+    description says (engine "engine": the catalogue refit engine of methods/diagnose.py
+    on the description's base model; else the method's own, e.g. the gyro fit's
+    equations, methods/diagnose_gyro.py). A method without one: InputError (exit 3)."""
     m = get(method)
+    if m.diagnose is None:
+        raise InputError(f"diagnose --method {method}: the {method} method has no diagnosis "
+                         f"(diagnose takes {', '.join(diagnosable())})")
     kw = {} if alpha is None else {"alpha": alpha}
-    if m.diagnose == "engine":
-        from calib_cli.methods.diagnose import diagnose as run_engine
+    if m.diagnose.own:
+        return resolve(m.diagnose.engine)(rec, base=base, **kw)
+    from calib_cli.methods.diagnose import diagnose as run_engine
 
-        return run_engine(rec, method, base=base, noise=noise, **kw)
-    if m.diagnose == "gyro":
-        from calib_cli.methods.diagnose_gyro import diagnose_gyro
-
-        return diagnose_gyro(rec, base=base, **kw)
-    raise EstimationError(f"diagnose --method {method}: the {method} method has no diagnosis")
+    return run_engine(rec, m, base=base, noise=noise, **kw)
 
 
 def diagnosable() -> list[str]:
@@ -508,7 +517,14 @@ register(Method(
                                       "scalar": {"method": "scalar"}},
     variant_of=_accel_variant,
     result_names=("vector", "scalar"), plan_candidates="calib_cli.design:position_candidates",
-    with_engine="engine", diagnose="engine", report=("calib_cli.report.sections_static",),
+    with_engine="engine", report=("calib_cli.report.sections_static",),
+    diagnose=Diagnose(
+        base="calib_cli.methods.diagnose_models:accel_base", sensors=("accel",),
+        unknown_attitudes=True,
+        needs=(AtLeast("static", 6, "{count} static segments with a known attitude; the "
+                       "accel base model needs at least 6 positions", attitudes="known"),
+               AtLeast("static", 9, "{count} static segments; the accel base model needs at "
+                       "least 9 positions", attitudes="unknown"))),
     options_name="AccelOptions", docs="docs/accel.md"))
 
 register(Method(
@@ -551,7 +567,10 @@ register(Method(
     screen="after", information=lambda rec, o, noise, like: _fit_gyro(rec, o, noise),
     plan_kinds=("static",), claims=_has_turns, prepare=_prepare_gyro, notes=_notes_gyro,
     with_uses=("accel", "accel_independent"), plan_candidates="calib_cli.design:gyro_candidates",
-    with_engine="gyro", diagnose="gyro", report=("calib_cli.report.sections_gyro",),
+    with_engine="gyro", report=("calib_cli.report.sections_gyro",),
+    # its own diagnosis: the gyro fit's equations (a table-free record has no per-sample
+    # truth for the rates, so the bin engine does not apply)
+    diagnose=Diagnose("calib_cli.methods.diagnose_gyro:diagnose_gyro", sensors=("gyro",)),
     options_name="GyroOptions", docs="docs/gyro.md"))
 
 register(Method(
@@ -583,7 +602,15 @@ register(Method(
     information=lambda rec, o, noise, like: _fit_align(rec, o, noise),
     plan_kinds=("align",), result_names=("align-classic",), notes=_notes_align,
     plan_candidates="calib_cli.design:align_candidates",
-    with_engine="engine", with_excluded=ENGINE_EXCLUDED, diagnose="engine",
+    with_engine="engine", with_excluded=ENGINE_EXCLUDED,
+    diagnose=Diagnose(
+        base="calib_cli.methods.diagnose_models:align_base",
+        prepare="calib_cli.methods.diagnose_models:align_positions",
+        needs=(AtLeast("static", 2, "the alignment needs at least 2 static positions"),),
+        fixed_scale="the alignment takes K as the identity (a navigation-grade unit): scale "
+                    "and misalignment are not estimated from two positions",
+        without=("misalignment", "lever_arm", "proof_mass_offsets", "time_offset"),
+        nuisance="attitude correction (rotation of the navigation frame, rad)"),
     report=("calib_cli.report.sections_align_rimu",), options_name="AlignOptions",
     docs="docs/align.md"))
 
@@ -594,7 +621,16 @@ register(Method(
     information=lambda rec, o, noise, like: _fit_rimu(rec, o, noise),
     plan_kinds=("rimu",), plan_candidates="calib_cli.design:position_candidates",
     with_engine="engine", with_excluded=ENGINE_EXCLUDED,
-    diagnose="engine", report=("calib_cli.report.sections_align_rimu",), export="json",
+    diagnose=Diagnose(
+        base="calib_cli.methods.diagnose_models:rimu_base", sensors=("accel",),
+        optional_sensors=("gyro",), layout="redundant",
+        wrong_layout="--method rimu needs a redundant-unit recording (plan kind \"rimu\" "
+                     "with a [rimu] geometry)",
+        segments=("static", "rotating"),
+        needs=(AtLeast("any", 4, "{count} segments with a known attitude; the RIMU base "
+                       "model needs at least 4 positions"),),
+        without=("misalignment", "proof_mass_offsets")),
+    report=("calib_cli.report.sections_align_rimu",), export="json",
     options_name="RimuOptions", docs="docs/rimu.md"))
 
 register(Method(
@@ -643,7 +679,12 @@ register(Method(
     # the prediction keeps the turntable engineer's code path (issue 32 rewrites it)
     information="calib_cli.design:turntable_information",
     plan_kinds=("turntable",), plan_candidates="calib_cli.design:turntable_candidates",
-    notes=_notes_turntable, with_engine="engine", diagnose="engine",
+    notes=_notes_turntable, with_engine="engine",
+    diagnose=Diagnose(
+        base="calib_cli.methods.diagnose_models:turntable_base", segments=("static", "rotating"),
+        needs=(AtLeast("rotating", 1, "no rotating segment with a table axis and a known "
+                       "start attitude: not a turntable recording"),),
+        misalignment="lower", nuisance="mount angles of the unit on the table (rad)"),
     report=("calib_cli.report.sections_turntable",), options_base=TurntableOptionsBase,
     options_name="TurntableFitOptions",
     cli_outputs=((Option("plot", None, "Write the sigma history of the lever arms and "

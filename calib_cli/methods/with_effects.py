@@ -13,6 +13,7 @@ from calib_cli.data import CalibrationResult, Recording
 from calib_cli.methods import result as _result
 from calib_cli.methods.diagnose_fit import MOUNT_KEY, Fit
 from calib_cli.methods.diagnose_problem import Problem
+from calib_cli.methods.method import method_named
 from calib_cli.model.correction import correct
 from calib_cli.model.effects import TEMP_REF_C, make_effect
 
@@ -34,7 +35,10 @@ GYRO_WITH = GYRO_EFFECTS + WANDERS
 
 
 def method_sensors(method: str) -> tuple:
-    return {"accel": ("accel",), "gyro": ("gyro",)}.get(method, ("accel", "gyro"))
+    """The sensors an unqualified ``--with`` effect goes to: those of the method's
+    ``Diagnose`` description in the method table (both where it has none)."""
+    how = method_named(method).diagnose
+    return how.with_sensors if how is not None else ("accel", "gyro")
 
 
 def gyro_effect(name: str):
@@ -151,10 +155,7 @@ def calibration_of(pb: Problem, fit: Fit, method: str, rec: Recording | None, ba
         stats["residual_rms_initial_noise_units"] = float(np.sqrt(np.mean(initial.r ** 2)))
     stats["chi2_dof"] = float(fit.chi2 / max(n - fit.n_free, 1))
     if fit.mount is not None and len(fit.mount):
-        what = {"align": "attitude correction (rotation of the navigation frame, rad)",
-                "turntable": "mount angles of the unit on the table (rad)"}.get(
-            method, "gravity-direction nuisance of each position (rad)")
-        stats["nuisance"] = {"what": what, "values": np.asarray(fit.mount, float).tolist(),
+        stats["nuisance"] = {"what": pb.how.nuisance, "values": np.asarray(fit.mount, float).tolist(),
                              "sigma": np.asarray(fit.sigma.get(MOUNT_KEY, []), float).tolist()}
     if wander:
         stats["noise_model"] = {

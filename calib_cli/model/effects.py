@@ -41,7 +41,9 @@ class Excitation:
     accel_levels: the most distinct specific-force levels (0.05 g apart) on one
     accelerometer axis; gyro_both_signs: some gyro axis turned both ways;
     temp_span: degC spanned by the recorded temperature (None: none recorded);
-    n_bins: 0.5 s bins; base: "full" or "diagonal" (the base model's K)."""
+    n_bins: 0.5 s bins; base: "full" or "diagonal" (the base model's K); fixed_scale:
+    why the method's base model has no scale factors ("" where it has: its ``Diagnose``
+    description, methods/method.py)."""
 
     method: str = "accel"
     sensors: tuple = ("accel",)
@@ -53,6 +55,7 @@ class Excitation:
     rotating: bool = False
     redundant: bool = False
     gravity_3d: bool = True  # static positions with gravity directions spanning 3-D
+    fixed_scale: str = ""  # why the method's base model has no scale factors (K = I)
 
 
 _NEEDS_ROTATION = "needs rotation (a turntable): the experiment has only static positions"
@@ -339,9 +342,8 @@ class Misalignment(Effect):
     record = "inputs along every axis, and fit with --base diagonal"
 
     def not_excited(self, ex):
-        if ex.method == "align":
-            return ("the alignment takes K as the identity (a navigation-grade unit): scale "
-                    "and misalignment are not estimated from two positions")
+        if ex.fixed_scale:
+            return ex.fixed_scale
         if ex.redundant:
             return ("a redundant unit's base model has each sensor's direction (dEl, dAz): "
                     "there is no triad misalignment")
