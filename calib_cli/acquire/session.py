@@ -108,6 +108,8 @@ class Session:
     # -- reader thread -------------------------------------------------------
     def _read_loop(self) -> None:
         can = self.prof.format == "can"
+        outage = False  # lost, and no frame since: a port that flaps while the device
+        # is away is one disconnect, not one per failed reopen
         while not self._stop.is_set():
             try:
                 if can:
@@ -117,7 +119,9 @@ class Session:
                 else:
                     items = self.decoder.feed(self.transport.read())
             except TransportLost:
-                self.stream.mark_disconnect()
+                if not outage:
+                    self.stream.mark_disconnect()
+                outage = True
                 self.decoder.buf = bytearray() if not can else self.decoder.buf
                 if not self.transport.reconnect(self.cfg.reconnect_s, self._stop):
                     if not self._stop.is_set():
@@ -128,6 +132,7 @@ class Session:
                 self.error = f"reader failed: {type(exc).__name__}: {exc}"
                 return
             rows = self.stream.push(items, time.monotonic())
+            outage = outage and not items
             if len(rows):
                 with self._lock:
                     self._queue.append(rows)
