@@ -8,11 +8,11 @@ that take seconds; `make validate K=diagnose_sizes` all of them."""
 
 from __future__ import annotations
 
-import random
-import re
 from pathlib import Path
 
 import pytest
+
+from tests.hand_plans import rimu18_plan
 
 ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("accel", "gyro", "align", "turntable", "rimu")
@@ -50,16 +50,7 @@ def _cli(*args):
 
 
 def _rimu18(path: Path) -> None:
-    text = (ROOT / "sample_data" / "plans" / "rimu.toml").read_text()
-    head, segs = text.split("[[segment]]", 1)
-    blocks = ["[[segment]]" + b for b in ("[[segment]]" + segs).split("[[segment]]")[1:]]
-    rng = random.Random(4)
-    text = head + "".join(b.replace('label = "', f'label = "r{k}-') for k in range(3)
-                          for b in blocks)
-    text = re.sub(r"attitude_deg = \[[^\]]*\]", lambda m: (
-        f"attitude_deg = [{rng.uniform(-170, 170):.1f}, {rng.uniform(-80, 80):.1f}, "
-        f"{rng.uniform(-170, 170):.1f}]"), text)
-    path.write_text(text.replace("duration_s = 10.0", "duration_s = 3.0"))
+    path.write_text(rimu18_plan())
 
 
 @pytest.fixture(scope="module")

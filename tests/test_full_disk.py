@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.hand_plans import six_position_plan
+
 ROOT = Path(__file__).resolve().parents[1]
 SIZES = {"0B": 0, "4kB": 4 << 10, "20kB": 20 << 10, "300kB": 300 << 10, "3MB": 3 << 20}
 
@@ -26,21 +28,7 @@ pytestmark = pytest.mark.skipif(
     not hasattr(os, "geteuid") or os.geteuid() != 0 or shutil.which("mount") is None,
     reason="mounting a tmpfs needs root")
 
-PLAN = """name = "fd"
-kind = "static"
-sample_rate_hz = 100.0
-transition_s = 1.0
-[site]
-latitude_deg = 50.45
-height_m = 180.0
-[unit]
-serial = "SN-FULL"
-""" + "".join(f"""[[segment]]
-label = "{lab}"
-attitude_deg = {att}
-duration_s = 25.0
-""" for lab, att in (("x-up", [0, -90, 0]), ("x-down", [0, 90, 0]), ("y-up", [90, 0, 0]),
-                     ("y-down", [-90, 0, 0]), ("z-up", [0, 0, 0]), ("z-down", [180, 0, 0])))
+PLAN = six_position_plan("fd", "SN-FULL", rate_hz=100.0, duration_s=25.0)
 
 _DRIVER = r'''
 import contextlib, io, json, os, subprocess, sys, time

@@ -39,26 +39,14 @@ import h5py
 import numpy as np
 import pytest
 
+from tests.hand_plans import six_position_plan
+
 ROOT = Path(__file__).resolve().parents[1]
 SEED = int(os.environ.get("FUZZ37_SEED", "37"))
 KINDS = ("plan", "csv", "raw", "cal", "tolerance", "profile")
 CONTRACT_EXITS = {0, 1, 2, 3, 4, 5, 6}
 
-PLAN = """name = "fz"
-kind = "static"
-sample_rate_hz = 50.0
-transition_s = 1.0
-[site]
-latitude_deg = 50.45
-height_m = 180.0
-[unit]
-serial = "SN-FZ"
-""" + "".join(f"""[[segment]]
-label = "{lab}"
-attitude_deg = {att}
-duration_s = 3.0
-""" for lab, att in (("x-up", [0, -90, 0]), ("x-down", [0, 90, 0]), ("y-up", [90, 0, 0]),
-                     ("y-down", [-90, 0, 0]), ("z-up", [0, 0, 0]), ("z-down", [180, 0, 0])))
+PLAN = six_position_plan("fz", "SN-FZ")
 
 TRUTH = """[params]
 accel_bias = [0.05, -0.03, 0.08]

@@ -17,24 +17,11 @@ import numpy as np
 import pytest
 
 from calib_cli.io.h5 import read_calibration, write_calibration
+from tests.hand_plans import rimu18_plan, six_position_plan
 
 ROOT = Path(__file__).resolve().parents[1]
 
-PLAN = """name = "six"
-kind = "static"
-sample_rate_hz = 50.0
-transition_s = 1.0
-[site]
-latitude_deg = 50.45
-height_m = 180.0
-[unit]
-serial = "SN-37"
-""" + "".join(f"""[[segment]]
-label = "{lab}"
-attitude_deg = {att}
-duration_s = 3.0
-""" for lab, att in (("x-up", [0, -90, 0]), ("x-down", [0, 90, 0]), ("y-up", [90, 0, 0]),
-                     ("y-down", [-90, 0, 0]), ("z-up", [0, 0, 0]), ("z-down", [180, 0, 0])))
+PLAN = six_position_plan("six", "SN-37")
 
 
 def _cli(*args):
@@ -295,20 +282,7 @@ def test_9_plan_values_typed(base, run_cli, tmp_path, bad):
 
 
 def test_11_rimu_diagnose_with_18_rotating_segments(run_cli, tmp_path):
-    import random
-    import re
-
-    text = (ROOT / "sample_data" / "plans" / "rimu.toml").read_text()
-    head, segs = text.split("[[segment]]", 1)
-    blocks = ["[[segment]]" + b for b in ("[[segment]]" + segs).split("[[segment]]")[1:]]
-    rng = random.Random(4)
-    text = head + "".join(b.replace('label = "', f'label = "r{k}-') for k in range(3)
-                          for b in blocks)
-    text = re.sub(r"attitude_deg = \[[^\]]*\]", lambda m: (
-        f"attitude_deg = [{rng.uniform(-170, 170):.1f}, {rng.uniform(-80, 80):.1f}, "
-        f"{rng.uniform(-170, 170):.1f}]"), text)
-    text = text.replace("duration_s = 10.0", "duration_s = 3.0")
-    (tmp_path / "p.toml").write_text(text)
+    (tmp_path / "p.toml").write_text(rimu18_plan())
     assert run_cli("-q", "simulate", tmp_path / "p.toml", "--out", tmp_path / "r.h5",
                    "--seed", "2")[0] == 0
     code, _, err = run_cli("-q", "diagnose", tmp_path / "r.h5", "--method", "rimu", "--out",
