@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib_cli.model.effects import INPUT
 from calib_cli.model.imu_model import ImuModel
 from calib_cli.model.kinematics import Kinematics
 
@@ -34,6 +35,8 @@ def correct(model: ImuModel, params: dict, sensor: str, y: np.ndarray,
     """
     y = np.asarray(y, dtype=float)
     n = len(y)
+    # the rate-dependent input effects add nothing at the zero rates evaluated here
+    model = ImuModel(tuple(e for e in model.effects if e.stage != INPUT), model.layout)
     T = _transfer(model, params, sensor)
     Tinv = np.linalg.inv(T)
     zeros = np.zeros((n, 3))

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calib_cli.geometry import Layout  # noqa: F401  (defined in the base layer; re-exported)
+from calib_cli.model.frames import skew
 from calib_cli.model.kinematics import Kinematics, rigid_accel
 
 SHIFT, INPUT, TRANSFER, CORRECTION, ADDITIVE, STOCHASTIC = range(6)
@@ -169,6 +170,40 @@ class Effect:
     def apply(self, p: dict, ctx: ApplyContext) -> None:
         """Add this effect's contribution to ctx (in place)."""
 
+    # -- derivatives (model/jacobian.py). An effect that has them sets has_derivatives;
+    # for one that has not (a time shift, a RIMU installation) the Jacobian takes central
+    # differences of the forward model. ``linear_in_kinematics``: the effect's output is
+    # linear in the kinematics (specific force, rates, the centripetal operator), so its
+    # mean over an interval is its value at the interval's mean kinematics; False for
+    # terms such as u^2 or |u|, which an interval's mean input does not give.
+    has_derivatives = False
+    linear_in_kinematics = True
+
+    def d_param(self, p: dict, ctx: ApplyContext, key: str, flats) -> np.ndarray:
+        """The derivative of this effect's stage output by the entries ``flats`` (flat
+        indices) of its parameter ``key``: (N, n, len(flats)) of y (TRANSFER: of the
+        transfer output); INPUT effects return (dF (N, n, 3, k), df_ref (N, 3, k) or None)."""
+        raise NotImplementedError
+
+    def gain(self, p: dict, ctx: ApplyContext) -> np.ndarray | None:
+        """TRANSFER: d y_i / d F_i (N, n, 3) (or (n, 3)); CORRECTION: what the term adds to
+        it; None: nothing."""
+        return None
+
+    def transfer_gain(self, p: dict, ctx: ApplyContext) -> np.ndarray | None:
+        """CORRECTION: d(term) / d y_transfer (N, n), for a term on the transfer output."""
+        return None
+
+    def d_fref(self, p: dict, ctx: ApplyContext) -> np.ndarray | None:
+        """ADDITIVE: d(term) / d f_ref (N, n, 3) (or (n, 3)), the specific force at the
+        reference point (g-sensitivity)."""
+        return None
+
+    def d_kin(self, p: dict, ctx: ApplyContext, name: str):
+        """INPUT: (dF, df_ref) by a kinematics input: "cen" (N, n, 3, 3, 3) and (N, 3, 3, 3),
+        "dw" and "w" (N, n, 3, 3) and (N, 3, 3); df_ref None where f_ref does not move."""
+        return None, None
+
     def realisation(self, p: dict, layout: Layout, fs: float, seed: int):
         """The stateful noise realisation of a stochastic effect: ``r.next(kin)`` gives
         the next len(kin) samples (N, n), drawn as a function of the sample index and
@@ -224,8 +259,16 @@ class Bias(Effect):
                           0.05 if acc else 5e-3,
                           display=_ACC_DISPLAY if acc else _GYR_DISPLAY)]
 
+    has_derivatives = True
+
     def apply(self, p, ctx):
         ctx.y = ctx.y + p[self._key("bias")]
+
+    def d_param(self, p, ctx, key, flats):
+        out = np.zeros((len(ctx.kin), ctx.layout.n, len(flats)))
+        for q, i in enumerate(flats):
+            out[:, i, q] = 1.0
+        return out
 
 
 @dataclass(frozen=True)
@@ -254,8 +297,20 @@ class GSensitivity(Effect):
         return [ParamSpec("gyro_D", (layout.n, 3), "(rad/s)/(m/s^2)", 1e-4,
                           display=(180 / np.pi * 3600 * 9.80665, "deg/h/g"))]
 
+    has_derivatives = True
+
     def apply(self, p, ctx):
         ctx.y = ctx.y + ctx.f_ref @ p["gyro_D"].T
+
+    def d_param(self, p, ctx, key, flats):
+        out = np.zeros((len(ctx.kin), ctx.layout.n, len(flats)))
+        for q, flat in enumerate(flats):
+            a, b = divmod(int(flat), 3)
+            out[:, a, q] = ctx.f_ref[:, b]
+        return out
+
+    def d_fref(self, p, ctx):
+        return np.asarray(p["gyro_D"], float)
 
 
 # ---------------------------------------------------------------------------
@@ -292,9 +347,17 @@ class ScaleMisalignment(Effect):
         return [ParamSpec(self._key("K"), (3, 3), "-", 3e-3, identity=True,
                           fixed=_k_mask(self.structure), display=(1.0, ""))]
 
+    has_derivatives = True
+
     def apply(self, p, ctx):
         K = p[self._key("K")]
         ctx.y = np.einsum("ij,nij->ni", K, ctx.F)
+
+    def d_param(self, p, ctx, key, flats):
+        return _matrix_columns(ctx, flats)
+
+    def gain(self, p, ctx):
+        return np.asarray(p[self._key("K")], float)
 
 
 @dataclass(frozen=True)
@@ -358,8 +421,16 @@ class Misalignment(Effect):
             fixed = fixed | np.triu(np.ones((3, 3), bool), 1)
         return [ParamSpec(self._key("misalignment"), (3, 3), "-", 2e-3, fixed=fixed)]
 
+    has_derivatives = True
+
     def apply(self, p, ctx):
         ctx.y = ctx.y + np.einsum("ij,nij->ni", p[self._key("misalignment")], ctx.F)
+
+    def d_param(self, p, ctx, key, flats):
+        return _matrix_columns(ctx, flats)
+
+    def gain(self, p, ctx):
+        return np.asarray(p[self._key("misalignment")], float)
 
 
 @dataclass(frozen=True)
@@ -388,8 +459,18 @@ class Nonlinearity(Effect):
                           "1/(m/s^2)" if acc else "1/(rad/s)", 5e-5 if acc else 1e-3,
                           display=(9.80665 * 1e6, "ug/g^2") if acc else (1.0, ""))]
 
+    has_derivatives = True
+    linear_in_kinematics = False
+
     def apply(self, p, ctx):
         ctx.y = ctx.y + p[self._key("nonlinearity")] * ctx.u**2
+
+    def d_param(self, p, ctx, key, flats):
+        return _channel_columns(ctx, flats, ctx.u**2)
+
+    def gain(self, p, ctx):
+        k2 = np.asarray(p[self._key("nonlinearity")], float)
+        return (2.0 * k2 * ctx.u)[:, :, None] * ctx.layout.axes()[None]
 
 
 @dataclass(frozen=True)
@@ -431,8 +512,18 @@ class ScaleAsymmetry(Effect):
         return [ParamSpec(self._key("scale_asymmetry"), (layout.n,), "-", 5e-4,
                           display=(1e6, "ppm"))]
 
+    has_derivatives = True
+    linear_in_kinematics = False
+
     def apply(self, p, ctx):
         ctx.y = ctx.y + p[self._key("scale_asymmetry")] * np.abs(ctx.u)
+
+    def d_param(self, p, ctx, key, flats):
+        return _channel_columns(ctx, flats, np.abs(ctx.u))
+
+    def gain(self, p, ctx):
+        a = np.asarray(p[self._key("scale_asymmetry")], float)
+        return (a * np.sign(ctx.u))[:, :, None] * ctx.layout.axes()[None]
 
 
 def temp_poly(coef: np.ndarray, dT: np.ndarray) -> np.ndarray:
@@ -491,6 +582,8 @@ class TemperatureDrift(Effect):
                 ParamSpec(self._key("temp_scale"), shape, "1/degC^k", 1e-4,
                           display=(1e6, "ppm/degC^k"))]
 
+    has_derivatives = True
+
     def apply(self, p, ctx):
         if ctx.kin.temp is None:
             return
@@ -498,6 +591,31 @@ class TemperatureDrift(Effect):
         base = ctx.u if self.scale_on == "input" else ctx.y_transfer
         ctx.y = ctx.y + temp_poly(p[self._key("temp_bias")], dT) + \
             temp_poly(p[self._key("temp_scale")], dT) * base
+
+    def d_param(self, p, ctx, key, flats):
+        out = np.zeros((len(ctx.kin), ctx.layout.n, len(flats)))
+        if ctx.kin.temp is None:
+            return out
+        dT = np.asarray(ctx.kin.temp, dtype=float) - self.temp_ref
+        base = ctx.u if self.scale_on == "input" else ctx.y_transfer
+        for q, flat in enumerate(flats):
+            i, k = divmod(int(flat), self.order)
+            out[:, i, q] = dT ** (k + 1) * (base[:, i] if key == self._key("temp_scale") else 1.0)
+        return out
+
+    def _scale(self, p, ctx):
+        dT = np.asarray(ctx.kin.temp, dtype=float) - self.temp_ref
+        return temp_poly(p[self._key("temp_scale")], dT)
+
+    def gain(self, p, ctx):
+        if ctx.kin.temp is None or self.scale_on != "input":
+            return None
+        return self._scale(p, ctx)[:, :, None] * ctx.layout.axes()[None]
+
+    def transfer_gain(self, p, ctx):
+        if ctx.kin.temp is None or self.scale_on == "input":
+            return None
+        return self._scale(p, ctx)
 
 
 def lag_temperature(t: np.ndarray, temp: np.ndarray, tau: float) -> np.ndarray:
@@ -554,6 +672,57 @@ def lever_arm_per_sample(p: dict, kin: Kinematics) -> np.ndarray:
     return out
 
 
+def rigid_operator(kin: Kinematics, tangential: bool = True) -> np.ndarray:
+    """d(rigid-body acceleration at r)/dr (N, 3, 3): the centripetal operator (``kin.cen``,
+    else [w x]^2) plus [dw x] (tangential)."""
+    if kin.cen is not None:
+        C = np.array(kin.cen, dtype=float)
+    else:
+        w = np.asarray(kin.w, float)
+        C = w[:, :, None] * w[:, None, :] - np.einsum("ni,ni->n", w, w)[:, None, None] * np.eye(3)
+    if tangential:
+        C = C + skew(kin.dw)
+    return C
+
+
+def rigid_input_derivative(kin: Kinematics, r: np.ndarray, name: str,
+                           tangential: bool = True) -> np.ndarray | None:
+    """d(rigid-body acceleration at r (N, 3))/d(kinematics input ``name``): "cen" (N, 3, 3, 3)
+    [component, a, b] (the operator's entry (a, b)), "dw" (N, 3, 3), "w" (N, 3, 3) (where
+    the rows carry no ``cen``), None for an input it does not depend on."""
+    n = len(kin)
+    if name == "cen" and kin.cen is not None:
+        out = np.zeros((n, 3, 3, 3))
+        for a in range(3):
+            out[:, a, a, :] = r
+        return out
+    if name == "dw":
+        return -skew(r) if tangential else np.zeros((n, 3, 3))
+    if name == "w" and kin.cen is None:
+        w = np.asarray(kin.w, float)
+        wr = np.einsum("ni,ni->n", w, r)
+        return (wr[:, None, None] * np.eye(3) + w[:, :, None] * r[:, None, :]
+                - 2.0 * r[:, :, None] * w[:, None, :])
+    return None
+
+
+def _matrix_columns(ctx: ApplyContext, flats) -> np.ndarray:
+    """d(sum_j M_ij F_ij)/d M_ab = F_ab in channel a: (N, n, len(flats))."""
+    out = np.zeros((len(ctx.kin), ctx.layout.n, len(flats)))
+    for q, flat in enumerate(flats):
+        a, b = divmod(int(flat), 3)
+        out[:, a, q] = ctx.F[:, a, b]
+    return out
+
+
+def _channel_columns(ctx: ApplyContext, flats, values: np.ndarray) -> np.ndarray:
+    """d(c_i v_i)/d c_i = v_i in channel i: (N, n, len(flats))."""
+    out = np.zeros((len(ctx.kin), ctx.layout.n, len(flats)))
+    for q, i in enumerate(flats):
+        out[:, int(i), q] = values[:, int(i)]
+    return out
+
+
 @dataclass(frozen=True)
 class LeverArm(Effect):
     """Offset s of the unit's reference point from the table axis, one row per
@@ -581,11 +750,31 @@ class LeverArm(Effect):
         return [ParamSpec("lever_arm", (layout.n_cycles, 3), "m", 0.1,
                           display=(1e3, "mm"))]
 
+    has_derivatives = True
+
     def apply(self, p, ctx):
         s = lever_arm_per_sample(p, ctx.kin)
         df = rigid_accel(ctx.kin, s, self.tangential)
         ctx.F = ctx.F + df[:, None, :]
         ctx.f_ref = ctx.f_ref + df
+
+    def d_param(self, p, ctx, key, flats):
+        n = ctx.layout.n
+        C = rigid_operator(ctx.kin, self.tangential)  # d(rigid accel)/d(position), (N, 3, 3)
+        cyc = ctx.kin.cycle if ctx.kin.cycle is not None else np.full(len(ctx.kin), -1)
+        dref = np.zeros((len(ctx.kin), 3, len(flats)))
+        for q, flat in enumerate(flats):
+            c, k = divmod(int(flat), 3)
+            on = cyc == c
+            dref[on, :, q] = C[on, :, k]
+        return np.repeat(dref[:, None], n, axis=1), dref
+
+    def d_kin(self, p, ctx, name):
+        s = lever_arm_per_sample(p, ctx.kin)
+        d = rigid_input_derivative(ctx.kin, s, name, self.tangential)
+        if d is None:
+            return None, None
+        return np.repeat(d[:, None], ctx.layout.n, axis=1), d
 
 
 @dataclass(frozen=True)
@@ -616,10 +805,28 @@ class ProofMassOffsets(Effect):
         return [ParamSpec("proof_mass_offsets", (3, 3), "m", 5e-3,
                           fixed=np.eye(3, dtype=bool), display=(1e3, "mm"))]
 
+    has_derivatives = True
+
     def apply(self, p, ctx):
         P = p["proof_mass_offsets"]
         for i in range(3):
             ctx.F[:, i, :] += rigid_accel(ctx.kin, P[i], self.tangential)
+
+    def d_param(self, p, ctx, key, flats):
+        C = rigid_operator(ctx.kin, self.tangential)
+        out = np.zeros((len(ctx.kin), ctx.layout.n, 3, len(flats)))
+        for q, flat in enumerate(flats):
+            a, b = divmod(int(flat), 3)
+            out[:, a, :, q] = C[:, :, b]
+        return out, None
+
+    def d_kin(self, p, ctx, name):
+        P = np.asarray(p["proof_mass_offsets"], float)
+        parts = [rigid_input_derivative(ctx.kin, np.broadcast_to(P[i], (len(ctx.kin), 3)), name,
+                                        self.tangential) for i in range(3)]
+        if parts[0] is None:
+            return None, None
+        return np.stack(parts, axis=1), None
 
 
 def shift_kinematics(kin: Kinematics, tau: float) -> Kinematics:

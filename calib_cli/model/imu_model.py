@@ -5,6 +5,7 @@ residuals and the discrepancy workflow."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,6 +24,9 @@ from calib_cli.model.effects import (
     shift_kinematics,
 )
 from calib_cli.model.kinematics import Kinematics
+
+if TYPE_CHECKING:
+    from calib_cli.model.jacobian import Linearisation  # noqa: F401
 
 SENSORS = ("accel", "gyro")
 
@@ -79,12 +83,14 @@ class ImuModel:
 
         params: parameter arrays by key (missing keys take neutral values).
         """
-        p = self.neutral_params()
-        p.update({k: np.asarray(v, dtype=float) for k, v in params.items()})
-        if self.has("time_offset"):
-            kin = shift_kinematics(kin, float(p["time_offset"]))
-        if self.has("thermal_lag") and kin.temp is not None:
-            kin = kin.with_(temp=lag_temperature(kin.t, kin.temp, float(p["thermal_lag_tau"])))
+        return {s: ctx.y for s, ctx in self.forward(params, kin, sensors).items()}
+
+    def forward(self, params: dict, kin: Kinematics, sensors=SENSORS) -> dict[str, ApplyContext]:
+        """The forward pass of ``predict``, each sensor's working state kept
+        (``ApplyContext``: input vectors F, inputs u, transfer output, output y):
+        ``jacobian`` differentiates through it."""
+        p = self.full_params(params)
+        kin = self.shifted(p, kin)
         # the lever arm also moves the point whose specific force the gyros' D sees
         acc_ctx = None
         out = {}
@@ -111,8 +117,31 @@ class ImuModel:
             if sensor == "accel":
                 acc_ctx = ctx
             if sensor in sensors:
-                out[sensor] = ctx.y
+                out[sensor] = ctx
         return out
+
+    def full_params(self, params: dict) -> dict[str, np.ndarray]:
+        """Every parameter of the model: ``params`` over the neutral values."""
+        p = self.neutral_params()
+        p.update({k: np.asarray(v, dtype=float) for k, v in params.items()})
+        return p
+
+    def shifted(self, p: dict, kin: Kinematics) -> Kinematics:
+        """The kinematics the sensors see after the SHIFT effects (time offset, thermal lag)."""
+        if self.has("time_offset"):
+            kin = shift_kinematics(kin, float(p["time_offset"]))
+        if self.has("thermal_lag") and kin.temp is not None:
+            kin = kin.with_(temp=lag_temperature(kin.t, kin.temp, float(p["thermal_lag_tau"])))
+        return kin
+
+    def jacobian(self, params: dict, kin: Kinematics, sensor: str, columns=(),
+                 inputs=()) -> "Linearisation":
+        """The prediction of one sensor and its derivatives (model/jacobian.py): by the
+        parameter entries ``columns`` [(key, flat index)] and by the kinematics
+        ``inputs`` ("f", "w", "dw", "cen")."""
+        from calib_cli.model.jacobian import linearise
+
+        return linearise(self, params, kin, sensor, columns, inputs)
 
     def realise_noise(self, params: dict, kin: Kinematics, rng) -> dict[str, np.ndarray]:
         """Random realisations of the stochastic effects (bias random walk,

@@ -1,0 +1,260 @@
+"""The rotating-table estimator: Gauss-Newton on the whole record (every block's attitude
+and the parameters), from a start grown window by window.
+
+The likelihood is that of the error-state Kalman filter of the unit on the table (the
+attitude propagated with the corrected gyros and walking with their noise, the
+accelerometers' block means, the table axis, the table's channels), solved as a batch:
+each pass linearises every row about the current trajectory and parameters and solves
+for both (solve.py). For constant parameters its covariance is the filter's final one.
+
+Start: the neutral unit with coarse lever arms from the holds, each cycle's attitude
+from the plan's mounting turned to the first block's gravity; the first ``START_S``
+seconds of every cycle are fitted first, then the windows double, the trajectory
+propagated into each new part with the current estimate, until they span the cycles;
+then the passes over the whole record until no parameter moves by more than
+``converge_sigma`` of its sigma (exit 4 naming what still moves when ``passes`` do not
+get there).
+
+Noise: the accelerometers' and gyros' white noise from the data's third differences; the
+table axis's per-block noise and the angle channel's reading noise from the rows'
+residuals between passes (sum r^2 / (n - trace of the hat matrix): what the fit takes
+out of them counted), from a loose start."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from calib_cli.errors import EstimationError
+from calib_cli.methods.turntable import setup as su
+from calib_cli.methods.turntable.blocks import accel_rows, gyro_part
+from calib_cli.methods.turntable.rows import ACC, AXIS, ENC, RATE, cycle_system, propagate
+from calib_cli.methods.turntable.solve import leverage, residuals_after, set_weight, solve
+from calib_cli.model.strapdown import exp_matrix
+
+START_S = 20.0  # s: the first window of every cycle
+STAGE_PASSES = 3  # the most passes per start window
+AXIS_START = 1e-3  # rad: the table axis's noise the start assumes (a rough stand's)
+AXIS_CAP = 2e-2
+AXIS_FLOOR = 1e-5
+# the floor is at most this fraction of the attitude's random walk over one block: an axis
+# noise assumed far above that walk while the true one is below it makes every sigma the
+# axis carries too wide (issue 22)
+AXIS_FLOOR_WALK = 0.5
+NOISE_MOVE = np.log(1.2)  # a noise level that moves by less than 20 % is settled
+
+
+@dataclass
+class Problem:
+    """Everything a pass needs: the recording, its cycles, the model and parameter map,
+    the columns of each sensor, the channels and the noise."""
+
+    rec: object
+    cycles: list
+    model: object
+    pm: su.ParamMap
+    opt: object
+    block_n: int
+    nb: list  # blocks per cycle
+    gyro_cols: list
+    gyro_idx: np.ndarray
+    acc_cols: list
+    acc_idx: np.ndarray
+    sig_a: np.ndarray
+    sig_g: np.ndarray
+    lever: bool
+    lever_known: np.ndarray | None
+    enc: list | None = None
+    sig_enc: float = 0.0
+    rate: list | None = None
+    sig_rate: float = 0.0
+    notes: list = field(default_factory=list)
+
+    @property
+    def g_n(self) -> np.ndarray:
+        return self.rec.site.specific_force_enu
+
+
+@dataclass
+class State:
+    """The linearisation point: theta, per cycle the block-start attitudes C (nb_c, 3,
+    3) and the rate channel's walk rho (nb_c,), the attitudes the cycles started from."""
+
+    theta: np.ndarray
+    C: list
+    rho: list
+    C_start: list
+    axis_var: float
+    inflation: float = 1.0
+
+
+@dataclass
+class PassResult:
+    """A pass: its step (solve.Step), the cycles' rows and gyro parts, and the parameters
+    it linearised about."""
+
+    step: object
+    systems: list
+    gps: list
+    theta_lin: np.ndarray
+
+
+def axis_floor(sig_g: np.ndarray, block_n: int, fs: float) -> float:
+    """The floor (rad per block) of the estimated axis noise."""
+    walk = float(np.sqrt(block_n * np.mean(np.square(sig_g)))) / fs
+    return min(AXIS_FLOOR, AXIS_FLOOR_WALK * walk) if walk > 0 else AXIS_FLOOR
+
+
+def columns_of(model, pm: su.ParamMap, sensor: str) -> tuple[list, np.ndarray]:
+    """The packing columns [(key, flat)] of one sensor's effects, and their indices in theta."""
+    cols, idx = [], []
+    for q, (key, flat) in enumerate(pm.keys):
+        owner = next(e for e in model.effects if any(s.key == key for s in e.specs(model.layout)))
+        if owner.sensor == sensor:
+            cols.append((key, flat))
+            idx.append(int(pm.idx["packing"][q]))
+    return cols, np.array(idx, int)
+
+
+def run_pass(pb: Problem, st: State, nbs: list) -> PassResult:
+    """The rows of every cycle at the state (over the first nbs[c] blocks) and their step."""
+    params = pb.pm.params(st.theta, pb.lever_known)
+    fs = pb.rec.sample_rate
+    T = pb.block_n / fs
+    E = exp_matrix(-pb.rec.site.earth_rate_enu * T)
+    systems, gps = [], []
+    sig_a = pb.sig_a * st.inflation
+    for c, cy in enumerate(pb.cycles):
+        gp = gyro_part(pb.rec, cy.sl, pb.model, params, pb.block_n, nbs[c], pb.gyro_cols,
+                       pb.opt.tangential, pb.sig_g)
+        if len(st.C[c]) < nbs[c]:  # a new window: the trajectory propagated into it
+            ext = propagate(st.C[c][-1], gp.r_end[len(st.C[c]) - 1:], E)
+            st.C[c] = np.concatenate([st.C[c], ext[1:nbs[c] - len(st.C[c]) + 1]])
+            if st.rho[c] is not None:
+                st.rho[c] = np.concatenate([st.rho[c], np.full(nbs[c] - len(st.rho[c]),
+                                                                st.rho[c][-1])])
+        C = st.C[c][:nbs[c]]
+        acc = accel_rows(pb.rec, cy.sl, gp, C, pb.model, params, c, pb.acc_cols, pb.lever,
+                         pb.g_n, sig_a, pb.sig_g)
+        cs = cycle_system(c, cy, gp, acc, C, None if st.rho[c] is None else st.rho[c][:nbs[c]],
+                          st.theta, pb.pm, pb.gyro_idx, pb.acc_idx, E, pb.sig_g, st.axis_var,
+                          None if pb.enc is None else pb.enc[c], pb.sig_enc,
+                          None if pb.rate is None else pb.rate[c], pb.sig_rate,
+                          st.C_start[c])
+        systems.append(cs)
+        gps.append(gp)
+    step = solve(systems, pb.pm.size, pb.pm.mean, pb.pm.sd, st.theta)
+    return PassResult(step, systems, gps, st.theta.copy())
+
+
+def apply_step(st: State, pr: PassResult, alpha: float = 1.0, step=None,
+               axes: list | None = None) -> State:
+    """The state moved by alpha times the pass's step (or ``step``). Each block's attitude
+    error phi (body axes) is applied as Exp(psi a) C Exp(phi - psi a_b), a the cycle's
+    table axis in ENU (``axes``), a_b = C^T a, psi = phi . a_b: to first order C Exp(phi),
+    and a turn about the table axis in ENU (which the earth's rotation, the propagation's
+    only ENU term, nearly commutes with) leaves the propagation's cost as it was. On a
+    vertical axis that turn is the heading, which nothing measures: a step moves it by a
+    tenth of a radian with the gyros' weak bias about the axis, and composed as one
+    rotation its second-order term (phi_j+1 x F phi_j / 2) cost 40 times the step's gain."""
+    step = pr.step if step is None else step
+    C, rho = [], []
+    for c, (cs, dl) in enumerate(zip(pr.systems, step.dlocal)):
+        phi = alpha * dl[:, :3]
+        Cc = st.C[c][:cs.nb]
+        if axes is not None:
+            a = axes[c]
+            a_b = np.einsum("bji,j->bi", Cc, a)
+            psi = np.einsum("bi,bi->b", phi, a_b)
+            turn = Rotation.from_rotvec(np.outer(psi, a)).as_matrix()
+            rest = Rotation.from_rotvec(phi - psi[:, None] * a_b).as_matrix()
+            new = np.einsum("bij,bjk,bkl->bil", turn, Cc, rest)
+        else:
+            new = np.einsum("bij,bjk->bik", Cc, Rotation.from_rotvec(phi).as_matrix())
+        C.append(np.concatenate([new, st.C[c][cs.nb:]]))
+        rho.append(None if st.rho[c] is None else
+                   np.concatenate([st.rho[c][:cs.nb] + alpha * dl[:, 3], st.rho[c][cs.nb:]]))
+    return State(st.theta + alpha * step.dtheta, C, rho, st.C_start, st.axis_var,
+                 st.inflation)
+
+
+def table_axes(pb: Problem, theta: np.ndarray | None = None) -> list:
+    """Each cycle's table axis in ENU (the plan's)."""
+    return [cy.a_enu for cy in pb.cycles]
+
+
+def moved(pb: Problem, pr: PassResult, reported: np.ndarray) -> np.ndarray:
+    """Each reported parameter's (undamped) step in its sigma."""
+    sd = np.sqrt(np.clip(np.diag(pr.step.cov), 1e-300, None))
+    return np.abs(pr.step.dtheta[reported]) / sd[reported]
+
+
+def reweight(pb: Problem, pr: PassResult, axis_var: float) -> None:
+    """Set the axis and angle rows' weights to the current noise levels and re-solve the
+    pass (the rows do not depend on them: the same linearisation)."""
+    for cs in pr.systems:
+        set_weight(cs, "axis", 1.0 / np.sqrt(axis_var))
+        cs.axis_var = axis_var
+        if pb.enc is not None:
+            set_weight(cs, "angle", 1.0 / pb.sig_enc)
+    pr.step = solve(pr.systems, pb.pm.size, pb.pm.mean, pb.pm.sd, pr.theta_lin)
+
+
+def row_groups(pb: Problem) -> dict:
+    groups = {"accel": ACC, "axis": AXIS}
+    if pb.enc is not None:
+        groups["angle"] = ENC
+    if pb.rate is not None:
+        groups["rate"] = RATE
+    return groups
+
+
+def residual_levels(pb: Problem, pr: PassResult) -> tuple[dict, dict]:
+    """Per row group: (the mean squared residual after the step in the data's units, and
+    the RMS normalised by the rows' sigma), both over n - trace of the hat matrix: what
+    the fit takes out counted."""
+    groups = row_groups(pb)
+    tr = leverage(pr.step, pr.systems, groups)
+    raw, norm = {}, {}
+    for name, slot in groups.items():
+        ss, ssw, n = 0.0, 0.0, 0
+        for cs, dl in zip(pr.systems, pr.step.dlocal):
+            r = residuals_after(cs, dl, pr.step.dtheta)[:, slot]
+            w = cs.weight[:, slot]
+            used = w > 0
+            ss += float(np.sum(r[used] ** 2))
+            ssw += float(np.sum((r * w)[used] ** 2))
+            n += int(used.sum())
+        dof = max(n - tr[name], 1.0)
+        raw[name] = ss / dof
+        norm[name] = float(np.sqrt(ssw / dof))
+    return raw, norm
+
+
+def settle_noise(pb: Problem, st: State, pr: PassResult, rounds: int = 12) -> tuple[bool, dict]:
+    """The table axis's and the angle channel's noise re-estimated from the pass's
+    residuals and the pass re-solved at them, until they settle (within 2 %): the rows
+    stay, only their weights change. Returns whether a level moved by more than 20 % from
+    where the pass started, and each row group's normalised residual RMS."""
+    axis0, enc0 = st.axis_var, pb.sig_enc
+    floor = axis_floor(pb.sig_g, pb.block_n, pb.rec.sample_rate)
+    norm = {}
+    for _ in range(rounds):
+        raw, norm = residual_levels(pb, pr)
+        moved_any = False
+        if pb.opt.axis_sigma is None:
+            new = float(np.clip(raw["axis"], floor**2, AXIS_CAP**2))
+            moved_any |= abs(0.5 * np.log(new / st.axis_var)) > 0.02
+            st.axis_var = new
+        if pb.enc is not None and not pb.opt.encoder_sigma:
+            new = max(float(np.sqrt(raw["angle"])), pb.sig_enc_floor)
+            moved_any |= abs(np.log(new / pb.sig_enc)) > 0.02
+            pb.sig_enc = new
+        if not moved_any:
+            break
+        reweight(pb, pr, st.axis_var)
+    changed = abs(0.5 * np.log(st.axis_var / axis0)) > NOISE_MOVE or \
+        (enc0 > 0 and abs(np.log(pb.sig_enc / enc0)) > NOISE_MOVE)
+    return changed, norm

@@ -1,0 +1,302 @@
+"""``calib fit turntable``: set up, start, iterate, check the table's channels, report."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from calib_cli.data import CalibrationResult, Recording
+from calib_cli.errors import EstimationError, InputError
+from calib_cli.methods.turntable import estimator as es
+from calib_cli.methods.turntable import setup as su
+from calib_cli.methods.turntable.options import TurntableOptions
+from calib_cli.methods.turntable.result import build, theta_labels
+from calib_cli.methods.turntable.solve import damped
+from calib_cli.model.correction import correct
+
+# an angle channel whose residuals stand this far above its own white noise disagrees
+# with the unit's motion in shape (a logged setpoint, a slipping coupling): not used
+SHAPE_RATIO = 3.0
+# a rate channel whose normalised residual RMS exceeds this is not used
+RATE_MISFIT = 1.5
+# the accelerometers' normalised residual RMS above which the noise is widened (the model
+# does not explain the data: stats.accel_noise_inflation)
+ACCEL_MISFIT = 1.3
+
+
+def _check_options(opt: TurntableOptions) -> None:
+    if opt.lever_arm not in ("off", "known", "estimate"):
+        raise InputError(f"lever_arm must be off, known or estimate, got {opt.lever_arm!r}")
+    if opt.proof_mass not in ("auto", "off", "estimate"):
+        raise InputError(f"proof_mass must be auto, off or estimate, got {opt.proof_mass!r}")
+    if opt.proof_mass == "estimate" and opt.lever_arm == "off":
+        raise InputError("proof-mass offsets need the lever-arm terms (--lever-arm known|estimate)")
+    if opt.axis_sigma is not None and not (np.isfinite(opt.axis_sigma) and opt.axis_sigma > 0):
+        raise InputError(f"axis_sigma must be > 0 rad, got {opt.axis_sigma!r}")
+    if not (np.isfinite(opt.runout_sigma) and opt.runout_sigma >= 0):
+        raise InputError(f"runout_sigma must be >= 0 rad, got {opt.runout_sigma!r}")
+    su.prior_widths(opt)
+
+
+def problem(rec: Recording, opt: TurntableOptions) -> es.Problem:
+    """The set-up of a fit (estimator.Problem): cycles, model, parameters, channels, noise."""
+    _check_options(opt)
+    cycles = su.select_cycles(rec, opt)
+    nc = len(cycles)
+    est_p = opt.proof_mass == "estimate" or (opt.proof_mass == "auto" and opt.lever_arm != "off")
+    model = su.turntable_model(nc, opt.lever_arm != "off", est_p, opt.tangential, opt.effects)
+    lever_known = None
+    if opt.lever_arm == "known":
+        missing = [cy.label for cy in cycles if cy.s_plan is None]
+        if missing:
+            raise InputError(f"--lever-arm known needs lever_arm_m in the plan for every rotating "
+                             f"segment; missing: {', '.join(missing)}")
+        lever_known = np.array([cy.s_plan for cy in cycles])
+    fs = rec.sample_rate
+    block_n = max(1, int(round(opt.block_s * fs)))
+    nb = [(cy.sl.stop - cy.sl.start) // block_n for cy in cycles]
+    for cy, n in zip(cycles, nb):
+        if n < 10:
+            raise EstimationError(f"rotating segment {cy.label!r} is too short "
+                                  f"({cy.sl.stop - cy.sl.start} samples) for the turntable fit")
+    enc, sig_enc, notes = su.angle_channels(rec, cycles, block_n, opt)
+    rate, sig_rate, rnotes = su.rate_channels(rec, cycles, block_n, opt)
+    notes = notes + rnotes
+    n_axes = 1 + max(cy.axis_group for cy in cycles)
+    pm = su.param_map(model, cycles, opt, n_axes, enc is not None, rate is not None)
+    on = np.concatenate([np.arange(cy.sl.start, cy.sl.stop) for cy in cycles])
+    if opt.noise is not None:
+        sig_a = np.asarray(opt.noise["accel"], float) * np.ones(3)
+        sig_g = np.asarray(opt.noise["gyro"], float) * np.ones(3)
+    else:
+        sig_a = su.white_noise(rec.accel[on])
+        sig_g = su.white_noise(rec.gyro[on])
+    gyro_cols, gyro_idx = es.columns_of(model, pm, "gyro")
+    acc_cols, acc_idx = es.columns_of(model, pm, "accel")
+    pb = es.Problem(rec, cycles, model, pm, opt, block_n, nb, gyro_cols, gyro_idx, acc_cols,
+                    acc_idx, sig_a, sig_g, pm.has("lever_arm"), lever_known, enc, sig_enc,
+                    rate, sig_rate, notes)
+    pb.sig_enc_floor = sig_enc
+    return pb
+
+
+def start_state(pb: es.Problem) -> es.State:
+    """Where the iterations start: the prior mean, coarse lever arms from the holds, each
+    cycle's attitude from the plan's mounting turned to the gravity of its first block."""
+    theta = pb.pm.mean.copy()
+    rec = pb.rec
+    if pb.pm.has("lever_arm"):
+        for c, cy in enumerate(pb.cycles):
+            s0 = su.initial_lever_arm(rec, cy)
+            if s0 is not None:
+                theta[pb.pm.idx["lever_arm"][c]] = cy.basis.T @ s0
+    params = pb.pm.params(theta, pb.lever_known)
+    C, rho, C0 = [], [], []
+    g_n = pb.g_n
+    for c, cy in enumerate(pb.cycles):
+        a = rec.accel[cy.sl][: pb.block_n]
+        f0 = correct(pb.model, params, "accel", a).mean(axis=0)
+        s = params.get("lever_arm")
+        if s is not None:  # the rigid-body terms at the first block, from the raw rates
+            w = rec.gyro[cy.sl][: pb.block_n].mean(axis=0)
+            f0 = f0 - np.cross(w, np.cross(w, s[c]))
+        R0 = su.start_attitude(cy, f0, g_n)
+        C.append(R0[None].copy())
+        C0.append(R0)
+        rho.append(None if pb.rate is None else np.zeros(1))
+    axis_var = (pb.opt.axis_sigma if pb.opt.axis_sigma is not None else es.AXIS_START) ** 2
+    return es.State(theta, C, rho, C0, axis_var)
+
+
+def reported_columns(pb: es.Problem) -> np.ndarray:
+    """The theta indices of the reported parameters (convergence is judged on them)."""
+    idx = [pb.pm.idx["packing"]]
+    if pb.pm.has("lever_arm"):
+        idx.append(pb.pm.idx["lever_arm"].ravel())
+    if pb.pm.has("time_offset"):
+        idx.append(pb.pm.idx["time_offset"])
+    return np.concatenate(idx)
+
+
+class _TrustRegion:
+    """Levenberg-Marquardt damping of the parameters' step between passes: a step whose
+    cost at the next pass (the objective at the new point) rose is taken back and
+    redone damped; damping shrinks again after steps that did what they predicted. A
+    weakly determined, strongly curved direction (a vertical axis's gyro scale against
+    the lever arms, seen only through omega^2 against d omega / dt) otherwise makes
+    Gauss-Newton overshoot."""
+
+    def __init__(self, pb):
+        self.lam = 0.0
+        self.prev = None  # (state before the step, its pass, the step taken)
+        self.axes = lambda st: es.table_axes(pb, st.theta)
+
+    def check(self, st, pr):
+        """The state to linearise next and whether the pass ``pr`` at ``st`` is kept."""
+        if self.prev is None:
+            return st, True
+        st0, pr0, step0 = self.prev
+        actual = pr0.step.cost - pr.step.cost
+        predicted = pr0.step.cost - step0.predicted
+        if actual < 0 and pr.step.cost > pr0.step.cost * (1 + 1e-9):  # rose: redo damped
+            self.lam = max(10.0 * self.lam, 1e-2)
+            step = damped(pr0.step, self.lam)
+            self.prev = (st0, pr0, step)
+            return es.apply_step(st0, pr0, step=step, axes=self.axes(st0)), False
+        ratio = actual / predicted if predicted > 0 else 1.0
+        if ratio > 0.75:
+            self.lam = self.lam / 10.0 if self.lam > 1e-6 else 0.0
+        elif ratio < 0.25:
+            self.lam = max(4.0 * self.lam, 1e-3)
+        return st, True
+
+    def step(self, st, pr):
+        step = pr.step if self.lam == 0 else damped(pr.step, self.lam)
+        self.prev = (st, pr, step)
+        return es.apply_step(st, pr, step=step, axes=self.axes(st))
+
+    def reset(self):
+        self.prev = None
+
+
+def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.PassResult, dict]:
+    """The start windows, then the passes over the whole record to convergence."""
+    T = pb.block_n / pb.rec.sample_rate
+    rep = reported_columns(pb)
+    info = {"start_windows": 0, "passes": 0, "last_move": None}
+    L = es.START_S
+    first = True
+    tr = _TrustRegion(pb)
+    while True:  # the start: windows doubling until they span every cycle
+        nbs = [min(n, max(10, int(np.ceil(L / T)))) for n in pb.nb]
+        if nbs == pb.nb:
+            break
+        info["start_windows"] += 1
+        # the first window from the coarse start until it settles; each later one a pass
+        # (the next window's pass refines it again)
+        tr.reset()
+        for _ in range(es.STAGE_PASSES * 2 if first else 2):
+            pr = es.run_pass(pb, st, nbs)
+            st, kept = tr.check(st, pr)
+            if not kept:
+                continue
+            st = tr.step(st, pr)
+            if not first or float(np.max(es.moved(pb, pr, rep))) < 1.0:
+                break
+        first = False
+        L *= 2.0
+    last, prev = np.inf, np.inf
+    tr.reset()
+    settled = False
+    for k in range(max(1, pb.opt.passes)):
+        pr = es.run_pass(pb, st, pb.nb)
+        st, kept = tr.check(st, pr)
+        info["passes"] = k + 1
+        if not kept:
+            continue
+        mv = es.moved(pb, pr, rep)
+        # the noise levels from the residuals once the steps are small: a stiff axis row
+        # (10 urad) does not bear the linearisation of a large step (its second-order
+        # error, phi^2 / 2, is 100 sigma at 5 mrad)
+        changed, rms = False, None
+        if settled or float(np.max(mv)) < 1.0:
+            changed, rms = es.settle_noise(pb, st, pr)
+            settled = True
+            if changed:  # the objective changed with the noise: costs are not comparable
+                tr.prev = None
+                mv = es.moved(pb, pr, rep)
+        else:
+            changed = True
+            rms = es.residual_levels(pb, pr)[1]
+        st = tr.step(st, pr)
+        prev, last = last, float(np.max(mv))
+        info["last_move"] = last
+        info["residual_rms"] = rms
+        if progress is not None:
+            progress(k + 1, max(k + 2, 3))
+        # converged: this pass moved less than the tolerance, or the next would, at the
+        # rate the last two passes shrank (Gauss-Newton's: 1.3 -> 0.1 -> 0.005 sigma)
+        if not changed and tr.lam == 0 and (
+                last < pb.opt.converge_sigma
+                or last * min(last / prev, 1.0) < pb.opt.converge_sigma):
+            info["moving"] = []
+            return st, pr, info
+    names = _moving_names(pb, pr, rep, mv)
+    raise EstimationError(f"the turntable fit did not converge in {pb.opt.passes} passes: "
+                          f"{', '.join(names[:6])} still move by up to {last:.2g} sigma a pass")
+
+
+def _moving_names(pb, pr, rep, mv) -> list:
+    labels = theta_labels(pb)
+    order = np.argsort(-mv)
+    return [f"{labels[rep[i]]} ({mv[i]:.2g})" for i in order if mv[i] >= pb.opt.converge_sigma]
+
+
+def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions(),
+                  progress=None) -> CalibrationResult:
+    """Fit the turntable model to a raw recording with rotating segments (module
+    docstring of methods/turntable/estimator.py). progress: ``progress(done, total)``."""
+    from calib_cli.methods.blas_threads import one_blas_thread
+
+    with one_blas_thread():  # small dense systems: threads only contend
+        return _fit(rec, options, progress)
+
+
+def _fit(rec: Recording, opt: TurntableOptions, progress=None) -> CalibrationResult:
+    pb = problem(rec, opt)
+    st = start_state(pb)
+    for _attempt in range(6):
+        st, pr, info = _iterate(pb, st, progress)
+        rms = info["residual_rms"]
+        # the table's channels against the model: an angle channel whose residuals stand far
+        # above its white noise, or a rate channel whose residuals do not fit, disagree with
+        # the motion in shape; the fit is then rerun without them
+        if pb.enc is not None and pb.sig_enc > SHAPE_RATIO * pb.sig_enc_floor \
+                and not opt.encoder_sigma:
+            pb.notes.append(f"angle channel not used: its residuals ({pb.sig_enc * 1e3:.3g} mrad "
+                            f"RMS) stand {pb.sig_enc / pb.sig_enc_floor:.0f}x above its white "
+                            f"noise ({pb.sig_enc_floor * 1e3:.3g} mrad): it does not follow "
+                            "the unit's motion")
+            labels = theta_labels(pb)
+            pb = _without(pb, "angle")
+            st = _restart(pb, st, labels)
+            continue
+        if pb.rate is not None and rms.get("rate", 0.0) > RATE_MISFIT:
+            pb.notes.append(f"rate channel not used: normalised residual RMS {rms['rate']:.3g}")
+            labels = theta_labels(pb)
+            pb = _without(pb, "rate")
+            st = _restart(pb, st, labels)
+            continue
+        if rms["accel"] > ACCEL_MISFIT:
+            st.inflation *= rms["accel"]
+            continue
+        break
+    return build(pb, st, pr, info)
+
+
+def _without(pb: es.Problem, channel: str) -> es.Problem:
+    opt = pb.opt
+    mode = {"angle": {"auto": "rate", "both": "rate", "angle": "off"},
+            "rate": {"auto": "angle", "both": "angle", "rate": "off"}}[channel].get(
+        opt.table_encoder, opt.table_encoder)
+    if channel == "angle" and pb.rate is None:
+        mode = "off"
+    if channel == "rate" and pb.enc is None:
+        mode = "off"
+    new = problem(pb.rec, replace(opt, table_encoder=mode))
+    new.notes = pb.notes
+    return new
+
+
+def _restart(pb: es.Problem, st: es.State, old_labels: list) -> es.State:
+    """The state carried into a problem with other channels (the parameters' vector
+    re-mapped by name; the trajectory kept)."""
+    new = pb.pm.mean.copy()
+    pos = {lab: i for i, lab in enumerate(old_labels)}
+    for i, lab in enumerate(theta_labels(pb)):
+        if lab in pos:
+            new[i] = st.theta[pos[lab]]
+    rho = [None if pb.rate is None else (r if r is not None else np.zeros(len(C)))
+           for r, C in zip(st.rho, st.C)]
+    return es.State(new, st.C, rho, st.C_start, st.axis_var, st.inflation)
