@@ -263,26 +263,43 @@ def block_integration(w: np.ndarray, s: np.ndarray, t: np.ndarray, block_n: int,
         RJ[:, i] = R @ Jl[:, i]
         dR[:, i] = R @ mean_rotation(phi.reshape(nb, block_n, 3)[:, i]) if interval else R
         R = R @ rots[:, i]
-    # the sensitivity at the group boundaries: q_k+1 = q_k + (sum over the group of R J dt) s_k
+    # the sensitivity: sample i's rate sensitivity s_g + (i - mid) ds_g within group g (its
+    # mean and slope), so the sums of R J dt s over a group take the first and second
+    # moments of R J dt: q_k+1 = q_k + M0 s_g + M1 ds_g
     sg = s.reshape(nb, G, 3, P)
+    flat = s.reshape(nb * G, 3, P)
+    slope = np.zeros_like(flat)  # per sample, from the neighbouring groups' means
+    if len(flat) > 2:
+        slope[1:-1] = (flat[2:] - flat[:-2]) / (2.0 * group)
+    if len(flat) > 1:
+        slope[0] = (flat[1] - flat[0]) / group
+        slope[-1] = (flat[-1] - flat[-2]) / group
+    dsg = slope.reshape(nb, G, 3, P) if group > 1 else np.zeros_like(sg)
     RJg = RJ.reshape(nb, G, group, 3, 3)
-    dq = np.matmul(RJg.sum(axis=2), sg)  # (nb, G, 3, P)
+    off = np.arange(group) - 0.5 * (group - 1)  # each sample's offset from the group's middle
+    RJ1 = RJg * off[None, None, :, None, None]
+    dq = np.matmul(RJg.sum(axis=2), sg) + np.matmul(RJ1.sum(axis=2), dsg)  # (nb, G, 3, P)
     qb = np.concatenate([np.zeros((nb, 1, 3, P)), np.cumsum(dq, axis=1)], axis=1)[:, :-1]
-    # within a group, sample i's sensitivity is qb + Pi s with Pi the partial sum of R J dt
-    # up to it (instant samples: the steps before its stamp; interval means: to the middle
-    # of its own period)
-    Pi = np.cumsum(RJg, axis=2) - (0.5 if interval else 1.0) * RJg
+    # within a group, sample i's sensitivity is qb + P0_i s + P1_i ds, the partial sums of
+    # R J dt (times the offset) up to it (instant samples: the steps before its stamp;
+    # interval means: to the middle of its own period)
+    half = 0.5 if interval else 1.0
+    P0 = np.cumsum(RJg, axis=2) - half * RJg
+    P1 = np.cumsum(RJ1, axis=2) - half * RJ1
     dRg = dR.reshape(nb, G, group, 3, 3)
     dR_g = dRg.mean(axis=2)
-    q_mean = qb + np.matmul(Pi.mean(axis=2), sg)  # the samples' mean sensitivity per group
+    q_mean = qb + np.matmul(P0.mean(axis=2), sg) + np.matmul(P1.mean(axis=2), dsg)
     # wg[c] = mean dR^T [e_c x] q over the samples: (mean dR)^T [e_c x] qb for the groups'
-    # start, plus the mean of dR_i^T [e_c x] Pi_i times each group's s
+    # start, plus the means of dR_i^T [e_c x] P_i times each group's s and ds
     dRgT = np.swapaxes(dR_g, 2, 3)
+    dRiT = np.swapaxes(dRg, 3, 4)
     wg = []
     for c in range(3):
         ex = skew(np.eye(3)[c])
-        Ac = np.matmul(np.swapaxes(dRg, 3, 4), np.matmul(ex, Pi)).mean(axis=2)
-        wg.append((np.matmul(dRgT, np.matmul(ex, qb)) + np.matmul(Ac, sg)).mean(axis=1))
+        A0 = np.matmul(dRiT, np.matmul(ex, P0)).mean(axis=2)
+        A1 = np.matmul(dRiT, np.matmul(ex, P1)).mean(axis=2)
+        wg.append((np.matmul(dRgT, np.matmul(ex, qb)) + np.matmul(A0, sg)
+                   + np.matmul(A1, dsg)).mean(axis=1))
     wg = np.stack(wg)
     q_end = qb[:, -1] + dq[:, -1]
     return BlockIntegration(dR, dR.mean(axis=1), R, q_end, q_mean.mean(axis=1), wg)
@@ -295,21 +312,9 @@ def group_means(x: np.ndarray, group: int) -> np.ndarray:
     return x.reshape((len(x) // group, group) + x.shape[1:]).mean(axis=1)
 
 
-def edge_rates(w: np.ndarray, block_n: int, nb: int, sample_kind: str = "instant"
-               ) -> np.ndarray:
-    """The rate (nb + 1, ...) (w (N, ...): rates, or any quantity linear in them) at the
-    edges of nb blocks: the bounds of the interval whose
-    mean the block's samples are (instant samples: half a sample before the first stamp
-    and after the last; interval means: the start of the first period and the last
-    stamp), by the cubic through the four nearest samples (instant: (-1, 9, 9, -1) / 16
-    of the values; interval means: (-1, 7, 7, -1) / 12 of the period means), linear at
-    the ends of the record. The block's mean angular acceleration is the difference of
-    its edges over its length, exact to the second order (the mean of central
-    differences, which this replaces, lags a curved rate)."""
-    w = np.asarray(w, dtype=float)
-    N = len(w)
-    shape = w.shape[1:]
-    w = w.reshape(N, -1)
+def edge_stencil(N: int, block_n: int, nb: int, sample_kind: str = "instant"):
+    """(idx (nb + 1, 4), weights (nb + 1, 4)) of ``edge_rates``: the samples and weights
+    of the rate at each block edge, from a record of N samples."""
     k = np.arange(nb + 1) * block_n  # the interface between samples k-1 and k
     wt = np.array([-1.0, 9.0, 9.0, -1.0]) / 16.0 if sample_kind != "interval-mean" else \
         np.array([-1.0, 7.0, 7.0, -1.0]) / 12.0
@@ -327,4 +332,20 @@ def edge_rates(w: np.ndarray, block_n: int, nb: int, sample_kind: str = "instant
     if np.any(last):
         idx[last] = [N - 2, N - 2, N - 1, N - 1]
         c[last] = [0.0, -0.5, 1.5, 0.0]
-    return np.einsum("kj,kja->ka", c, w[idx]).reshape((nb + 1,) + shape)
+    return idx, c
+
+
+def edge_rates(w: np.ndarray, block_n: int, nb: int, sample_kind: str = "instant"
+               ) -> np.ndarray:
+    """The rate (nb + 1, ...) (w (N, ...): rates, or any quantity linear in them) at the
+    edges of nb blocks: the bounds of the interval whose mean the block's samples are
+    (instant samples: half a sample before the first stamp and after the last; interval
+    means: the start of the first period and the last stamp), by the cubic through the
+    four nearest samples (instant: (-1, 9, 9, -1) / 16 of the values; interval means:
+    (-1, 7, 7, -1) / 12 of the period means), linear at the ends of the record. The
+    block's mean angular acceleration is the difference of its edges over its length,
+    exact to the second order (the mean of central differences, which this replaces,
+    lags a curved rate)."""
+    w = np.asarray(w, dtype=float)
+    idx, c = edge_stencil(len(w), block_n, nb, sample_kind)
+    return np.einsum("kj,kj...->k...", c, w[idx])

@@ -135,16 +135,24 @@ def _table_channels(plan: Plan, th, rt, theta, rate, rng):
     (``sim_table_encoder_counts``, counts per revolution): the true angle with a
     once-per-revolution error ``sim_table_encoder_opr_deg`` (amplitude) at phase
     ``sim_table_encoder_opr_phase_deg`` (default 30; a property of the encoder disk, the
-    same in every cycle), quantised to the counts, and a rate channel that is the true
-    rate times (1 + ``sim_table_rate_scale_error``)."""
+    same in every cycle) and a white reading noise ``sim_table_angle_noise_deg`` (1-sigma),
+    quantised to the counts, and a rate channel that is the true rate times (1 +
+    ``sim_table_rate_scale_error``) plus a white noise ``sim_table_rate_noise_dps``."""
     if plan.extra.get("sim_table_encoder_counts") is None:
         return theta, rate
     q = 2 * np.pi / _num_key(plan.extra, "sim_table_encoder_counts", 0, "plan", positive=True)
     opr = _num_key(plan.extra, "sim_table_encoder_opr_deg", 0.0, "plan") * D2R
     phase = _num_key(plan.extra, "sim_table_encoder_opr_phase_deg", 30.0, "plan") * D2R
     ang = th + opr * np.cos(th + phase)
+    noise = _num_key(plan.extra, "sim_table_angle_noise_deg", 0.0, "plan") * D2R
+    if noise > 0:  # a coarse or jittery reading: white noise before the quantiser
+        ang = ang + noise * rng.standard_normal(len(ang))
     ang = np.round(ang / q) * q
-    return ang, rt * (1.0 + _num_key(plan.extra, "sim_table_rate_scale_error", 0.0, "plan"))
+    rt = rt * (1.0 + _num_key(plan.extra, "sim_table_rate_scale_error", 0.0, "plan"))
+    rnoise = _num_key(plan.extra, "sim_table_rate_noise_dps", 0.0, "plan") * D2R
+    if rnoise > 0:
+        rt = rt + rnoise * rng.standard_normal(len(rt))
+    return ang, rt
 
 
 def _num_key(table: dict, key: str, default: float, where: str, positive: bool = False) -> float:

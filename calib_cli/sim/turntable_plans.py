@@ -111,9 +111,10 @@ def turntable_plan_text(seed: int = 0, duration_s: float = 600.0, tilted: bool =
                         mount_error_deg: float = 0.3, start_error_deg: float = 3.0,
                         rate_error: float = 2e-3, wobble_dps: float = 0.5,
                         max_dps: float = 200.0, latitude_deg: float = 50.45,
-                        proof_mass_sigma_m: float = 5e-3, axis_tilt_deg: float = 0.0) -> str:
+                        proof_mass_sigma_m: float = 5e-3, axis_tilt_deg: float = 0.0,
+                        transition_s: float = 4.0) -> str:
     """A turntable plan with random true lever arms, mounting errors and housing
-    measurements (all drawn from ``seed``)."""
+    measurements (all drawn from ``seed``); ``transition_s``: the remount between cycles."""
     rng = np.random.default_rng(10_000 + seed)
     cycles = cycle_attitudes(tilted, tilt_deg)
     # the table's true axis: tilted from the horizontal by up to axis_tilt_deg, the same for
@@ -132,7 +133,7 @@ def turntable_plan_text(seed: int = 0, duration_s: float = 600.0, tilted: bool =
     # convention of the fit (the component along the axis is unobservable)
     s_true = true_lever_arms(len(cycles), [a for _l, _att, a in cycles], rng)
     lines = ["name = 'turntable'", "kind = 'turntable'", f"sample_rate_hz = {sample_rate_hz}",
-             "transition_s = 4.0", f"sim_table_rate_error = {rate_error}",
+             f"transition_s = {transition_s}", f"sim_table_rate_error = {rate_error}",
              f"sim_table_wobble_dps = {wobble_dps}",
              f"sim_proof_mass_sigma_m = {proof_mass_sigma_m}",
              "[site]", f"latitude_deg = {latitude_deg}", "height_m = 180.0",

@@ -27,7 +27,7 @@ from calib_cli.data import Recording
 from calib_cli.model.correction import correct
 from calib_cli.model.frames import skew
 from calib_cli.model.kinematics import Kinematics, rigid_accel
-from calib_cli.model.strapdown import block_integration, edge_rates, group_means
+from calib_cli.model.strapdown import block_integration, edge_rates, edge_stencil, group_means
 
 
 @dataclass
@@ -114,10 +114,15 @@ def gyro_part(rec: Recording, sl: slice, model, params: dict, block_n: int, nb: 
     T = block_n * dt
     e_w = edge_rates(w, block_n, nb, kind)
     dwbar = (e_w[1:] - e_w[:-1]) / T
-    # the edges' sensitivity: the same stencil on the samples' sensitivity, or on the
-    # groups' means (the values at the interfaces of cell means)
-    s_edge = edge_rates(sg, block_n, nb, kind) if grp == 1 else \
-        edge_rates(sg, G, nb, "interval-mean")
+    # the edges' sensitivity: the same stencil on the samples' sensitivity, evaluated at
+    # the stencil's samples alone
+    idx, cw = edge_stencil(len(w), block_n, nb, kind)
+    ue = np.unique(idx)
+    kin_e = Kinematics(t[ue], f[ue], w[ue], np.zeros((len(ue), 3)),
+                       temp=None if temp is None else temp[ue])
+    lin_e = model.jacobian(params, kin_e, "gyro", gyro_cols, ("w",))
+    se = -np.einsum("nij,njp->nip", inverse3(lin_e.d_inputs["w"]), lin_e.d_params)
+    s_edge = np.einsum("kj,kjap->kap", cw, se[np.searchsorted(ue, idx)])
     ddw = (s_edge[1:] - s_edge[:-1]) / T
     dw_var = _corner_variance(w[:n], sig_g, block_n, nb, dt)
     if not tangential:
@@ -186,7 +191,7 @@ class AccelRows:
 
 def accel_rows(rec: Recording, sl: slice, gp: GyroPart, C: np.ndarray, model, params: dict,
                cycle: int, acc_cols: list, lever: bool, g_n: np.ndarray, sig_a: np.ndarray,
-               sig_g: np.ndarray) -> AccelRows:
+               sig_g: np.ndarray, lever_norm2: float | None = None) -> AccelRows:
     """The accelerometer rows of a cycle's blocks at the block-start attitudes C (nb, 3, 3).
     acc_cols: the accelerometer model's columns [(key, flat)]; lever: the cycle's lever
     arm is estimated (its three body-axis derivatives in H_lever)."""
@@ -217,8 +222,13 @@ def accel_rows(rec: Recording, sl: slice, gp: GyroPart, C: np.ndarray, model, pa
     # noise: the accelerometers' own over the block, plus the gyro noise in the rigid-body
     # terms the model computes from the corrected gyros (centripetal: 2 |w| |r| per unit of
     # rate noise; tangential: the edge rates' noise over the block, and the corners)
-    s = params.get("lever_arm")
-    r2 = float(np.sum(s[cycle] ** 2)) if s is not None and len(s) > cycle else 0.0
+    # (at a fixed lever arm, ``lever_norm2``: weights that moved with the estimate would make
+    # the fit's objective move too, and without their log-determinant pull the lever arms
+    # towards larger noise at the corners)
+    if lever_norm2 is None:
+        s = params.get("lever_arm")
+        lever_norm2 = float(np.sum(s[cycle] ** 2)) if s is not None and len(s) > cycle else 0.0
+    r2 = lever_norm2
     sg2 = float(np.mean(sig_g**2))
     extra = 4.0 * gp.wabs**2 * r2 * sg2 / m + (1.3 * sg2 / gp.T**2 + gp.dw_var) * r2
     var = sig_a[None, :] ** 2 / m + extra[:, None]

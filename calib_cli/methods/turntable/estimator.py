@@ -44,6 +44,11 @@ AXIS_FLOOR = 1e-5
 # axis carries too wide (issue 22)
 AXIS_FLOOR_WALK = 0.5
 NOISE_MOVE = np.log(1.2)  # a noise level that moves by less than 20 % is settled
+# the most the axis noise's variance falls in one pass: a stiffer axis moves the solution
+# along the directions it ties, which a step from far away does not bear (a vertical axis,
+# where the axis and gravity tie the same two angles, crept at 2 sigma a pass after one
+# jump from 1 mrad to 10 urad)
+AXIS_STEP = 10.0
 
 
 @dataclass
@@ -71,6 +76,7 @@ class Problem:
     rate: list | None = None
     sig_rate: float = 0.0
     notes: list = field(default_factory=list)
+    free_heading: list = field(default_factory=list)
 
     @property
     def g_n(self) -> np.ndarray:
@@ -88,6 +94,7 @@ class State:
     C_start: list
     axis_var: float
     inflation: float = 1.0
+    lever2: list | None = None  # |s|^2 per cycle in the accelerometer noise model
 
 
 @dataclass
@@ -136,13 +143,17 @@ def run_pass(pb: Problem, st: State, nbs: list) -> PassResult:
                 st.rho[c] = np.concatenate([st.rho[c], np.full(nbs[c] - len(st.rho[c]),
                                                                 st.rho[c][-1])])
         C = st.C[c][:nbs[c]]
+        if st.lever2 is None:  # the noise model's lever arms: fixed at the start's
+            s0 = params.get("lever_arm")
+            st.lever2 = [0.0 if s0 is None else float(np.sum(s0[k] ** 2))
+                         for k in range(len(pb.cycles))]
         acc = accel_rows(pb.rec, cy.sl, gp, C, pb.model, params, c, pb.acc_cols, pb.lever,
-                         pb.g_n, sig_a, pb.sig_g)
+                         pb.g_n, sig_a, pb.sig_g, st.lever2[c])
         cs = cycle_system(c, cy, gp, acc, C, None if st.rho[c] is None else st.rho[c][:nbs[c]],
                           st.theta, pb.pm, pb.gyro_idx, pb.acc_idx, E, pb.sig_g, st.axis_var,
                           None if pb.enc is None else pb.enc[c], pb.sig_enc,
                           None if pb.rate is None else pb.rate[c], pb.sig_rate,
-                          st.C_start[c])
+                          st.C_start[c], free_heading=pb.free_heading[c])
         systems.append(cs)
         gps.append(gp)
     step = solve(systems, pb.pm.size, pb.pm.mean, pb.pm.sd, st.theta)
@@ -177,7 +188,7 @@ def apply_step(st: State, pr: PassResult, alpha: float = 1.0, step=None,
         rho.append(None if st.rho[c] is None else
                    np.concatenate([st.rho[c][:cs.nb] + alpha * dl[:, 3], st.rho[c][cs.nb:]]))
     return State(st.theta + alpha * step.dtheta, C, rho, st.C_start, st.axis_var,
-                 st.inflation)
+                 st.inflation, st.lever2)
 
 
 def table_axes(pb: Problem, theta: np.ndarray | None = None) -> list:
@@ -189,6 +200,12 @@ def moved(pb: Problem, pr: PassResult, reported: np.ndarray) -> np.ndarray:
     """Each reported parameter's (undamped) step in its sigma."""
     sd = np.sqrt(np.clip(np.diag(pr.step.cov), 1e-300, None))
     return np.abs(pr.step.dtheta[reported]) / sd[reported]
+
+
+def moved_by(pb: Problem, pr: PassResult, step, reported: np.ndarray) -> np.ndarray:
+    """Each reported parameter's move by ``step`` in its sigma."""
+    sd = np.sqrt(np.clip(np.diag(pr.step.cov), 1e-300, None))
+    return np.abs(step.dtheta[reported]) / sd[reported]
 
 
 def reweight(pb: Problem, pr: PassResult, axis_var: float) -> None:
@@ -245,7 +262,7 @@ def settle_noise(pb: Problem, st: State, pr: PassResult, rounds: int = 12) -> tu
         raw, norm = residual_levels(pb, pr)
         moved_any = False
         if pb.opt.axis_sigma is None:
-            new = float(np.clip(raw["axis"], floor**2, AXIS_CAP**2))
+            new = float(np.clip(raw["axis"], max(floor**2, axis0 / AXIS_STEP), AXIS_CAP**2))
             moved_any |= abs(0.5 * np.log(new / st.axis_var)) > 0.02
             st.axis_var = new
         if pb.enc is not None and not pb.opt.encoder_sigma:

@@ -11,23 +11,34 @@ import numpy as np
 from calib_cli.methods.turntable.solve import whitened
 
 
-def _labels(pb) -> tuple[list, list]:
-    """(theta indices, labels) of the history's entries."""
+def _labels(pb, theta) -> tuple[np.ndarray, np.ndarray, list]:
+    """(T (k, p): each history entry as a row over theta, linearised there; its value at
+    theta (k,); labels): each cycle's lever arm along its two basis vectors, the proof-mass
+    offsets."""
     pm = pb.pm
-    idx, labels = [], []
+    rows, vals, labels = [], [], []
     if pm.has("lever_arm"):
         for c, cy in enumerate(pb.cycles):
+            ds_du, ds_dG, gi = pm.lever_jacobian(theta, c)
+            s = pm.lever(theta, c)
             for m in range(2):
                 e = int(np.argmax(np.abs(cy.basis[:, m])))
                 tag = "xyz"[e] if abs(abs(cy.basis[e, m]) - 1) < 1e-12 else f"b{m + 1}"
                 labels.append(f"lever_arm[{c}].{tag}")
-                idx.append(int(pm.idx["lever_arm"][c, m]))
+                row = np.zeros(pm.size)
+                row[pm.idx["lever_arm"][c]] = cy.basis[:, m] @ ds_du
+                row[gi] += cy.basis[:, m] @ ds_dG
+                rows.append(row)
+                vals.append(float(cy.basis[:, m] @ s))
     for q, (key, flat) in enumerate(pm.keys):
         if key == "proof_mass_offsets":
             i, j = divmod(flat, 3)
             labels.append(f"p_{'xyz'[i]}{'xyz'[j]}")
-            idx.append(int(pm.idx["packing"][q]))
-    return idx, labels
+            row = np.zeros(pm.size)
+            row[pm.idx["packing"][q]] = 1.0
+            rows.append(row)
+            vals.append(float(theta[pm.idx["packing"][q]]))
+    return np.array(rows).reshape(-1, pm.size), np.array(vals), labels
 
 
 def _chunk_system(cs, Al, Ag, rw, j0: int, j1: int, p: int):
@@ -54,21 +65,23 @@ def _chunk_system(cs, Al, Ag, rw, j0: int, j1: int, p: int):
     first = 1 if j0 > 0 else 2
     pos = np.arange(first, k + 1)  # chunk positions (1-based: 0 is x_prev)
     jj = j0 + pos - 1  # their block indices
-    wq = 1.0 / cs.q_phi
     g = cs.gyro_idx
-    Fm, B, e = cs.F[jj - 1], cs.B[jj - 1], cs.e[jj - 1]
+    Fm, B, e, Wq = cs.F[jj - 1], cs.B[jj - 1], cs.e[jj - 1], cs.Wq[jj - 1]
     FT = np.swapaxes(Fm, 1, 2)
-    I3 = wq * np.eye(3)
-    blocks[pos - 1, pos - 1, :3, :3] += I3
-    blocks[pos, pos, :3, :3] += I3
-    blocks[pos, pos - 1, :3, :3] -= wq * Fm
-    blocks[pos - 1, pos, :3, :3] -= wq * FT
-    G[np.ix_(pos - 1, np.arange(3), g)] += wq * np.matmul(FT, B)
-    G[np.ix_(pos, np.arange(3), g)] -= wq * B
-    Ltt[np.ix_(g, g)] += wq * np.einsum("bip,biq->pq", B, B)
-    vl[pos - 1, :3] += wq * np.einsum("bij,bj->bi", FT, e)
-    vl[pos, :3] -= wq * e
-    vt[g] += wq * np.einsum("bip,bi->p", B, e)
+    WF, WB, We = np.matmul(Wq, Fm), np.matmul(Wq, B), np.einsum("bij,bj->bi", Wq, e)
+    blocks[pos - 1, pos - 1, :3, :3] += np.matmul(FT, WF)
+    blocks[pos, pos, :3, :3] += Wq
+    blocks[pos, pos - 1, :3, :3] -= WF
+    blocks[pos - 1, pos, :3, :3] -= np.swapaxes(WF, 1, 2)
+    G[np.ix_(pos - 1, np.arange(3), g)] += np.matmul(FT, WB)
+    G[np.ix_(pos, np.arange(3), g)] -= WB
+    Ltt[np.ix_(g, g)] += np.einsum("bip,biq->pq", B, WB)
+    vl[pos - 1, :3] += np.einsum("bij,bj->bi", FT, We)
+    vl[pos, :3] -= We
+    vt[g] += np.einsum("bip,bi->p", B, We)
+    if cs.anchor is not None:
+        ii = np.arange(1, k + 1)
+        blocks[ii, ii, :3, :3] += cs.anchor[j0:j1]
     if nl == 4:  # the rate channel's walk
         wr = 1.0 / cs.q_rho
         d = cs.rho[jj] - cs.rho[jj - 1]
@@ -98,8 +111,8 @@ def _chunk_system(cs, Al, Ag, rw, j0: int, j1: int, p: int):
 def sigma_history(pb, pr) -> dict:
     """{"sigma_history_time" (H,), "sigma_history" (H, k), "estimate_history" (H, k),
     "sigma_history_labels" [k]}; empty without lever arms or proof masses."""
-    idx, labels = _labels(pb)
-    if not idx:
+    Tm, vals, labels = _labels(pb, pr.theta_lin)
+    if not labels:
         return {}
     pm = pb.pm
     p = pm.size
@@ -134,8 +147,8 @@ def sigma_history(pb, pr) -> dict:
             Mt, vt = _schur(carried[0], carried[1], np.arange(nl, nl + p), np.arange(nl))
             cov = np.linalg.inv(0.5 * (Mt + Mt.T))
             times.append(float(gp.t0[j1 - 1]))
-            sig.append(np.sqrt(np.clip(np.diag(cov)[idx], 0, None)))
-            est.append(lin[idx] + (cov @ vt)[idx])
+            sig.append(np.sqrt(np.clip(np.einsum("ip,pq,iq->i", Tm, cov, Tm), 0, None)))
+            est.append(vals + Tm @ (cov @ vt))
         # the cycle's end: its last local state leaves
         Lam, eta = _schur(carried[0], carried[1], np.arange(nl, nl + p), np.arange(nl))
     return {"sigma_history_time": np.array(times), "sigma_history": np.array(sig),

@@ -43,9 +43,9 @@ def theta_labels(pb: es.Problem) -> list:
     return out
 
 
-def _reported(pb: es.Problem):
-    """(packing of the reported keys, T: each reported entry as a row over theta, the
-    prior sd of each reported entry)."""
+def _reported(pb: es.Problem, theta: np.ndarray):
+    """(packing of the reported keys, T: each reported entry as a row over theta (the
+    linearisation at theta), the prior sd of each reported entry)."""
     pm, model = pb.pm, pb.pm.model
     keys = [k for k in (*IMU_KEYS, "proof_mass_offsets") if k in {s.key for s in model.specs()}]
     extra = [s.key for s in model.specs() if s.key not in keys and s.key != "lever_arm"]
@@ -63,9 +63,11 @@ def _reported(pb: es.Problem):
     packing = Packing(tuple(specs), tuple(masks))
     T = np.zeros((packing.size, pm.size))
     for q, (key, flat) in enumerate(packing.labels()):
-        if key == "lever_arm":
+        if key == "lever_arm":  # s = gamma^2 basis u: its linearisation at theta
             c, e = divmod(flat, 3)
-            T[q, pm.idx["lever_arm"][c]] = pb.cycles[c].basis[e]
+            ds_du, ds_dG, gi = pm.lever_jacobian(theta, c)
+            T[q, pm.idx["lever_arm"][c]] = ds_du[e]
+            T[q, gi] += ds_dG[e]
         elif key == "time_offset":
             T[q, pm.idx["time_offset"][0]] = 1.0
         else:
@@ -124,7 +126,7 @@ def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict):
     """The CalibrationResult of a converged fit."""
     pm, model, opt = pb.pm, pb.pm.model, pb.opt
     theta, cov_full = st.theta, pr.step.cov
-    packing, T, prior_sd = _reported(pb)
+    packing, T, prior_sd = _reported(pb, theta)
     cov = T @ cov_full @ T.T
     dsig = data_sigma(pr.step.S, pm, T, prior_sd)
     unobs = ~(dsig < OBSERVABLE)
@@ -137,9 +139,13 @@ def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict):
                               "body axes, at several rates")
     cov[unobs, :] = np.nan
     cov[:, unobs] = np.nan
-    fit = LsqFit(theta=T @ theta, cov=cov, unobservable=unobs, residuals=np.zeros(0),
-                 chi2=float("nan"), dof=0, nfev=0)
     params = pm.params(theta, pb.lever_known)
+    # the values through the parameter map (the lever arm is not linear in theta); T is
+    # its linearisation there, for the covariance
+    vals = packing.pack({**params, **({"time_offset": theta[pm.idx["time_offset"]]}
+                                      if pm.has("time_offset") else {})})
+    fit = LsqFit(theta=vals, cov=cov, unobservable=unobs, residuals=np.zeros(0),
+                 chi2=float("nan"), dof=0, nfev=0)
     base = dict(params)
     nc = len(pb.cycles)
     extra, pm_fixed = {}, []

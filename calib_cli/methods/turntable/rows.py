@@ -3,10 +3,10 @@ the attitude error phi_j, and where the rate channel is used its integrated nois
 and the parameter vector theta (setup.ParamMap):
 
 - the accelerometers' block means (blocks.accel_rows);
-- the table axis: the mean attitude maps the axis in body axes (the plan's, turned by
-  the cycle's mounting error) onto the table's axis in ENU (the plan's, tilted), up to
-  the bearing's runout (the second harmonic of the table angle) and a white noise per
-  block (estimated);
+- the table axis: the attitude at each block's start maps the axis in body axes (the
+  plan's, turned by the cycle's mounting error) onto the table's axis in ENU (the plan's,
+  tilted), up to the bearing's runout (the second harmonic of the table angle) and a
+  white noise per block (estimated);
 - the table's angle channel: the attitude's angle about the axis since the cycle start,
   plus the channel's zero, its once-per-revolution error and scale (and the time offset
   between the IMU and the table, where the model has it);
@@ -40,6 +40,7 @@ from calib_cli.model.frames import skew
 ACC, AXIS, ENC, RATE = slice(0, 3), slice(3, 5), 5, 6
 N_ROWS = 7
 RUNOUT_HARMONIC = 2.0  # an oval bearing race rocks the axis twice per revolution
+HEADING_SD = 1.0  # rad: the per-block prior of a turn about the axis that does not propagate
 
 
 @dataclass
@@ -63,6 +64,8 @@ class CycleSystem:
     gyro_idx: np.ndarray
     e: np.ndarray
     q_phi: float
+    Wq: np.ndarray  # (nb - 1, 3, 3) the propagation rows' weight (inverse covariance)
+    anchor: np.ndarray | None  # (nb, 3, 3) weak priors on each block's phi, or None
     q_rho: float
     rho: np.ndarray | None
     r0: np.ndarray
@@ -96,7 +99,7 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
                  pm, gyro_idx: np.ndarray, acc_idx: np.ndarray, E: np.ndarray,
                  sig_g: np.ndarray, axis_var: float, enc=None, sig_enc: float = 0.0,
                  rate=None, sig_rate: float = 0.0, C_start: np.ndarray | None = None,
-                 sd0: float = float(np.radians(5.0))) -> CycleSystem:
+                 sd0: float = float(np.radians(5.0)), free_heading: bool = False) -> CycleSystem:
     """The rows of cycle c at (theta, trajectory C (nb, 3, 3), rate walk rho)."""
     nb = gp.nb
     use_rate = rate is not None
@@ -110,30 +113,34 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
     A_loc[:, ACC, :3] = acc.H_phi
     A_glob[:, ACC][:, :, acc_idx] = acc.H_acc
     A_glob[:, ACC][:, :, gyro_idx] += acc.H_gyr
-    if acc.H_lever is not None:
-        A_glob[:, ACC][:, :, pm.idx["lever_arm"][c]] = acc.H_lever @ cy.basis
+    if acc.H_lever is not None:  # the lever arm as u = s / gamma^2 (setup.ParamMap)
+        ds_du, ds_dG, gi = pm.lever_jacobian(theta, c)
+        A_glob[:, ACC][:, :, pm.idx["lever_arm"][c]] = acc.H_lever @ ds_du
+        A_glob[:, ACC][:, :, gi] += acc.H_lever @ ds_dG
     r[:, ACC] = acc.z - acc.h
     wt[:, ACC] = 1.0 / np.sqrt(acc.var)
     # the table axis: N (C_j r_mean a_b) = tilt - runout, N the ENU directions across it
     u = theta[pm.idx["mount"][c]]
-    a_b = cy.a_nom + cy.basis @ u
-    a_b = a_b / np.linalg.norm(a_b)
-    Cbar = np.einsum("bij,bjk->bik", C, gp.r_mean)
-    ra = Cbar @ a_b  # (nb, 3)
-    rb = gp.r_mean @ a_b  # the axis in block-start body axes
+    a_u = cy.a_nom + cy.basis @ u
+    a_b = a_u / np.linalg.norm(a_u)
+    # d a_b / d u: the normalisation's derivative (with a stiff axis, 10 urad, the plain
+    # basis was wrong by u^2 ~ 1e-5 and Gauss-Newton stalled)
+    da = (np.eye(3) - np.outer(a_b, a_b)) @ cy.basis / np.linalg.norm(a_u)
+    # at each block's start (its mean attitude would carry the gyro noise integrated within
+    # the block, 2e-5 rad at MEMS noise, correlated with the propagation's walk)
+    ra = C @ a_b  # (nb, 3)
     N = perp_basis(cy.a_enu).T  # (2, 3)
-    # d/d phi (body axes): C Exp(phi) rb = ra - C [rb x] phi
-    Nra = -np.einsum("ai,bij,bjk->bak", N, C, skew(rb))
+    # d/d phi (body axes): C Exp(phi) a_b = ra - C [a_b x] phi
+    Nra = -np.einsum("ai,bij,jk->bak", N, C, skew(a_b))
     A_loc[:, AXIS, :3] = Nra
-    A_glob[:, AXIS][:, :, gyro_idx] = np.einsum("baj,bjp->bap", Nra, gp.qbar)
-    A_glob[:, AXIS][:, :, pm.idx["mount"][c]] = np.einsum("ai,bij,jk->bak", N, Cbar, cy.basis)
+    A_glob[:, AXIS][:, :, pm.idx["mount"][c]] = np.einsum("ai,bij,jk->bak", N, C, da)
     ti = pm.idx["tilt"][cy.axis_group]
     A_glob[:, AXIS][:, :, ti] = -np.eye(2)
     h_ax = ra @ N.T - theta[ti]
     psi = table_angle(C, cy.a_enu)
     if pm.has("runout"):
         ir = pm.idx["runout"][c]
-        hp = RUNOUT_HARMONIC * (psi + 0.5 * gp.wbar @ cy.a_nom * gp.T)
+        hp = RUNOUT_HARMONIC * psi
         cs, sn = np.cos(hp), np.sin(hp)
         A_glob[:, 3, ir[0]], A_glob[:, 3, ir[1]] = -cs, -sn
         A_glob[:, 4, ir[2]], A_glob[:, 4, ir[3]] = -cs, -sn
@@ -191,9 +198,16 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
     F = np.swapaxes(gp.r_end[:-1], 1, 2)
     B = np.einsum("bij,bjp->bip", F, gp.q_end[:-1])
     q_phi = gp.m * float(np.mean(sig_g**2)) * (gp.T / gp.m) ** 2
+    Wq = np.tile(np.eye(3) / q_phi, (nb - 1, 1, 1))
+    anchor = None
+    if free_heading:  # the turn about the table axis does not propagate (see fit.py)
+        ah = np.einsum("bji,j->bi", C, cy.a_enu)  # the table axis in each block's body axes
+        P = np.einsum("bi,bj->bij", ah[1:], ah[1:])
+        Wq = Wq - P / q_phi
+        anchor = np.einsum("bi,bj->bij", ah, ah) / HEADING_SD**2
     q_rho = sig_rate**2 * gp.m * (gp.T / gp.m) ** 2 if use_rate else 0.0
     r0 = np.zeros(3) if C_start is None else \
         Rotation.from_matrix(C[0].T @ C_start).as_rotvec()
-    return CycleSystem(nb, nl, A_loc, A_glob, r, wt, F, B, gyro_idx, e, q_phi, q_rho,
+    return CycleSystem(nb, nl, A_loc, A_glob, r, wt, F, B, gyro_idx, e, q_phi, Wq, anchor, q_rho,
                        None if not use_rate else np.asarray(rho, float), r0, sd0, psi, acc,
                        axis_var)

@@ -163,14 +163,38 @@ class ParamMap:
     def model_index(self, key: str, flat: int) -> int:
         return int(self.model_cols[(key, int(flat))])
 
+    # The lever arm is held in units of the square of the gyro scale about the cycle's
+    # axis, u = s / gamma^2 with gamma = a^T G a: the centripetal term the accelerometers
+    # see is K [w x]^2 s with w = G^-1 W, i.e. K u (W about a)^2, linear in u, and the
+    # tangential term gamma K (a x u) dW/dt is linear in gamma. In (s, G) the two made a
+    # curved valley (s ~ gamma^2 along it) that Gauss-Newton crept along at 3 sigma a pass
+    # on a vertical axis, where nothing else fixes the gyro scale about it.
+
+    def gyro_scale(self, theta: np.ndarray, c: int) -> tuple[float, np.ndarray, np.ndarray]:
+        """(gamma, its derivative by the gyro_K entries (9,), their theta indices) of cycle c."""
+        a = self.cycles[c].a_nom
+        gi = np.array([self.model_cols[("gyro_K", k)] for k in range(9)])
+        G = theta[gi].reshape(3, 3)
+        return float(a @ G @ a), np.outer(a, a).ravel(), gi
+
+    def lever(self, theta: np.ndarray, c: int) -> np.ndarray:
+        """Cycle c's lever arm s (3,), body axes, m."""
+        gam = self.gyro_scale(theta, c)[0]
+        return gam**2 * (self.cycles[c].basis @ theta[self.idx["lever_arm"][c]])
+
+    def lever_jacobian(self, theta: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(d s / d u (3, 2), d s / d gyro_K (3, 9), the gyro_K theta indices) of cycle c."""
+        gam, dg, gi = self.gyro_scale(theta, c)
+        sb = self.cycles[c].basis @ theta[self.idx["lever_arm"][c]]
+        return gam**2 * self.cycles[c].basis, 2.0 * gam * np.outer(sb, dg), gi
+
     def params(self, theta: np.ndarray, lever_known: np.ndarray | None = None) -> dict:
         """The contract parameters of the model at theta (lever arms in body axes)."""
         base = self.model.neutral_params()
         p = self.packing.unpack(theta[self.idx["packing"]], base)
         if "lever_arm" in base:
             if self.has("lever_arm"):
-                v = theta[self.idx["lever_arm"]]
-                p["lever_arm"] = np.array([cy.basis @ v[c] for c, cy in enumerate(self.cycles)])
+                p["lever_arm"] = np.array([self.lever(theta, c) for c in range(len(self.cycles))])
             else:
                 p["lever_arm"] = (np.zeros((len(self.cycles), 3)) if lever_known is None
                                   else np.asarray(lever_known, float))
@@ -184,7 +208,8 @@ class ParamMap:
         if self.has("lever_arm") and params.get("lever_arm") is not None:
             s = np.asarray(params["lever_arm"], float).reshape(-1, 3)
             for c, cy in enumerate(self.cycles):
-                theta[self.idx["lever_arm"][c]] = cy.basis.T @ s[c]
+                gam = self.gyro_scale(theta, c)[0]
+                theta[self.idx["lever_arm"][c]] = cy.basis.T @ s[c] / gam**2
 
 
 def param_map(model: ImuModel, cycles: list, opt: TurntableOptions, n_axes: int,

@@ -82,22 +82,26 @@ def normal_equations(cs: CycleSystem, p: int) -> tuple[Normal, np.ndarray, np.nd
         bG += k * bg
         cost += k * c
     O = np.zeros((max(nb - 1, 0), nl, nl))
-    # propagation of phi: rows (phi_j+1 - F_j phi_j - B_j dtheta_g + e_j) / sqrt(q_phi), F_j
-    # a rotation (F^T F = I)
-    wq = 1.0 / cs.q_phi
+    # propagation of phi: rows phi_j+1 - F_j phi_j - B_j dtheta_g + e_j with weight W_j (the
+    # inverse of the attitude walk's covariance over the block, cs.Wq)
+    Wq = cs.Wq
     g = cs.gyro_idx
-    I3 = np.eye(3)
     FT = np.swapaxes(cs.F, 1, 2)
-    D[:-1, :3, :3] += wq * I3
-    D[1:, :3, :3] += wq * I3
-    O[:, :3, :3] -= wq * cs.F
-    G[:-1, :3, g] += wq * np.matmul(FT, cs.B)
-    G[1:, :3, g] -= wq * cs.B
-    LGG[np.ix_(g, g)] += wq * np.einsum("bip,biq->pq", cs.B, cs.B)
-    bL[:-1, :3] += wq * np.einsum("bij,bj->bi", FT, cs.e)
-    bL[1:, :3] -= wq * cs.e
-    bG[g] += wq * np.einsum("bip,bi->p", cs.B, cs.e)
-    cost += wq * float(np.sum(cs.e**2))
+    WF = np.matmul(Wq, cs.F)
+    WB = np.matmul(Wq, cs.B)
+    We = np.einsum("bij,bj->bi", Wq, cs.e)
+    D[:-1, :3, :3] += np.matmul(FT, WF)
+    D[1:, :3, :3] += Wq
+    O[:, :3, :3] -= WF
+    G[:-1, :3, g] += np.matmul(FT, WB)
+    G[1:, :3, g] -= WB
+    LGG[np.ix_(g, g)] += np.einsum("bip,biq->pq", cs.B, WB)
+    bL[:-1, :3] += np.einsum("bij,bj->bi", FT, We)
+    bL[1:, :3] -= We
+    bG[g] += np.einsum("bip,bi->p", cs.B, We)
+    cost += float(np.einsum("bi,bi->", cs.e, We))
+    if cs.anchor is not None:  # weak priors on some directions of every block's phi
+        D[:, :3, :3] += cs.anchor
     if nl == 4:  # the rate channel's integrated noise: (rho_j+1 - rho_j) / sqrt(q_rho)
         wr = 1.0 / cs.q_rho
         d = np.diff(cs.rho)
@@ -115,7 +119,7 @@ def normal_equations(cs: CycleSystem, p: int) -> tuple[Normal, np.ndarray, np.nd
     # the start attitude's prior (around the coarse start: a weak one, for the directions
     # nothing else fixes, such as the heading on a vertical axis)
     w0 = 1.0 / cs.sd0**2
-    D[0, :3, :3] += w0 * I3
+    D[0, :3, :3] += w0 * np.eye(3)
     bL[0, :3] += w0 * cs.r0
     cost += w0 * float(cs.r0 @ cs.r0)
     return Normal(D, O, G, bL), LGG, bG, cost
