@@ -227,7 +227,8 @@ def accel_rows(rec: Recording, sl: slice, gp: GyroPart, C: np.ndarray, model, pa
     # towards larger noise at the corners)
     if lever_norm2 is None:
         s = params.get("lever_arm")
-        lever_norm2 = float(np.sum(s[cycle] ** 2)) if s is not None and len(s) > cycle else 0.0
+        lever_norm2 = float(np.sum(s[cycle] ** 2)) if s is not None and 0 <= cycle < len(s) \
+            else 0.0
     r2 = lever_norm2
     sg2 = float(np.mean(sig_g**2))
     extra = 4.0 * gp.wabs**2 * r2 * sg2 / m + (1.3 * sg2 / gp.T**2 + gp.dw_var) * r2

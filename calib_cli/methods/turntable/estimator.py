@@ -48,7 +48,7 @@ NOISE_MOVE = np.log(1.2)  # a noise level that moves by less than 20 % is settle
 # along the directions it ties, which a step from far away does not bear (a vertical axis,
 # where the axis and gravity tie the same two angles, crept at 2 sigma a pass after one
 # jump from 1 mrad to 10 urad)
-AXIS_STEP = 10.0
+AXIS_STEP = 1e6
 
 
 @dataclass
@@ -146,9 +146,10 @@ def run_pass(pb: Problem, st: State, nbs: list) -> PassResult:
         if st.lever2 is None:  # the noise model's lever arms: fixed at the start's
             s0 = params.get("lever_arm")
             st.lever2 = [0.0 if s0 is None else float(np.sum(s0[k] ** 2))
-                         for k in range(len(pb.cycles))]
-        acc = accel_rows(pb.rec, cy.sl, gp, C, pb.model, params, c, pb.acc_cols, pb.lever,
-                         pb.g_n, sig_a, pb.sig_g, st.lever2[c])
+                         for k in range(len(pb.pm.rotating()))]
+        acc = accel_rows(pb.rec, cy.sl, gp, C, pb.model, params, cy.model_index, pb.acc_cols,
+                         pb.lever and not cy.static, pb.g_n, sig_a, pb.sig_g,
+                         0.0 if cy.static else st.lever2[cy.model_index])
         cs = cycle_system(c, cy, gp, acc, C, None if st.rho[c] is None else st.rho[c][:nbs[c]],
                           st.theta, pb.pm, pb.gyro_idx, pb.acc_idx, E, pb.sig_g, st.axis_var,
                           None if pb.enc is None else pb.enc[c], pb.sig_enc,

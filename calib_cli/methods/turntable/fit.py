@@ -26,6 +26,7 @@ ACCEL_MISFIT = 1.3
 FREE_HEADING = False
 GAIN_TOL = 0.5  # chi^2: a full step that promises less is converged (see _iterate)
 START_MOUNT_SD = float(np.radians(0.3))  # rad: the mountings' prior during the start windows
+HELD_SD = 1e-9  # the prior width that holds an entry (hold_undetermined)
 
 
 def _check_options(opt: TurntableOptions) -> None:
@@ -46,29 +47,37 @@ def problem(rec: Recording, opt: TurntableOptions) -> es.Problem:
     """The set-up of a fit (estimator.Problem): cycles, model, parameters, channels, noise."""
     _check_options(opt)
     cycles = su.select_cycles(rec, opt)
-    nc = len(cycles)
+    rotating = [cy for cy in cycles if not cy.static]
+    nc = len(rotating)
     est_p = opt.proof_mass == "estimate" or (opt.proof_mass == "auto" and opt.lever_arm != "off")
     model = su.turntable_model(nc, opt.lever_arm != "off", est_p, opt.tangential, opt.effects)
     lever_known = None
     if opt.lever_arm == "known":
-        missing = [cy.label for cy in cycles if cy.s_plan is None]
+        missing = [cy.label for cy in rotating if cy.s_plan is None]
         if missing:
             raise InputError(f"--lever-arm known needs lever_arm_m in the plan for every rotating "
                              f"segment; missing: {', '.join(missing)}")
-        lever_known = np.array([cy.s_plan for cy in cycles])
+        lever_known = np.array([cy.s_plan for cy in rotating])
     fs = rec.sample_rate
     block_n = max(1, int(round(opt.block_s * fs)))
+    # a static position too short for ten blocks is left out; a rotating segment is an error
+    cycles = [cy for cy in cycles if not cy.static or (cy.sl.stop - cy.sl.start) >= 10 * block_n]
     nb = [(cy.sl.stop - cy.sl.start) // block_n for cy in cycles]
     for cy, n in zip(cycles, nb):
         if n < 10:
             raise EstimationError(f"rotating segment {cy.label!r} is too short "
                                   f"({cy.sl.stop - cy.sl.start} samples) for the turntable fit")
-    enc, sig_enc, notes = su.angle_channels(rec, cycles, block_n, opt)
-    rate, sig_rate, rnotes = su.rate_channels(rec, cycles, block_n, opt)
+    enc, sig_enc, notes = su.angle_channels(rec, rotating, block_n, opt)
+    rate, sig_rate, rnotes = su.rate_channels(rec, rotating, block_n, opt)
+    n_static = len(cycles) - nc
+    if enc is not None:
+        enc = enc + [None] * n_static
+    if rate is not None:
+        rate = rate + [None] * n_static
     notes = notes + rnotes
-    n_axes = 1 + max(cy.axis_group for cy in cycles)
+    n_axes = 1 + max(cy.axis_group for cy in rotating)
     pm = su.param_map(model, cycles, opt, n_axes, enc is not None, rate is not None)
-    on = np.concatenate([np.arange(cy.sl.start, cy.sl.stop) for cy in cycles])
+    on = np.concatenate([np.arange(cy.sl.start, cy.sl.stop) for cy in rotating])
     if opt.noise is not None:
         sig_a = np.asarray(opt.noise["accel"], float) * np.ones(3)
         sig_g = np.asarray(opt.noise["gyro"], float) * np.ones(3)
@@ -85,27 +94,51 @@ def problem(rec: Recording, opt: TurntableOptions) -> es.Problem:
     return pb
 
 
+def hold_undetermined(pb: es.Problem) -> None:
+    """Without a gravity reference (result.structural_unobservable) the entries the record
+    cannot determine are held where the fit starts (the neutral unit, the lever arms from
+    the holds) rather than estimated: free, they drift along the valley of nearly equal
+    cost they span, and drag the determined ones (the gyro biases and g-sensitivity) with
+    them. They are reported null and listed in stats.unobservable."""
+    from calib_cli.methods.turntable.result import structural_unobservable
+
+    held = structural_unobservable(pb)
+    if not held:
+        return
+    pm = pb.pm
+    for q, (key, flat) in enumerate(pm.keys):
+        if key in held or (key, flat) in held:
+            pm.sd[pm.idx["packing"][q]] = HELD_SD
+    if pm.has("lever_arm") and "lever_arm" in held:
+        pm.sd[pm.idx["lever_arm"]] = HELD_SD
+    pb.held = held
+
+
 def start_state(pb: es.Problem) -> es.State:
     """Where the iterations start: the prior mean, coarse lever arms from the holds, each
-    cycle's attitude from the plan's mounting turned to the gravity of its first block."""
+    cycle's attitude from the plan's mounting turned to the gravity of its first block (a
+    static position's: the plan's)."""
     theta = pb.pm.mean.copy()
     rec = pb.rec
     if pb.pm.has("lever_arm"):
-        for c, cy in enumerate(pb.cycles):
-            s0 = su.initial_lever_arm(rec, cy)
+        for cy in pb.cycles:
+            s0 = None if cy.static else su.initial_lever_arm(rec, cy)
             if s0 is not None:
-                theta[pb.pm.idx["lever_arm"][c]] = cy.basis.T @ s0
+                theta[pb.pm.idx["lever_arm"][cy.model_index]] = cy.basis.T @ s0
     params = pb.pm.params(theta, pb.lever_known)
     C, rho, C0 = [], [], []
     g_n = pb.g_n
     for c, cy in enumerate(pb.cycles):
-        a = rec.accel[cy.sl][: pb.block_n]
-        f0 = correct(pb.model, params, "accel", a).mean(axis=0)
-        s = params.get("lever_arm")
-        if s is not None:  # the rigid-body terms at the first block, from the raw rates
-            w = rec.gyro[cy.sl][: pb.block_n].mean(axis=0)
-            f0 = f0 - np.cross(w, np.cross(w, s[c]))
-        R0 = su.start_attitude(cy, f0, g_n)
+        if cy.static:
+            R0 = cy.rot_nom.as_matrix()
+        else:
+            a = rec.accel[cy.sl][: pb.block_n]
+            f0 = correct(pb.model, params, "accel", a).mean(axis=0)
+            s = params.get("lever_arm")
+            if s is not None:  # the rigid-body terms at the first block, from the raw rates
+                w = rec.gyro[cy.sl][: pb.block_n].mean(axis=0)
+                f0 = f0 - np.cross(w, np.cross(w, s[cy.model_index]))
+            R0 = su.start_attitude(cy, f0, g_n)
         C.append(R0[None].copy())
         C0.append(R0)
         rho.append(None if pb.rate is None else np.zeros(1))
@@ -114,13 +147,18 @@ def start_state(pb: es.Problem) -> es.State:
 
 
 def reported_columns(pb: es.Problem) -> np.ndarray:
-    """The theta indices of the reported parameters (convergence is judged on them)."""
-    idx = [pb.pm.idx["packing"]]
-    if pb.pm.has("lever_arm"):
-        idx.append(pb.pm.idx["lever_arm"].ravel())
+    """The theta indices of the reported parameters that the record can determine
+    (convergence is judged on them; result.structural_unobservable: the others)."""
+    from calib_cli.methods.turntable.result import structural_unobservable
+
+    held = structural_unobservable(pb)
+    idx = [int(pb.pm.idx["packing"][q]) for q, (key, flat) in enumerate(pb.pm.keys)
+           if key not in held and (key, flat) not in held]
+    if pb.pm.has("lever_arm") and "lever_arm" not in held:
+        idx += list(pb.pm.idx["lever_arm"].ravel())
     if pb.pm.has("time_offset"):
-        idx.append(pb.pm.idx["time_offset"])
-    return np.concatenate(idx)
+        idx += list(pb.pm.idx["time_offset"])
+    return np.array(idx, int)
 
 
 class _TrustRegion:
@@ -269,6 +307,9 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
 def _fit(rec: Recording, opt: TurntableOptions, progress=None) -> CalibrationResult:
     pb = problem(rec, opt)
     st = start_state(pb)
+    hold_undetermined(pb)
+    if getattr(pb, "held", None):  # held at the start's values (the lever arms from the holds)
+        pb.pm.mean = st.theta.copy() * 0 + np.where(pb.pm.sd == HELD_SD, st.theta, pb.pm.mean)
     for _attempt in range(6):
         st, pr, info = _iterate(pb, st, progress)
         rms = info["residual_rms"]

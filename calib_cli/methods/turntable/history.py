@@ -18,7 +18,7 @@ def _labels(pb, theta) -> tuple[np.ndarray, np.ndarray, list]:
     pm = pb.pm
     rows, vals, labels = [], [], []
     if pm.has("lever_arm"):
-        for c, cy in enumerate(pb.cycles):
+        for c, cy in enumerate(pm.rotating()):
             ds_du, ds_dG, gi = pm.lever_jacobian(theta, c)
             s = pm.lever(theta, c)
             for m in range(2):

@@ -57,7 +57,7 @@ def _reported(pb: es.Problem, theta: np.ndarray):
         spec = model.spec(k)
         specs.append(spec)
         if k == "lever_arm":
-            masks.append(np.array([np.abs(cy.basis).sum(axis=1) > 0 for cy in pb.cycles]))
+            masks.append(np.array([np.abs(cy.basis).sum(axis=1) > 0 for cy in pm.rotating()]))
         else:
             masks.append(~spec.fixed_mask())
     packing = Packing(tuple(specs), tuple(masks))
@@ -66,7 +66,7 @@ def _reported(pb: es.Problem, theta: np.ndarray):
         if key == "lever_arm":  # s = gamma^2 basis u: its linearisation at theta
             c, e = divmod(flat, 3)
             ds_du, ds_dG, gi = pm.lever_jacobian(theta, c)
-            T[q, pm.idx["lever_arm"][c]] = ds_du[e]
+            T[q, pm.idx["lever_arm"][c]] = ds_du[e]  # (c: the rotating cycle's row)
             T[q, gi] += ds_dG[e]
         elif key == "time_offset":
             T[q, pm.idx["time_offset"][0]] = 1.0
@@ -90,6 +90,44 @@ def data_sigma(S: np.ndarray, pm, T: np.ndarray, prior_sd: np.ndarray) -> np.nda
     Ts = T * sd[None, :]
     var = np.einsum("ij,jk,ik->i", Ts, cov, Ts)
     return np.sqrt(np.clip(var, 0, None)) / prior_sd
+
+
+def structural_unobservable(pb) -> set:
+    """What a record without a gravity reference (every table axis vertical, no mounting
+    stated, no static position of known attitude) cannot determine whatever the
+    linearisation says: a common tilt of the mountings turns the accelerometers' K and
+    biases, the lever arms and proof-mass offsets and the gyros' misalignment together
+    at nearly equal cost (measured: 16 sigma apart for 11 in chi^2, along a curved path
+    the local covariance does not see). Entries {key} or {(key, flat)}; the gyro scale
+    about each axis stays where a cycle about it has an angle channel."""
+    from calib_cli.methods.turntable.setup import gravity_reference
+
+    if gravity_reference(pb.cycles) or any(cy.static for cy in pb.cycles):
+        return set()
+    out = {"accel_bias", "accel_K", "lever_arm", "proof_mass_offsets"}
+    for k in range(9):
+        i, j = divmod(k, 3)
+        if i != j:
+            out.add(("gyro_K", k))
+    for i in range(3):  # the scale about body axis i: only an angle channel about it fixes it
+        measured = any(pb.enc is not None and pb.enc[c] is not None
+                       and abs(cy.a_nom[i]) > np.cos(np.radians(10.0))
+                       for c, cy in enumerate(pb.cycles) if not cy.static)
+        if not measured:
+            out.add(("gyro_K", 4 * i))
+    return out
+
+
+def gravity_reference_words(pb) -> str:
+    """Where the accelerometers' gravity reference comes from (stats.gravity_reference)."""
+    from calib_cli.methods.turntable.setup import gravity_reference
+
+    if gravity_reference(pb.cycles):
+        return "the rotating cycles (a table axis away from the vertical, or a stated mounting)"
+    if any(cy.static for cy in pb.cycles):
+        return "the static positions of known attitude (every table axis is vertical)"
+    return ("none: every table axis is vertical and no mounting is stated (attitude_sigma_deg): "
+            "the accelerometers, the lever arms and the gyros' misalignment are not determined")
 
 
 def _g_errors(pb, pr, params) -> tuple:
@@ -131,6 +169,8 @@ def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict):
     dsig = data_sigma(pr.step.S, pm, T, prior_sd)
     unobs = ~(dsig < OBSERVABLE)
     labels = packing.labels()
+    held = structural_unobservable(pb)
+    unobs |= np.array([(k, f) in held or k in held for k, f in labels], bool)
     imu = np.array([k in IMU_KEYS for k, _ in labels])
     if imu.any() and unobs[imu].all():
         raise EstimationError("the record determines none of the unit's parameters (every "
@@ -147,7 +187,7 @@ def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict):
     fit = LsqFit(theta=vals, cov=cov, unobservable=unobs, residuals=np.zeros(0),
                  chi2=float("nan"), dof=0, nfev=0)
     base = dict(params)
-    nc = len(pb.cycles)
+    nc = len(pm.rotating())
     extra, pm_fixed = {}, []
     if opt.lever_arm == "known":
         extra["lever_arm"] = pb.lever_known
@@ -191,14 +231,14 @@ def _stats(pb, st, pr, info, params) -> dict:
     res_acc = np.concatenate(res_acc) if res_acc else np.zeros((0, 3))
     before, after = _g_errors(pb, pr, params)
     a_b, u_sd = [], []
-    for c, cy in enumerate(pb.cycles):
+    for c, cy in enumerate(pm.rotating()):
         u = st.theta[pm.idx["mount"][c]]
         v = cy.a_nom + cy.basis @ u
         a_b.append([float(x) for x in v / np.linalg.norm(v)])
         u_sd.append([float(np.sqrt(P[i, i])) for i in pm.idx["mount"][c]])
     tilts = []
     for gidx in range(pm.idx["tilt"].shape[0]):
-        cy = next(c for c in pb.cycles if c.axis_group == gidx)
+        cy = next(c for c in pm.rotating() if c.axis_group == gidx)
         ii = pm.idx["tilt"][gidx]
         sd = [float(np.sqrt(P[i, i])) for i in ii]
         tilts.append({"plan_axis_enu": [float(v) for v in cy.a_enu],
@@ -208,7 +248,7 @@ def _stats(pb, st, pr, info, params) -> dict:
                                      for v in sd]})
     runout = []
     if pm.has("runout"):
-        for c in range(len(pb.cycles)):
+        for c in range(len(pm.rotating())):
             x = st.theta[pm.idx["runout"][c]]
             runout.append([float(np.hypot(x[0], x[1])) * 1e6, float(np.hypot(x[2], x[3])) * 1e6])
     block_s = pb.block_n / pb.rec.sample_rate
@@ -216,19 +256,21 @@ def _stats(pb, st, pr, info, params) -> dict:
         "accel_residual_rms": float(np.sqrt(np.mean(res_acc**2))) if len(res_acc) else None,
         "normalized_innovation_rms": rms.get("accel"),
         "g_error_rms_before": before, "g_error_rms_after": after,
-        "n_cycles": len(pb.cycles), "cycles": [cy.label for cy in pb.cycles],
+        "n_cycles": len(pm.rotating()), "cycles": [cy.label for cy in pm.rotating()],
+        "static_positions_used": [cy.label for cy in pb.cycles if cy.static],
+        "gravity_reference": gravity_reference_words(pb),
         "lever_arm_mode": opt.lever_arm, "proof_mass_mode": opt.proof_mass,
         "tangential": bool(opt.tangential), "block_s": block_s, "passes": int(opt.passes),
         "grade": opt.grade, "prior_sigma": {k: float(v) for k, v in prior_widths(opt).items()},
         "accel_noise_inflation": float(st.inflation),
         "noise_accel": [float(v) for v in sig_a], "noise_gyro": [float(v) for v in pb.sig_g],
         "table_axis_body": a_b, "table_axis_body_sigma_rad": u_sd,
-        "mounting_sigma_deg": [float(np.degrees(cy.mount_sigma)) for cy in pb.cycles],
-        "mounting_stated": [bool(cy.mount_stated) for cy in pb.cycles],
+        "mounting_sigma_deg": [float(np.degrees(cy.mount_sigma)) for cy in pm.rotating()],
+        "mounting_stated": [bool(cy.mount_stated) for cy in pm.rotating()],
         "table_axis_tilt_mrad": tilts,
         "g_error_floor": float(np.sqrt(np.mean(sig_a**2) / pb.block_n)),
         "g_error_note": f"|mean f| - g over blocks of {block_s:g} s where the table is at rest",
-        "accel_clipped_samples": _clipped(pb.rec, pb.cycles),
+        "accel_clipped_samples": _clipped(pb.rec, pm.rotating()),
         "table_axis_noise_mrad": float(np.sqrt(st.axis_var) * 1e3),
         "table_axis_noise_mode": "given" if opt.axis_sigma is not None else "estimated",
         "table_axis_runout_urad": runout,

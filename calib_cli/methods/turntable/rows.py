@@ -114,8 +114,8 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
     A_glob[:, ACC][:, :, acc_idx] = acc.H_acc
     A_glob[:, ACC][:, :, gyro_idx] += acc.H_gyr
     if acc.H_lever is not None:  # the lever arm as u = s / gamma^2 (setup.ParamMap)
-        ds_du, ds_dG, gi = pm.lever_jacobian(theta, c)
-        A_glob[:, ACC][:, :, pm.idx["lever_arm"][c]] = acc.H_lever @ ds_du
+        ds_du, ds_dG, gi = pm.lever_jacobian(theta, cy.model_index)
+        A_glob[:, ACC][:, :, pm.idx["lever_arm"][cy.model_index]] = acc.H_lever @ ds_du
         A_glob[:, ACC][:, :, gi] += acc.H_lever @ ds_dG
     r[:, ACC] = acc.z - acc.h
     wt[:, ACC] = 1.0 / np.sqrt(acc.var)
@@ -134,11 +134,16 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
     Nra = -np.einsum("ai,bij,jk->bak", N, C, skew(a_b))
     A_loc[:, AXIS, :3] = Nra
     A_glob[:, AXIS][:, :, pm.idx["mount"][c]] = np.einsum("ai,bij,jk->bak", N, C, da)
-    ti = pm.idx["tilt"][cy.axis_group]
-    A_glob[:, AXIS][:, :, ti] = -np.eye(2)
-    h_ax = ra @ N.T - theta[ti]
+    if cy.static:  # a static position: no table axis
+        A_loc[:, AXIS] = 0.0
+        A_glob[:, AXIS] = 0.0
+        h_ax = np.zeros((nb, 2))
+    else:
+        ti = pm.idx["tilt"][cy.axis_group]
+        A_glob[:, AXIS][:, :, ti] = -np.eye(2)
+        h_ax = ra @ N.T - theta[ti]
     psi = table_angle(C, cy.a_enu)
-    if pm.has("runout"):
+    if pm.has("runout") and not cy.static:
         ir = pm.idx["runout"][c]
         hp = RUNOUT_HARMONIC * psi
         cs, sn = np.cos(hp), np.sin(hp)
@@ -147,7 +152,7 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
         h_ax[:, 0] -= cs * theta[ir[0]] + sn * theta[ir[1]]
         h_ax[:, 1] -= cs * theta[ir[2]] + sn * theta[ir[3]]
     r[:, AXIS] = -h_ax
-    wt[:, AXIS] = 1.0 / np.sqrt(axis_var)
+    wt[:, AXIS] = 0.0 if cy.static else 1.0 / np.sqrt(axis_var)
     omega = np.einsum("bi,i->b", gp.w[::gp.m], cy.a_nom)  # the rate at each block start
     # the angle channel
     if enc is not None:
@@ -209,5 +214,6 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
     r0 = np.zeros(3) if C_start is None else \
         Rotation.from_matrix(C[0].T @ C_start).as_rotvec()
     return CycleSystem(nb, nl, A_loc, A_glob, r, wt, F, B, gyro_idx, e, q_phi, Wq, anchor, q_rho,
-                       None if not use_rate else np.asarray(rho, float), r0, sd0, psi, acc,
+                       None if not use_rate else np.asarray(rho, float), r0,
+                       cy.mount_sigma if cy.static else sd0, psi, acc,
                        axis_var)

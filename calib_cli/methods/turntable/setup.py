@@ -51,7 +51,7 @@ def turntable_model(n_cycles: int, lever_arm: bool, proof_mass: bool, tangential
 
 @dataclass(frozen=True)
 class Cycle:
-    """One rotating segment. sl: its samples; a_enu: the plan's table axis (ENU, unit);
+    """One rotating segment (or a static position the fit uses). sl: its samples; a_enu: the plan's table axis (ENU, unit);
     a_nom: that axis in body axes at the nominal mounting; basis (3, 2): two unit
     vectors perpendicular to a_nom (the lever arm's and the mounting error's axes);
     rot_nom: the plan's attitude; s_plan: the plan's lever arm (m) or None; axis_group:
@@ -69,6 +69,8 @@ class Cycle:
     axis_group: int
     mount_sigma: float
     mount_stated: bool
+    model_index: int = -1  # its row of the lever arm (-1: a static position, none)
+    static: bool = False  # a static position of known attitude (see select_cycles)
 
 
 def perp_basis(a: np.ndarray) -> np.ndarray:
@@ -114,9 +116,43 @@ def select_cycles(rec: Recording, opt: TurntableOptions) -> list[Cycle]:
         msig = float(seg.attitude_sigma) if stated else float(opt.mount_sigma)
         out.append(Cycle(i, seg.label, seg.slice, a_enu, a_nom, perp_basis(a_nom), rot,
                          None if seg.lever_arm is None else np.asarray(seg.lever_arm, float),
-                         group, max(msig, 1e-9), stated))
+                         group, max(msig, 1e-9), stated, model_index=len(out)))
     if not out:
         raise EstimationError("no rotating segments: the turntable fit needs rotation cycles")
+    if not gravity_reference(out):
+        out += static_positions(rec)
+    return out
+
+
+# a table axis within this angle of the vertical turns nothing of gravity in body axes
+VERTICAL = float(np.radians(10.0))
+STATIC_ATTITUDE_SD = 1e-5  # rad: a static position's attitude where the plan gives no sigma
+
+
+def gravity_reference(cycles) -> bool:
+    """Whether the rotating cycles give the accelerometers a gravity reference: a table
+    axis away from the vertical turns gravity through the body axes (both signs), and a
+    stated mounting fixes its direction on a vertical one. Without either, a common tilt of
+    the mountings, the accelerometers' K and biases and the gyros' misalignment turn
+    together at nearly equal cost (methods/turntable/result.py: what is then reported)."""
+    return any(cy.mount_stated or abs(cy.a_enu[2]) < np.cos(VERTICAL) for cy in cycles
+               if not cy.static)
+
+
+def static_positions(rec: Recording) -> list[Cycle]:
+    """The static segments of known attitude as cycles of a table that does not turn
+    (their attitude the plan's, to its attitude_sigma_deg or STATIC_ATTITUDE_SD)."""
+    out = []
+    for i, seg in enumerate(rec.segments):
+        if seg.kind != "static" or seg.attitude is None:
+            continue
+        rot = attitude_to_rotation(seg.attitude)
+        up = np.array([0.0, 0.0, 1.0])
+        a_nom = rot.inv().apply(up)
+        sd = float(seg.attitude_sigma) if seg.attitude_sigma is not None and \
+            np.isfinite(seg.attitude_sigma) else STATIC_ATTITUDE_SD
+        out.append(Cycle(i, seg.label, seg.slice, up, a_nom, perp_basis(a_nom), rot, None, -1,
+                         max(sd, 1e-9), True, model_index=-1, static=True))
     return out
 
 
@@ -170,9 +206,14 @@ class ParamMap:
     # curved valley (s ~ gamma^2 along it) that Gauss-Newton crept along at 3 sigma a pass
     # on a vertical axis, where nothing else fixes the gyro scale about it.
 
+    def rotating(self) -> list:
+        """The rotating cycles, in the lever arm's row order."""
+        return [cy for cy in self.cycles if not cy.static]
+
     def gyro_scale(self, theta: np.ndarray, c: int) -> tuple[float, np.ndarray, np.ndarray]:
-        """(gamma, its derivative by the gyro_K entries (9,), their theta indices) of cycle c."""
-        a = self.cycles[c].a_nom
+        """(gamma, its derivative by the gyro_K entries (9,), their theta indices) of the
+        c-th rotating cycle (the lever arm's row c)."""
+        a = self.rotating()[c].a_nom
         gi = np.array([self.model_cols[("gyro_K", k)] for k in range(9)])
         G = theta[gi].reshape(3, 3)
         return float(a @ G @ a), np.outer(a, a).ravel(), gi
@@ -180,23 +221,25 @@ class ParamMap:
     def lever(self, theta: np.ndarray, c: int) -> np.ndarray:
         """Cycle c's lever arm s (3,), body axes, m."""
         gam = self.gyro_scale(theta, c)[0]
-        return gam**2 * (self.cycles[c].basis @ theta[self.idx["lever_arm"][c]])
+        return gam**2 * (self.rotating()[c].basis @ theta[self.idx["lever_arm"][c]])
 
     def lever_jacobian(self, theta: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(d s / d u (3, 2), d s / d gyro_K (3, 9), the gyro_K theta indices) of cycle c."""
         gam, dg, gi = self.gyro_scale(theta, c)
-        sb = self.cycles[c].basis @ theta[self.idx["lever_arm"][c]]
-        return gam**2 * self.cycles[c].basis, 2.0 * gam * np.outer(sb, dg), gi
+        basis = self.rotating()[c].basis
+        sb = basis @ theta[self.idx["lever_arm"][c]]
+        return gam**2 * basis, 2.0 * gam * np.outer(sb, dg), gi
 
     def params(self, theta: np.ndarray, lever_known: np.ndarray | None = None) -> dict:
         """The contract parameters of the model at theta (lever arms in body axes)."""
         base = self.model.neutral_params()
         p = self.packing.unpack(theta[self.idx["packing"]], base)
         if "lever_arm" in base:
+            n = len(self.rotating())
             if self.has("lever_arm"):
-                p["lever_arm"] = np.array([self.lever(theta, c) for c in range(len(self.cycles))])
+                p["lever_arm"] = np.array([self.lever(theta, c) for c in range(n)])
             else:
-                p["lever_arm"] = (np.zeros((len(self.cycles), 3)) if lever_known is None
+                p["lever_arm"] = (np.zeros((n, 3)) if lever_known is None
                                   else np.asarray(lever_known, float))
         return p
 
@@ -207,7 +250,7 @@ class ParamMap:
                 theta[self.idx["packing"][q]] = np.asarray(params[key], float).ravel()[flat]
         if self.has("lever_arm") and params.get("lever_arm") is not None:
             s = np.asarray(params["lever_arm"], float).reshape(-1, 3)
-            for c, cy in enumerate(self.cycles):
+            for c, cy in enumerate(self.rotating()):
                 gam = self.gyro_scale(theta, c)[0]
                 theta[self.idx["lever_arm"][c]] = cy.basis.T @ s[c] / gam**2
 
@@ -219,10 +262,11 @@ def param_map(model: ImuModel, cycles: list, opt: TurntableOptions, n_axes: int,
     packing = Packing.for_model(model, keys=keys)
     pm = ParamMap(model, cycles, packing, packing.labels())
     nc = len(cycles)
+    rotating = [cy for cy in cycles if not cy.static]
     pm.add("packing", (packing.size,))
     pm.model_cols = {kf: int(pm.idx["packing"][q]) for q, kf in enumerate(pm.keys)}
     if model.has("lever_arm") and opt.lever_arm == "estimate":
-        pm.add("lever_arm", (nc, 2))
+        pm.add("lever_arm", (len(rotating), 2))
     pm.add("mount", (nc, 2))
     pm.add("tilt", (n_axes, 2))
     pm.add("runout", (nc, 4) if opt.runout_sigma > 0 else (nc, 0))
@@ -246,11 +290,11 @@ def param_map(model: ImuModel, cycles: list, opt: TurntableOptions, n_axes: int,
         pm.mean[i] = spec.neutral().ravel()[flat]
         pm.sd[i] = width.get(key, 10.0 * spec.typical)
     if pm.has("lever_arm"):
-        for c, cy in enumerate(cycles):
+        for cy in rotating:
             if cy.s_plan is not None:
-                pm.mean[pm.idx["lever_arm"][c]] = cy.basis.T @ cy.s_plan
+                pm.mean[pm.idx["lever_arm"][cy.model_index]] = cy.basis.T @ cy.s_plan
         pm.sd[pm.idx["lever_arm"]] = width["lever_arm"]
-    for c, cy in enumerate(cycles):
+    for c, cy in enumerate(cycles):  # (a static position's entries take part in no row)
         pm.sd[pm.idx["mount"][c]] = cy.mount_sigma
         pm.informative[pm.idx["mount"][c]] = cy.mount_stated
     pm.sd[pm.idx["tilt"]] = max(opt.table_tilt_sigma, 1e-9)
