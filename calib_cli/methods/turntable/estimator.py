@@ -31,6 +31,7 @@ from calib_cli.errors import EstimationError
 from calib_cli.methods.turntable import setup as su
 from calib_cli.methods.turntable.blocks import accel_rows, gyro_part
 from calib_cli.methods.turntable.rows import ACC, AXIS, ENC, RATE, cycle_system, propagate
+from calib_cli.methods.turntable.setup import RATE_ANGLE_FLOOR
 from calib_cli.methods.turntable.solve import leverage, residuals_after, set_weight, solve
 from calib_cli.model.strapdown import exp_matrix
 
@@ -49,6 +50,7 @@ NOISE_MOVE = np.log(1.2)  # a noise level that moves by less than 20 % is settle
 # where the axis and gravity tie the same two angles, crept at 2 sigma a pass after one
 # jump from 1 mrad to 10 urad)
 AXIS_STEP = 1e6
+SETTLED = 0.05  # a noise level that moves by less than this (in log) within a pass is settled
 
 
 @dataclass
@@ -77,6 +79,8 @@ class Problem:
     sig_rate: float = 0.0
     notes: list = field(default_factory=list)
     free_heading: list = field(default_factory=list)
+    sig_enc_floor: float = 0.0  # the angle channel's white noise (setup.angle_noise)
+    sig_rate_row: float = AXIS_START  # the rate channel's rows' sigma (estimated, floored)
 
     @property
     def g_n(self) -> np.ndarray:
@@ -150,11 +154,14 @@ def run_pass(pb: Problem, st: State, nbs: list) -> PassResult:
         acc = accel_rows(pb.rec, cy.sl, gp, C, pb.model, params, cy.model_index, pb.acc_cols,
                          pb.lever and not cy.static, pb.g_n, sig_a, pb.sig_g,
                          0.0 if cy.static else st.lever2[cy.model_index])
+        if pb.rate is not None and pb.rate[c] is not None and st.rho[c] is None:
+            st.rho[c] = np.zeros(nbs[c])
         cs = cycle_system(c, cy, gp, acc, C, None if st.rho[c] is None else st.rho[c][:nbs[c]],
                           st.theta, pb.pm, pb.gyro_idx, pb.acc_idx, E, pb.sig_g, st.axis_var,
                           None if pb.enc is None else pb.enc[c], pb.sig_enc,
                           None if pb.rate is None else pb.rate[c], pb.sig_rate,
-                          st.C_start[c], free_heading=pb.free_heading[c])
+                          st.C_start[c], free_heading=pb.free_heading[c],
+                          rate_row_sd=pb.sig_rate_row)
         systems.append(cs)
         gps.append(gp)
     step = solve(systems, pb.pm.size, pb.pm.mean, pb.pm.sd, st.theta)
@@ -186,7 +193,7 @@ def apply_step(st: State, pr: PassResult, alpha: float = 1.0, step=None,
         else:
             new = np.einsum("bij,bjk->bik", Cc, Rotation.from_rotvec(phi).as_matrix())
         C.append(np.concatenate([new, st.C[c][cs.nb:]]))
-        rho.append(None if st.rho[c] is None else
+        rho.append(None if st.rho[c] is None or cs.nl < 4 else
                    np.concatenate([st.rho[c][:cs.nb] + alpha * dl[:, 3], st.rho[c][cs.nb:]]))
     return State(st.theta + alpha * step.dtheta, C, rho, st.C_start, st.axis_var,
                  st.inflation, st.lever2)
@@ -217,6 +224,8 @@ def reweight(pb: Problem, pr: PassResult, axis_var: float) -> None:
         cs.axis_var = axis_var
         if pb.enc is not None:
             set_weight(cs, "angle", 1.0 / pb.sig_enc)
+        if pb.rate is not None:
+            set_weight(cs, "rate", 1.0 / pb.sig_rate_row)
     pr.step = solve(pr.systems, pb.pm.size, pb.pm.mean, pb.pm.sd, pr.theta_lin)
 
 
@@ -251,12 +260,12 @@ def residual_levels(pb: Problem, pr: PassResult) -> tuple[dict, dict]:
     return raw, norm
 
 
-def settle_noise(pb: Problem, st: State, pr: PassResult, rounds: int = 12) -> tuple[bool, dict]:
+def settle_noise(pb: Problem, st: State, pr: PassResult, rounds: int = 8) -> tuple[bool, dict]:
     """The table axis's and the angle channel's noise re-estimated from the pass's
-    residuals and the pass re-solved at them, until they settle (within 2 %): the rows
+    residuals and the pass re-solved at them, until they settle (within 5 %): the rows
     stay, only their weights change. Returns whether a level moved by more than 20 % from
     where the pass started, and each row group's normalised residual RMS."""
-    axis0, enc0 = st.axis_var, pb.sig_enc
+    axis0, enc0, rate0 = st.axis_var, pb.sig_enc, pb.sig_rate_row
     floor = axis_floor(pb.sig_g, pb.block_n, pb.rec.sample_rate)
     norm = {}
     for _ in range(rounds):
@@ -264,15 +273,20 @@ def settle_noise(pb: Problem, st: State, pr: PassResult, rounds: int = 12) -> tu
         moved_any = False
         if pb.opt.axis_sigma is None:
             new = float(np.clip(raw["axis"], max(floor**2, axis0 / AXIS_STEP), AXIS_CAP**2))
-            moved_any |= abs(0.5 * np.log(new / st.axis_var)) > 0.02
+            moved_any |= abs(0.5 * np.log(new / st.axis_var)) > SETTLED
             st.axis_var = new
         if pb.enc is not None and not pb.opt.encoder_sigma:
-            new = max(float(np.sqrt(raw["angle"])), pb.sig_enc_floor)
-            moved_any |= abs(np.log(new / pb.sig_enc)) > 0.02
+            new = max(float(np.sqrt(raw["angle"])), pb.sig_enc_floor, enc0 / np.sqrt(AXIS_STEP))
+            moved_any |= abs(np.log(new / pb.sig_enc)) > SETTLED
             pb.sig_enc = new
+        if pb.rate is not None:
+            new = max(float(np.sqrt(raw["rate"])), RATE_ANGLE_FLOOR)
+            moved_any |= abs(np.log(new / pb.sig_rate_row)) > SETTLED
+            pb.sig_rate_row = new
         if not moved_any:
             break
         reweight(pb, pr, st.axis_var)
     changed = abs(0.5 * np.log(st.axis_var / axis0)) > NOISE_MOVE or \
-        (enc0 > 0 and abs(np.log(pb.sig_enc / enc0)) > NOISE_MOVE)
+        (enc0 > 0 and abs(np.log(pb.sig_enc / enc0)) > NOISE_MOVE) or \
+        abs(np.log(pb.sig_rate_row / rate0)) > NOISE_MOVE
     return changed, norm

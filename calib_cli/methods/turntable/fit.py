@@ -27,6 +27,9 @@ FREE_HEADING = False
 GAIN_TOL = 0.5  # chi^2: a full step that promises less is converged (see _iterate)
 START_MOUNT_SD = float(np.radians(0.3))  # rad: the mountings' prior during the start windows
 HELD_SD = 1e-9  # the prior width that holds an entry (hold_undetermined)
+# the noise levels are estimated once a pass moves less than this (sigma): a stiff axis row
+# does not bear the linearisation of a large step
+SETTLE_MOVE = 2.0
 
 
 def _check_options(opt: TurntableOptions) -> None:
@@ -90,6 +93,10 @@ def problem(rec: Recording, opt: TurntableOptions) -> es.Problem:
                     acc_idx, sig_a, sig_g, pm.has("lever_arm"), lever_known, enc, sig_enc,
                     rate, sig_rate, notes)
     pb.sig_enc_floor = sig_enc
+    # the channels start loose (as the axis: AXIS_START) and settle with the noise levels
+    # (estimator.settle_noise): a rough start against a stiff channel does not linearise
+    if enc is not None and not opt.encoder_sigma:
+        pb.sig_enc = max(sig_enc, es.AXIS_START)
     pb.free_heading = [FREE_HEADING for cy in cycles]
     return pb
 
@@ -141,7 +148,7 @@ def start_state(pb: es.Problem) -> es.State:
             R0 = su.start_attitude(cy, f0, g_n)
         C.append(R0[None].copy())
         C0.append(R0)
-        rho.append(None if pb.rate is None else np.zeros(1))
+        rho.append(None if pb.rate is None or pb.rate[c] is None else np.zeros(1))
     axis_var = (pb.opt.axis_sigma if pb.opt.axis_sigma is not None else es.AXIS_START) ** 2
     return es.State(theta, C, rho, C0, axis_var)
 
@@ -254,7 +261,7 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
         if not kept:
             continue
         mv = es.moved(pb, pr, rep)
-        if settled or float(np.max(mv)) < 1.0:
+        if settled or float(np.max(mv)) < SETTLE_MOVE:
             # (the pass is re-solved at the settled levels: its cost and the next pass's
             # are of the same objective, so the trust region keeps judging the step)
             changed, rms = es.settle_noise(pb, st, pr)
@@ -276,9 +283,11 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
         # the full step promises less than GAIN_TOL of chi^2 (the Jacobian's own error,
         # the sensitivities taken per group of samples, leaves a step of a few tenths of a
         # sigma that improves nothing: the trust region then damps it away)
-        if not changed and (
-                (tr.lam == 0 and (last < pb.opt.converge_sigma or (
-                    np.isfinite(prev) and last * min(last / prev, 1.0) < pb.opt.converge_sigma)))
+        # (a pass whose noise levels settled was re-solved at them: its step is the one
+        # the new levels give, so it counts as any other)
+        if ((tr.lam == 0 and (last < pb.opt.converge_sigma or (
+                not changed and np.isfinite(prev)
+                and last * min(last / prev, 1.0) < pb.opt.converge_sigma)))
                 or (last < pb.opt.converge_sigma and gain < GAIN_TOL)):
             info["moving"] = []
             return st, pr, info
@@ -361,6 +370,6 @@ def _restart(pb: es.Problem, st: es.State, old_labels: list) -> es.State:
     for i, lab in enumerate(theta_labels(pb)):
         if lab in pos:
             new[i] = st.theta[pos[lab]]
-    rho = [None if pb.rate is None else (r if r is not None else np.zeros(len(C)))
-           for r, C in zip(st.rho, st.C)]
+    rho = [None if pb.rate is None or pb.rate[c] is None else
+           (r if r is not None else np.zeros(len(C))) for c, (r, C) in enumerate(zip(st.rho, st.C))]
     return es.State(new, st.C, rho, st.C_start, st.axis_var, st.inflation)

@@ -10,6 +10,8 @@ import numpy as np
 
 from calib_cli.methods.turntable.solve import whitened
 
+HISTORY_POINTS = 100
+
 
 def _labels(pb, theta) -> tuple[np.ndarray, np.ndarray, list]:
     """(T (k, p): each history entry as a row over theta, linearised there; its value at
@@ -121,7 +123,9 @@ def sigma_history(pb, pr) -> dict:
     Lam = np.diag(w)
     eta = w * (pm.mean - lin)
     T = pb.block_n / pb.rec.sample_rate
-    K = max(1, int(round(pb.opt.history_every / T)))
+    # history_every seconds, at most about HISTORY_POINTS per cycle (a plot's resolution)
+    longest = max(cs.nb for cs in pr.systems)
+    K = max(1, int(round(pb.opt.history_every / T)), int(np.ceil(longest / HISTORY_POINTS)))
     times, sig, est = [], [], []
     for cs, gp in zip(pr.systems, pr.gps):
         Al, Ag, rw = whitened(cs)

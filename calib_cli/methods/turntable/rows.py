@@ -99,11 +99,16 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
                  pm, gyro_idx: np.ndarray, acc_idx: np.ndarray, E: np.ndarray,
                  sig_g: np.ndarray, axis_var: float, enc=None, sig_enc: float = 0.0,
                  rate=None, sig_rate: float = 0.0, C_start: np.ndarray | None = None,
-                 sd0: float = float(np.radians(5.0)), free_heading: bool = False) -> CycleSystem:
+                 sd0: float = float(np.radians(5.0)), free_heading: bool = False,
+                 rate_row_sd: float = RATE_ANGLE_FLOOR) -> CycleSystem:
     """The rows of cycle c at (theta, trajectory C (nb, 3, 3), rate walk rho)."""
     nb = gp.nb
     use_rate = rate is not None
-    nl = 4 if use_rate else 3
+    # the integrated channel's own noise over the whole cycle: below the rows' floor it is
+    # absorbed in their white noise and needs no state (a quiet channel: most logs)
+    walk = sig_rate * gp.T / np.sqrt(gp.m) * np.sqrt(gp.m * nb) if use_rate else 0.0
+    rate_walk = use_rate and walk > RATE_ANGLE_FLOOR
+    nl = 4 if rate_walk else 3
     p = pm.size
     A_loc = np.zeros((nb, N_ROWS, nl))
     A_glob = np.zeros((nb, N_ROWS, p))
@@ -185,9 +190,10 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
         zz, tt = np.zeros(nb), np.zeros(nb)
         zz[:k], tt[:k] = rate.z[:k], rate.t[:k]
         ik, ib, iz = pm.idx["rate_scale"][0], pm.idx["rate_bias"][0], pm.idx["rate_zero"][c]
-        h = psi * (1.0 + theta[ik]) + theta[ib] * tt + theta[iz] + rho
+        h = psi * (1.0 + theta[ik]) + theta[ib] * tt + theta[iz] + (rho if rate_walk else 0.0)
         A_loc[:, RATE, :3] = np.einsum("bji,j->bi", C, cy.a_enu)
-        A_loc[:, RATE, 3] = 1.0
+        if rate_walk:
+            A_loc[:, RATE, 3] = 1.0
         A_glob[:, RATE, ik] = psi
         A_glob[:, RATE, ib] = tt
         A_glob[:, RATE, iz] = 1.0
@@ -196,7 +202,8 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
             A_glob[:, RATE, it] = omega
             h = h + omega * theta[it]
         r[:, RATE] = np.where(ok, zz - h, 0.0)
-        wt[:, RATE] = np.where(ok, 1.0 / RATE_ANGLE_FLOOR, 0.0)
+        wt[:, RATE] = np.where(ok, 1.0 / (rate_row_sd if rate_walk else
+                                          np.hypot(rate_row_sd, walk)), 0.0)
     # the propagation: the mismatch e_j = Log((E C_j r_end_j)^T C_j+1) (body axes)
     pred = np.einsum("ij,bjk,bkl->bil", E, C[:-1], gp.r_end[:-1])
     e = Rotation.from_matrix(np.einsum("bji,bjk->bik", pred, C[1:])).as_rotvec()
@@ -210,10 +217,13 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
         P = np.einsum("bi,bj->bij", ah[1:], ah[1:])
         Wq = Wq - P / q_phi
         anchor = np.einsum("bi,bj->bij", ah, ah) / HEADING_SD**2
-    q_rho = sig_rate**2 * gp.m * (gp.T / gp.m) ** 2 if use_rate else 0.0
+    # the integrated channel's walk per block (a noise-free channel: a tenth of the reading
+    # floor, so the system stays well conditioned)
+    q_rho = max(sig_rate**2 * gp.m * (gp.T / gp.m) ** 2, (0.1 * RATE_ANGLE_FLOOR) ** 2) \
+        if rate_walk else 0.0
     r0 = np.zeros(3) if C_start is None else \
         Rotation.from_matrix(C[0].T @ C_start).as_rotvec()
     return CycleSystem(nb, nl, A_loc, A_glob, r, wt, F, B, gyro_idx, e, q_phi, Wq, anchor, q_rho,
-                       None if not use_rate else np.asarray(rho, float), r0,
+                       None if not rate_walk else np.asarray(rho, float), r0,
                        cy.mount_sigma if cy.static else sd0, psi, acc,
                        axis_var)
