@@ -254,8 +254,7 @@ def _fit(method: str, rec: Recording, noise: Noise, options: dict) -> Calibratio
 
 def turntable_information(rec: Recording, o, noise: dict, like: Recording | None = None
                           ) -> CalibrationResult:
-    """The turntable method's information hook (methods/registry.py): the prediction of
-    ``_turntable_prediction`` (issue 32 moves it into methods/turntable.py)."""
+    """The turntable method's information hook (methods/registry.py)."""
     nz = Noise(np.asarray(noise["accel"], float), np.asarray(noise["gyro"], float), 0.0,
                like=like)
     return _turntable_prediction(rec, nz, {f: getattr(o, f) for f in TURNTABLE_OPTIONS})
@@ -266,49 +265,16 @@ TURNTABLE_OPTIONS = ("lever_arm", "proof_mass", "tangential", "block_s", "axis_s
 
 
 def _turntable_prediction(rec: Recording, noise: Noise, options: dict) -> CalibrationResult:
-    """The turntable fit's covariance at the simulated unit: its own set-up and one
-    linearised filter pass there (methods/turntable.covariance_at), no iterations."""
+    """The turntable fit's covariance at the simulated unit: its own rows and noise model
+    on the noise-free record, the table's levels and channels from --like's fit
+    (methods/turntable/design.py)."""
     from calib_cli.methods.registry import options_from
-    from calib_cli.methods.turntable import covariance_at
+    from calib_cli.methods.turntable.design import covariance_at
 
     o = options_from("turntable", {k: v for k, v in options.items()
                                    if k in TURNTABLE_OPTIONS and v is not None})
-    topt = replace(o.to_method(), noise={"accel": np.asarray(noise.accel, float) * np.ones(3),
-                                         "gyro": np.asarray(noise.gyro, float) * np.ones(3)})
-    if noise.like is not None:
-        rec = _channels_like(rec, noise.like, topt)
-    return covariance_at(rec, topt, rec.truth["params"])
-
-
-def _channels_like(rec: Recording, like: Recording, topt) -> Recording:
-    """The noise-free record with the table channels the fit would not use on ``like``
-    blanked, cycle by cycle: the fit's own checks (methods/turntable.py) run on the
-    recording --like names (e.g. an encoder that drifts from the raw gyros' angle)."""
-    from calib_cli.methods import turntable as tt
-
-    try:
-        cyc_like = tt._select(like)
-    except (InputError, EstimationError):
-        return rec
-    cyc = tt._select(rec)
-    if len(cyc_like) != len(cyc):
-        return rec
-    bn = max(1, int(round(topt.block_s * like.sample_rate)))
-    q = replace(topt, table_encoder="auto" if topt.table_encoder != "off" else "off")
-    enc = tt._encoder_setup(like, cyc_like, bn, q)[0] if like.table_angle is not None else None
-    rate = tt._rate_setup(like, cyc_like, bn, q)[0] if like.table_rate is not None else None
-    ang = None if rec.table_angle is None else np.array(rec.table_angle, float)
-    rt = None if rec.table_rate is None else np.array(rec.table_rate, float)
-    for c, cy in enumerate(cyc):
-        if ang is not None and (enc is None or enc[c] is None):
-            ang[cy.sl] = np.nan
-        if rt is not None and (rate is None or rate[c] is None):
-            rt[cy.sl] = np.nan
-    if ang is not None and not np.isfinite(ang).any():
-        ang = None
-    if rt is not None and not np.isfinite(rt).any():
-        rt = None
-    return rec.with_(table_angle=ang, table_rate=rt)
+    return covariance_at(rec, o.to_method(), {"accel": noise.accel, "gyro": noise.gyro},
+                         like=noise.like)
 
 
 def attitudes_like(plan: Plan, like: Recording) -> Plan:

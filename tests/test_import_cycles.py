@@ -16,8 +16,6 @@ PACKAGE = Path(calib_cli.__file__).parent
 # importer -> imported private names it may take, with why; each entry names the issue
 # that removes it
 PRIVATE_OK = {
-    # design's turntable prediction (issue 32 moves it into methods/turntable.py)
-    ("calib_cli.design", "calib_cli.methods.turntable"): "issue 32",
     # the attribute decoding of io/h5.py is being rewritten (issue 37): attr_str goes public
     ("calib_cli.cli.cmd_allan", "calib_cli.io.h5"): "issue 37",
     ("calib_cli.io.allan_h5", "calib_cli.io.h5"): "issue 37",

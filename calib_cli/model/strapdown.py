@@ -281,16 +281,27 @@ def block_integration(w: np.ndarray, s: np.ndarray, t: np.ndarray, block_n: int,
     dq = np.matmul(RJg.sum(axis=2), sg) + np.matmul(RJ1.sum(axis=2), dsg)  # (nb, G, 3, P)
     qb = np.concatenate([np.zeros((nb, 1, 3, P)), np.cumsum(dq, axis=1)], axis=1)
     q_end = qb[:, -1]
-    # the samples' sensitivity within a block, for the gravity they see (the accelerometer
-    # rows, where a relative error of 1e-3 is far below their noise): each group's mean
-    # attitude with the sensitivity at its middle. wg[c] = mean dR^T [e_c x] q; a rotation
-    # carries the cross product, dR^T [e_c x] X = [r_c x] (dR^T X) with r_c = dR^T e_c
-    q_mid = 0.5 * (qb[:, 1:] + qb[:, :-1])
-    dR_g = dR.reshape(nb, G, group, 3, 3).mean(axis=2)
-    Z = np.matmul(np.swapaxes(dR_g, 2, 3), q_mid)
-    wg = np.stack([cross_columns(dR_g[:, :, c, :], Z).mean(axis=1) for c in range(3)])
-    q_mean = q_mid
-    return BlockIntegration(dR, dR.mean(axis=1), R, q_end, q_mean.mean(axis=1), wg)
+    # within a group, sample i's sensitivity is qb + P0_i s + P1_i ds, the partial sums of
+    # R J dt (times the offset) up to it (instant samples: the steps before its stamp;
+    # interval means: to the middle of its own period)
+    half = 0.5 if interval else 1.0
+    P0 = np.cumsum(RJg, axis=2) - half * RJg
+    P1 = np.cumsum(RJ1, axis=2) - half * RJ1
+    # wg[c] = mean dR^T [e_c x] q over the block's samples, q_i = qb_g + P0_i s_g + P1_i
+    # ds_g: the per-sample 3 x 3 products averaged over each group first, then one
+    # product with the group's sensitivity (linear in it)
+    dRs = np.swapaxes(dR.reshape(nb, G, group, 3, 3), 3, 4)  # dR_i^T
+    dRg = dRs.mean(axis=2)
+    qb0 = qb[:, :G]
+    wg = []
+    for c in range(3):
+        A0 = np.matmul(dRs, cross_e(c, P0)).mean(axis=2)
+        A1 = np.matmul(dRs, cross_e(c, P1)).mean(axis=2)
+        wg.append((np.matmul(dRg, cross_e(c, qb0)) + np.matmul(A0, sg)
+                   + np.matmul(A1, dsg)).mean(axis=1))
+    wg = np.stack(wg)
+    q_mean = (qb0 + np.matmul(P0.mean(axis=2), sg) + np.matmul(P1.mean(axis=2), dsg)).mean(axis=1)
+    return BlockIntegration(dR, dR.mean(axis=1), R, q_end, q_mean, wg)
 
 
 def cross_columns(r: np.ndarray, Y: np.ndarray) -> np.ndarray:

@@ -41,7 +41,8 @@ class GyroPart:
     kinematics: wbar (nb, 3), dwbar (nb, 3) the mean angular acceleration (edge rates),
     cen (nb, 3, 3) mean [w x]^2, and their sensitivities dcen (nb, 3, 3, P_g), ddw (nb,
     3, P_g); dw_var (nb,) the variance of the tangential term's timing at corners
-    ((rad/s^2)^2), wabs (nb,) mean |w|."""
+    ((rad/s^2)^2), wabs (nb,) mean |w|; skip (nb,) the blocks left out of the accelerometer
+    rows (the tangential term off: those in which the table accelerates), or None."""
 
     nb: int
     m: int
@@ -64,15 +65,19 @@ class GyroPart:
     wabs: np.ndarray
     temp: np.ndarray | None
     T: float = 0.0  # block length (s)
+    skip: np.ndarray | None = None
 
 
 def gyro_part(rec: Recording, sl: slice, model, params: dict, block_n: int, nb: int,
-              gyro_cols: list, tangential: bool, sig_g: np.ndarray) -> GyroPart:
+              gyro_cols: list, tangential: bool, sig_g: np.ndarray,
+              accel_skip: float = 0.02) -> GyroPart:
     """The gyro-driven quantities of the first ``nb`` blocks of a cycle (GyroPart), from
     its samples (and two after the last block, where the segment has them, for the
     integration's and the edge rates' stencils). The rates' sensitivity to the parameters
     is taken per group of samples (``sensitivity_group``): the Jacobian of effects linear
-    in the kinematics at a group's mean kinematics is its mean over the group."""
+    in the kinematics at a group's mean kinematics is its mean over the group. Without the
+    tangential term the blocks whose mean angular acceleration exceeds ``accel_skip``
+    (rad/s^2) are marked to be left out of the accelerometer rows."""
     n = nb * block_n
     n_ext = min(n + 2, sl.stop - sl.start)
     t = rec.time[sl][:n_ext]
@@ -125,7 +130,9 @@ def gyro_part(rec: Recording, sl: slice, model, params: dict, block_n: int, nb: 
     s_edge = np.einsum("kj,kjap->kap", cw, se[np.searchsorted(ue, idx)])
     ddw = (s_edge[1:] - s_edge[:-1]) / T
     dw_var = _corner_variance(w[:n], sig_g, block_n, nb, dt)
+    skip = None
     if not tangential:
+        skip = np.linalg.norm(dwbar, axis=1) > accel_skip
         dwbar = np.zeros_like(dwbar)
         ddw = np.zeros_like(ddw)
         dw_var = np.zeros_like(dw_var)
@@ -133,7 +140,8 @@ def gyro_part(rec: Recording, sl: slice, model, params: dict, block_n: int, nb: 
                     integ.r_mean, integ.r_end, integ.q_end, integ.qbar, integ.wg,
                     wb.mean(axis=1), dwbar, cen, dcen, ddw, dw_var,
                     np.linalg.norm(wb, axis=2).mean(axis=1),
-                    None if temp is None else temp[:n].reshape(nb, block_n).mean(axis=1), T)
+                    None if temp is None else temp[:n].reshape(nb, block_n).mean(axis=1), T,
+                    skip)
 
 
 def sensitivity_group(block_n: int) -> int:

@@ -32,7 +32,8 @@ from calib_cli.methods.turntable import setup as su
 from calib_cli.methods.turntable.blocks import accel_rows, gyro_part
 from calib_cli.methods.turntable.rows import ACC, AXIS, ENC, RATE, cycle_system, propagate
 from calib_cli.methods.turntable.setup import RATE_ANGLE_FLOOR
-from calib_cli.methods.turntable.solve import leverage, residuals_after, set_weight, solve
+from calib_cli.methods.turntable.solve import (leverage, residuals_after, scale_weight, set_weight,
+                                               solve)
 from calib_cli.model.strapdown import exp_matrix
 
 START_S = 20.0  # s: the first window of every cycle
@@ -50,6 +51,9 @@ NOISE_MOVE = np.log(1.2)  # a noise level that moves by less than 20 % is settle
 # where the axis and gravity tie the same two angles, crept at 2 sigma a pass after one
 # jump from 1 mrad to 10 urad)
 AXIS_STEP = 1e6
+# the accelerometers' normalised residual RMS above which their noise is widened (the model
+# does not explain the data: stats.accel_noise_inflation)
+ACCEL_MISFIT = 1.3
 SETTLED = 0.05  # a noise level that moves by less than this (in log) within a pass is settled
 
 
@@ -81,6 +85,7 @@ class Problem:
     free_heading: list = field(default_factory=list)
     sig_enc_floor: float = 0.0  # the angle channel's white noise (setup.angle_noise)
     sig_rate_row: float = AXIS_START  # the rate channel's rows' sigma (estimated, floored)
+    fixed_levels: bool = False  # the noise levels are given (plan check: design.py)
 
     @property
     def g_n(self) -> np.ndarray:
@@ -136,10 +141,9 @@ def run_pass(pb: Problem, st: State, nbs: list) -> PassResult:
     T = pb.block_n / fs
     E = exp_matrix(-pb.rec.site.earth_rate_enu * T)
     systems, gps = [], []
-    sig_a = pb.sig_a * st.inflation
     for c, cy in enumerate(pb.cycles):
         gp = gyro_part(pb.rec, cy.sl, pb.model, params, pb.block_n, nbs[c], pb.gyro_cols,
-                       pb.opt.tangential, pb.sig_g)
+                       pb.opt.tangential, pb.sig_g, pb.opt.accel_skip)
         if len(st.C[c]) < nbs[c]:  # a new window: the trajectory propagated into it
             ext = propagate(st.C[c][-1], gp.r_end[len(st.C[c]) - 1:], E)
             st.C[c] = np.concatenate([st.C[c], ext[1:nbs[c] - len(st.C[c]) + 1]])
@@ -152,7 +156,7 @@ def run_pass(pb: Problem, st: State, nbs: list) -> PassResult:
             st.lever2 = [0.0 if s0 is None else float(np.sum(s0[k] ** 2))
                          for k in range(len(pb.pm.rotating()))]
         acc = accel_rows(pb.rec, cy.sl, gp, C, pb.model, params, cy.model_index, pb.acc_cols,
-                         pb.lever and not cy.static, pb.g_n, sig_a, pb.sig_g,
+                         pb.lever and not cy.static, pb.g_n, pb.sig_a, pb.sig_g,
                          0.0 if cy.static else st.lever2[cy.model_index])
         if pb.rate is not None and pb.rate[c] is not None and st.rho[c] is None:
             st.rho[c] = np.zeros(nbs[c])
@@ -162,6 +166,8 @@ def run_pass(pb: Problem, st: State, nbs: list) -> PassResult:
                           None if pb.rate is None else pb.rate[c], pb.sig_rate,
                           st.C_start[c], free_heading=pb.free_heading[c],
                           rate_row_sd=pb.sig_rate_row)
+        if st.inflation != 1.0:  # the accelerometer rows' sigma widened (settle_noise)
+            cs.weight[:, ACC] /= st.inflation
         systems.append(cs)
         gps.append(gp)
     step = solve(systems, pb.pm.size, pb.pm.mean, pb.pm.sd, st.theta)
@@ -216,10 +222,13 @@ def moved_by(pb: Problem, pr: PassResult, step, reported: np.ndarray) -> np.ndar
     return np.abs(step.dtheta[reported]) / sd[reported]
 
 
-def reweight(pb: Problem, pr: PassResult, axis_var: float) -> None:
-    """Set the axis and angle rows' weights to the current noise levels and re-solve the
-    pass (the rows do not depend on them: the same linearisation)."""
+def reweight(pb: Problem, pr: PassResult, axis_var: float, accel_factor: float = 1.0) -> None:
+    """Set the axis and channel rows' weights to the current noise levels (the
+    accelerometers' scaled by ``accel_factor``) and re-solve the pass (the rows do not
+    depend on them: the same linearisation)."""
     for cs in pr.systems:
+        if accel_factor != 1.0:
+            scale_weight(cs, "accel", accel_factor)
         set_weight(cs, "axis", 1.0 / np.sqrt(axis_var))
         cs.axis_var = axis_var
         if pb.enc is not None:
@@ -238,12 +247,13 @@ def row_groups(pb: Problem) -> dict:
     return groups
 
 
-def residual_levels(pb: Problem, pr: PassResult) -> tuple[dict, dict]:
+def residual_levels(pb: Problem, pr: PassResult, tr: dict | None = None) -> tuple[dict, dict]:
     """Per row group: (the mean squared residual after the step in the data's units, and
-    the RMS normalised by the rows' sigma), both over n - trace of the hat matrix: what
-    the fit takes out counted."""
+    the RMS normalised by the rows' sigma), both over n - trace of the hat matrix (``tr``,
+    else computed: solve.leverage): what the fit takes out counted."""
     groups = row_groups(pb)
-    tr = leverage(pr.step, pr.systems, groups)
+    if tr is None:
+        tr = leverage(pr.step, pr.systems, groups)
     raw, norm = {}, {}
     for name, slot in groups.items():
         ss, ssw, n = 0.0, 0.0, 0
@@ -265,11 +275,18 @@ def settle_noise(pb: Problem, st: State, pr: PassResult, rounds: int = 8) -> tup
     residuals and the pass re-solved at them, until they settle (within 5 %): the rows
     stay, only their weights change. Returns whether a level moved by more than 20 % from
     where the pass started, and each row group's normalised residual RMS."""
-    axis0, enc0, rate0 = st.axis_var, pb.sig_enc, pb.sig_rate_row
+    if pb.fixed_levels:
+        return False, residual_levels(pb, pr)[1]
+    axis0, enc0, rate0, infl0 = st.axis_var, pb.sig_enc, pb.sig_rate_row, st.inflation
     floor = axis_floor(pb.sig_g, pb.block_n, pb.rec.sample_rate)
     norm = {}
+    tr, at = None, None  # the hat matrix's traces, and the levels they were taken at
     for _ in range(rounds):
-        raw, norm = residual_levels(pb, pr)
+        levels = np.log([st.axis_var, max(pb.sig_enc, 1e-300), pb.sig_rate_row, st.inflation])
+        # (the traces move slowly with the weights: taken again after a move of 20 %)
+        if tr is None or np.abs(levels - at).max() > NOISE_MOVE:
+            tr, at = leverage(pr.step, pr.systems, row_groups(pb)), levels
+        raw, norm = residual_levels(pb, pr, tr)
         moved_any = False
         if pb.opt.axis_sigma is None:
             new = float(np.clip(raw["axis"], max(floor**2, axis0 / AXIS_STEP), AXIS_CAP**2))
@@ -283,10 +300,18 @@ def settle_noise(pb: Problem, st: State, pr: PassResult, rounds: int = 8) -> tup
             new = max(float(np.sqrt(raw["rate"])), RATE_ANGLE_FLOOR)
             moved_any |= abs(np.log(new / pb.sig_rate_row)) > SETTLED
             pb.sig_rate_row = new
+        # the accelerometers' noise widened where the model does not explain them (never
+        # below their white noise)
+        cand = st.inflation * norm["accel"]
+        new = cand if cand > ACCEL_MISFIT else 1.0
+        factor = st.inflation / new
+        moved_any |= abs(np.log(factor)) > SETTLED
+        st.inflation = new
         if not moved_any:
             break
-        reweight(pb, pr, st.axis_var)
+        reweight(pb, pr, st.axis_var, factor)
     changed = abs(0.5 * np.log(st.axis_var / axis0)) > NOISE_MOVE or \
+        abs(np.log(st.inflation / infl0)) > NOISE_MOVE or \
         (enc0 > 0 and abs(np.log(pb.sig_enc / enc0)) > NOISE_MOVE) or \
         abs(np.log(pb.sig_rate_row / rate0)) > NOISE_MOVE
     return changed, norm

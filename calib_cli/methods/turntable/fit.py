@@ -20,9 +20,6 @@ from calib_cli.model.correction import correct
 SHAPE_RATIO = 3.0
 # a rate channel whose normalised residual RMS exceeds this is not used
 RATE_MISFIT = 1.5
-# the accelerometers' normalised residual RMS above which the noise is widened (the model
-# does not explain the data: stats.accel_noise_inflation)
-ACCEL_MISFIT = 1.3
 FREE_HEADING = False
 GAIN_TOL = 0.5  # chi^2: a full step that promises less is converged (see _iterate)
 START_MOUNT_SD = float(np.radians(0.3))  # rad: the mountings' prior during the start windows
@@ -179,6 +176,7 @@ class _TrustRegion:
     def __init__(self, pb):
         self.lam = 0.0
         self.prev = None  # (state before the step, its pass, the step taken)
+        self.actual = np.inf  # the cost's fall over the last step kept
         self.axes = lambda st: es.table_axes(pb, st.theta)
 
     def check(self, st, pr):
@@ -193,6 +191,7 @@ class _TrustRegion:
             step = damped(pr0.step, self.lam)
             self.prev = (st0, pr0, step)
             return es.apply_step(st0, pr0, step=step, axes=self.axes(st0)), False
+        self.actual = actual
         ratio = actual / predicted if predicted > 0 else 1.0
         if ratio > 0.75:
             self.lam = self.lam / 10.0 if self.lam > 1e-6 else 0.0
@@ -207,6 +206,7 @@ class _TrustRegion:
 
     def reset(self):
         self.prev = None
+        self.actual = np.inf
 
 
 def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.PassResult, dict]:
@@ -261,7 +261,10 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
         if not kept:
             continue
         mv = es.moved(pb, pr, rep)
-        if settled or float(np.max(mv)) < SETTLE_MOVE:
+        rms = es.residual_levels(pb, pr)[1] if not settled else None
+        # (a model that does not explain the accelerometers settles at once: its noise is
+        # widened before its steps are judged in sigma)
+        if settled or float(np.max(mv)) < SETTLE_MOVE or rms["accel"] > es.ACCEL_MISFIT:
             # (the pass is re-solved at the settled levels: its cost and the next pass's
             # are of the same objective, so the trust region keeps judging the step)
             changed, rms = es.settle_noise(pb, st, pr)
@@ -269,7 +272,7 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
             if changed:
                 mv = es.moved(pb, pr, rep)
         else:
-            changed, rms = True, es.residual_levels(pb, pr)[1]
+            changed = True
         st = tr.step(st, pr)
         taken = es.moved_by(pb, pr, tr.prev[2], rep)  # the step taken (damped where damped)
         gain = pr.step.cost - pr.step.predicted  # what the full step promised
@@ -280,21 +283,22 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
             progress(k + 1, max(k + 2, 3))
         # converged: this pass moved less than the tolerance, or the next would, at the
         # rate the last two passes shrank (Gauss-Newton's: 1.3 -> 0.1 -> 0.005 sigma); or
-        # the full step promises less than GAIN_TOL of chi^2 (the Jacobian's own error,
-        # the sensitivities taken per group of samples, leaves a step of a few tenths of a
-        # sigma that improves nothing: the trust region then damps it away)
+        # the full step promises, or the last one delivered, less than GAIN_TOL of chi^2
+        # (the Jacobian's own error, the sensitivities taken per group of samples, leaves a
+        # step of a few tenths of a sigma that improves nothing, more where the residuals
+        # stand above the noise: the trust region then damps it away)
         # (a pass whose noise levels settled was re-solved at them: its step is the one
         # the new levels give, so it counts as any other)
         if ((tr.lam == 0 and (last < pb.opt.converge_sigma or (
                 not changed and np.isfinite(prev)
                 and last * min(last / prev, 1.0) < pb.opt.converge_sigma)))
-                or (last < pb.opt.converge_sigma and gain < GAIN_TOL)):
+                or (last < pb.opt.converge_sigma and min(gain, tr.actual) < GAIN_TOL)):
             info["moving"] = []
             return st, pr, info
     names = _moving_names(pb, pr, rep, mv)
-    pb.last_state = st  # for inspection
     raise EstimationError(f"the turntable fit did not converge in {pb.opt.passes} passes: "
-                          f"{', '.join(names[:6])} still move by up to {last:.2g} sigma a pass")
+                          f"{', '.join(names[:6])} still move by up to {float(np.max(mv)):.2g} "
+                          "sigma a pass")
 
 
 def _moving_names(pb, pr, rep, mv) -> list:
@@ -314,11 +318,24 @@ def fit_turntable(rec: Recording, options: TurntableOptions = TurntableOptions()
 
 
 def _fit(rec: Recording, opt: TurntableOptions, progress=None) -> CalibrationResult:
+    return build(*solved(rec, opt, progress))
+
+
+def prepared(rec: Recording, opt: TurntableOptions) -> tuple[es.Problem, es.State]:
+    """The problem and the state the iterations start from (the undetermined held)."""
     pb = problem(rec, opt)
     st = start_state(pb)
     hold_undetermined(pb)
     if getattr(pb, "held", None):  # held at the start's values (the lever arms from the holds)
-        pb.pm.mean = st.theta.copy() * 0 + np.where(pb.pm.sd == HELD_SD, st.theta, pb.pm.mean)
+        pb.pm.mean = np.where(pb.pm.sd == HELD_SD, st.theta, pb.pm.mean)
+    return pb, st
+
+
+def solved(rec: Recording, opt: TurntableOptions, progress=None, start=None) -> tuple:
+    """(problem, state, last pass, iteration info) of the converged fit: iterated, the
+    channels that disagree with the motion dropped, the accelerometer noise widened
+    where the model does not explain it. start: (problem, state) from ``prepared``."""
+    pb, st = start if start is not None else prepared(rec, opt)
     for _attempt in range(6):
         st, pr, info = _iterate(pb, st, progress)
         rms = info["residual_rms"]
@@ -341,11 +358,8 @@ def _fit(rec: Recording, opt: TurntableOptions, progress=None) -> CalibrationRes
             pb = _without(pb, "rate")
             st = _restart(pb, st, labels)
             continue
-        if rms["accel"] > ACCEL_MISFIT:
-            st.inflation *= rms["accel"]
-            continue
         break
-    return build(pb, st, pr, info)
+    return pb, st, pr, info
 
 
 def _without(pb: es.Problem, channel: str) -> es.Problem:

@@ -124,6 +124,8 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
         A_glob[:, ACC][:, :, gi] += acc.H_lever @ ds_dG
     r[:, ACC] = acc.z - acc.h
     wt[:, ACC] = 1.0 / np.sqrt(acc.var)
+    if gp.skip is not None:
+        wt[gp.skip, ACC] = 0.0
     # the table axis: N (C_j r_mean a_b) = tilt - runout, N the ENU directions across it
     u = theta[pm.idx["mount"][c]]
     a_u = cy.a_nom + cy.basis @ u

@@ -138,6 +138,14 @@ def set_weight(cs: CycleSystem, group: str, w: float) -> None:
     cs.white = None
 
 
+def scale_weight(cs: CycleSystem, group: str, factor: float) -> None:
+    """Multiply a row group's weights by ``factor`` (and its cached part's scale)."""
+    sl = GROUPS[group]
+    cs.weight[:, sl] *= factor
+    cs.scales[group] = cs.scales.get(group, 1.0) * factor ** 2
+    cs.white = None
+
+
 def banded(nm: Normal) -> np.ndarray:
     """LAPACK lower banded storage of the block-tridiagonal local matrix."""
     nb, nl = nm.D.shape[:2]
