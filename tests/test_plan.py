@@ -242,34 +242,32 @@ def test_turntable_predicted_sigma_matches_fit_sigma(short_turntable):
         assert r.min() >= 0.87 and r.max() <= 1.15, (key, r.min(), r.max())
 
 
-def test_turntable_covariance_independent_of_noise_draw(short_turntable):
-    """The hook's covariance is the linearised pass's, whatever the record's noise: on
-    the noise-free record of the nominal unit and on a noisy one (seed 3) it agrees
-    within 1 % for every entry (measured: 0.08 %). Issue 20: started from the prior
-    alone, a gyro_K cross-axis sigma came out 0.03 and 0.79 of the fit's on these two
-    records, and the covariance lost its positive definiteness on the first."""
+def test_turntable_prediction_takes_the_levels_of_like(short_turntable):
+    """plan check --like RAW predicts at the levels the fit of RAW estimated (the table
+    axis's noise, the sensors' white noise), on the fit's own rows: the same levels in
+    stats.prediction_levels, and without --like the table at its best (the axis at the
+    fit's floor) gives sigma no larger."""
     import warnings
 
-    from calib_cli.methods.turntable import TurntableOptions, covariance_at
-    from calib_cli.model.truth import Truth
-    from calib_cli.sim.turntable_plans import MEMS_NOISE
+    from calib_cli.methods.turntable import TurntableOptions
+    from calib_cli.methods.turntable.design import covariance_at, levels_of
 
-    plan, _ = short_turntable
-    nom = design._turntable_nominal(plan)
-    opt = TurntableOptions(noise={"accel": np.full(3, MEMS_NOISE["accel_white"]),
-                                  "gyro": np.full(3, MEMS_NOISE["gyro_white"])})
-    out = []
-    for noise, seed in ((0.0, 0), (1.0, 3)):
-        n = {k: noise * v for k, v in MEMS_NOISE.items()}
-        with warnings.catch_warnings():
-            warnings.simplefilter("error", RuntimeWarning)
-            out.append(covariance_at(simulate(plan, Truth(nom.model, nom.params, n), seed),
-                                     opt, nom.params))
-    for res in out[1:]:
-        for key, s in out[0].sigma.items():
-            s, t = np.asarray(s, float), np.asarray(res.sigma[key], float)
-            ok = np.isfinite(s) & (s > 0)
-            np.testing.assert_allclose(t[ok], s[ok], rtol=0.01, err_msg=key)
+    plan, rec = short_turntable
+    nom = design.nominal_truth(plan)
+    clean = simulate(plan, nom, 0)
+    opt = TurntableOptions()
+    lv = levels_of(rec, opt)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        like = covariance_at(clean, opt, {"accel": lv.accel, "gyro": lv.gyro}, like=rec)
+        best = covariance_at(clean, opt, {"accel": lv.accel, "gyro": lv.gyro})
+    got = like.stats["prediction_levels"]
+    assert got["source"] == "like" and best.stats["prediction_levels"]["source"] == "stated"
+    assert abs(got["table_axis_noise_mrad"] - lv.axis * 1e3) < 1e-9
+    for key, s in like.sigma.items():
+        s, t = np.asarray(s, float), np.asarray(best.sigma[key], float)
+        ok = np.isfinite(s) & (s > 0)
+        assert np.all(t[ok] <= s[ok] * 1.001), key
 
 
 def test_turntable_proof_masses_unobservable_without_tangential(short_turntable):
@@ -294,10 +292,14 @@ def test_turntable_check_cli_options(tmp_path, run_cli):
     d = json.loads(out)
     assert d["method"] == "turntable" and len(d["unobservable"]) == 6
     assert d["sigma"]["proof_mass_offsets"][0][1] is None
-    # each tilted cycle makes the proof-mass offset of its tilt observable
-    top = d["suggestions"][0]
-    assert top["add"].startswith("add the tilted cycle") and len(top["fixes"]) == 1
-    assert top["segments"][0]["rate_profile"] and top["segments"][0]["duration_s"] == 60
+    # without the tangential term a tilted cycle fixes none of them: its centripetal term
+    # w^2 (a_i a.p_i - (s_i - a_i a.s)) ties p_xy, p_yx and the cycle's lever arm across
+    # its tilt in two equations of the same w^2 signature (three unknowns)
+    assert not any(s["fixes"] for s in d["suggestions"])
+    # with it, the three axial cycles determine them all
+    code, out, err = run_cli("plan", "check", plan, "--json")
+    assert code == 0, err
+    assert json.loads(out)["unobservable"] == []
     static = _write(tmp_path, "s", pm.static_plan(6))
     code, _, err = run_cli("plan", "check", static, "--tangential", "off")
     assert code == 2 and "turntable" in err

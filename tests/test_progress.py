@@ -67,7 +67,7 @@ def test_core_reports_progress_through_a_callback():
 
     ticks = []
     fit_turntable(rec, TurntableOptions(), progress=lambda d, t: ticks.append((d, t)))
-    assert len(ticks) >= 3 * 3  # 3 cycles x 3 passes at least
+    assert len(ticks) >= 3  # the start windows and the passes
     assert [d for d, _ in ticks] == list(range(1, len(ticks) + 1))
     assert ticks[-1][0] == ticks[-1][1]  # ends full
 

@@ -81,7 +81,8 @@ def test_table_encoder_angle_channel():
     te = both.stats["table_encoder"]
     assert te["mode"] == "both"
     assert abs(te["rate_scale_error"] - 2e-3) < 4 * te["rate_scale_error_sigma"]
-    assert 0.8 < te["rate_normalized_innovation_rms"] < 1.2
+    # (an exact channel: its rows sit at their floor, setup.RATE_ANGLE_FLOOR, below it)
+    assert te["rate_normalized_innovation_rms"] < 1.2
     for k, s in enc.sigma.items():
         m = np.isfinite(s) & (s > 0)
         assert np.all(both.sigma[k][m] <= s[m] * 1.0001), k
@@ -107,7 +108,7 @@ def test_inconsistent_encoder_dropped_after_one_pass():
     res = fit_turntable(rec.with_(table_angle=bad), TurntableOptions(table_encoder="angle"))
     te = res.stats["table_encoder"]
     assert te["mode"] == "off"
-    assert any("encoder not used: normalized innovation RMS" in n for n in te["notes"]), te
+    assert any("angle channel not used" in n for n in te["notes"]), te
     z = normalized_errors(res, rec.truth["params"])
     assert max(float(np.abs(v).max()) for v in z.values()) < 4.5
 

@@ -221,6 +221,18 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
     T = pb.block_n / pb.rec.sample_rate
     rep = reported_columns(pb)
     info = {"start_windows": 0, "passes": 0, "last_move": None}
+    longest = max(pb.nb) * T
+    n_windows = max(0, int(np.ceil(np.log2(max(longest / es.START_S, 1.0)))))
+    done = [0]
+
+    def tick(final=False):
+        """progress(done, total): the start windows, then about three passes."""
+        if progress is None:
+            return
+        done[0] += 1
+        left = 0 if final else max(n_windows - info["start_windows"], 0) + max(
+            3 - info["passes"], 1)
+        progress(done[0], done[0] + left)
     L = es.START_S
     first = True
     settled = False  # the noise levels are being estimated
@@ -251,6 +263,7 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
                 break
         first = False
         L *= 2.0
+        tick()
     pb.pm.sd[pb.pm.idx["mount"]] = sd_mount
     last, prev = np.inf, np.inf
     tr.reset()
@@ -277,10 +290,9 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
         taken = es.moved_by(pb, pr, tr.prev[2], rep)  # the step taken (damped where damped)
         gain = pr.step.cost - pr.step.predicted  # what the full step promised
         prev, last = last, float(np.max(taken))
+        tick()
         info["last_move"] = last
         info["residual_rms"] = rms
-        if progress is not None:
-            progress(k + 1, max(k + 2, 3))
         # converged: this pass moved less than the tolerance, or the next would, at the
         # rate the last two passes shrank (Gauss-Newton's: 1.3 -> 0.1 -> 0.005 sigma); or
         # the full step promises, or the last one delivered, less than GAIN_TOL of chi^2
@@ -294,6 +306,7 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
                 and last * min(last / prev, 1.0) < pb.opt.converge_sigma)))
                 or (last < pb.opt.converge_sigma and min(gain, tr.actual) < GAIN_TOL)):
             info["moving"] = []
+            tick(final=True)
             return st, pr, info
     names = _moving_names(pb, pr, rep, mv)
     raise EstimationError(f"the turntable fit did not converge in {pb.opt.passes} passes: "
