@@ -76,7 +76,11 @@ def test_lever_arm_values_within_sigma():
     assert st.effect == "lever_arm"
     est, sig = st.params["lever_arm"], st.sigma["lever_arm"]
     true = truth.params["lever_arm"]
-    axes = d.problem.cycle_axes
+    plan = C.plan_of("turntable")
+    from calib_cli.model.frames import attitude_to_rotation
+
+    axes = np.array([attitude_to_rotation(s.attitude).inv().apply(s.table_axis_enu)
+                     for s in plan.segments if s.kind == "rotating"])
     # the axial component is a convention (s . a = 0): compare the perpendicular parts
     true_perp = true - (true * axes).sum(axis=1)[:, None] * axes
     assert np.allclose((est * axes).sum(axis=1), 0.0, atol=1e-9)

@@ -169,6 +169,14 @@ def make_fit_command(m: Method) -> click.Command:
         f = with_options(f)
     elif m.with_engine == "own":
         f = with_option(f, f"Extra catalogue effects: {', '.join(m.with_effects)}.")
+    elif m.with_engine == "filter":  # catalogue effects on the method's own rows
+        f = click.option("--base", "with_base", type=click.Choice(["full", "diagonal"]),
+                         default="full", show_default=True,
+                         help="With --with: the base model's scale factors (diagonal: "
+                              "needed by --with misalignment).")(f)
+        f = with_option(f, "Catalogue effects on the base model (accel b, K; gyro d, G), "
+                           "optionally sensor-qualified: lever_arm, gyro.g_sensitivity, "
+                           "time_offset, gyro.scale_asymmetry (docs/diagnose.md).")
     for o in reversed(cli_opts):
         f = click_option(o)(f)
     f = click.option("--out", type=click.Path(dir_okay=False),

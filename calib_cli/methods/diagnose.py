@@ -279,7 +279,13 @@ def _clean(c: dc.Candidate, params: dict, sigma: dict) -> tuple[dict, dict]:
 def diagnose(rec: Recording, method: str, base: str = "full", alpha: float = ALPHA,
              max_steps: int = MAX_STEPS, noise: str = "auto") -> Diagnosis:
     """Run the workflow on a recording (module docstring) for a method (its name or
-    ``Method``: its ``Diagnose`` description in the method table)."""
+    ``Method``: its ``Diagnose`` description in the method table); a method with a
+    diagnosis of its own (gyro, turntable) runs that."""
+    from calib_cli.methods.method import method_named
+
+    m = method_named(method) if isinstance(method, str) else method
+    if m.diagnose is not None and m.diagnose.own:
+        return resolve(m.diagnose.engine)(rec, base=base, alpha=alpha, max_steps=max_steps)
     with one_blas_thread():
         try:
             return _diagnose(rec, method, base, alpha, max_steps, noise)

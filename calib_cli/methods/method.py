@@ -329,7 +329,9 @@ class Method:
     on a Plan for plans of another method's kind this method takes (a static plan
     with turns goes to gyro). with_engine: "engine" (the diagnose engine, methods/
     fit_with.py, on the ``diagnose`` description's base model), "gyro", "own"
-    (``with_fit(rec, options, effects)``) or None; diagnose: its ``Diagnose``
+    (``with_fit(rec, options, effects)``, the effects ``with_effects`` names), "filter"
+    (``with_fit`` on catalogue effects parsed as the engine's, less ``with_excluded``) or
+    None; diagnose: its ``Diagnose``
     description (None: ``calib diagnose`` does not take it). report: modules of report
     sections.
     export: "firmware" (affine triad: every format) or "json" (no firmware tables).

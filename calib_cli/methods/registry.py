@@ -197,6 +197,16 @@ def check_with(method: str, req: WithRequest) -> None:
         return
     from calib_cli.methods import with_effects as fw
 
+    if m.with_engine == "filter":  # catalogue effects on the method's own rows
+        bad = [(n, s) for n, s in req.effects if n in m.with_excluded
+               and not (n == "misalignment" and req.base == "diagonal")]
+        if bad:
+            n, s = bad[0]
+            raise ValueError(f"{fw.with_arg(n, s)}: {m.with_excluded[n]}")
+        if req.noise != "auto":
+            raise ValueError(f"the {method} fit's --with takes its own noise estimate")
+        return
+
     if m.with_engine == "gyro":
         bad = [fw.with_arg(n, s) for n, s in req.effects if s != "gyro" or n not in fw.GYRO_WITH]
         if bad:
@@ -235,6 +245,8 @@ def _call_fit(m: Method, rec, options, progress=None):
 
 
 def _fit_with(m: Method, rec, options, req: WithRequest):
+    if m.with_engine == "filter":
+        return resolve(m.with_fit)(rec, options, req.effects, req.base)
     if m.with_engine == "own":
         return resolve(m.with_fit)(rec, options, req.effects)
     from calib_cli.methods import fit_with as fw
@@ -679,12 +691,18 @@ register(Method(
     # the prediction keeps the turntable engineer's code path (issue 32 rewrites it)
     information="calib_cli.design:turntable_information",
     plan_kinds=("turntable",), plan_candidates="calib_cli.design:turntable_candidates",
-    notes=_notes_turntable, with_engine="engine",
+    notes=_notes_turntable, with_engine="filter",
+    with_fit="calib_cli.methods.turntable.diagnose:fit_with",
+    with_excluded={"misalignment": "the full base model's K and G already hold every "
+                                   "misalignment (--base diagonal takes it)",
+                   "bias_random_walk": "a wandering bias is not a state of the turntable "
+                                       "filter",
+                   "bias_instability": "a wandering bias is not a state of the turntable "
+                                       "filter"},
     diagnose=Diagnose(
-        base="calib_cli.methods.diagnose_models:turntable_base", segments=("static", "rotating"),
-        needs=(AtLeast("rotating", 1, "no rotating segment with a table axis and a known "
-                       "start attitude: not a turntable recording"),),
-        misalignment="lower", nuisance="mount angles of the unit on the table (rad)"),
+        engine="calib_cli.methods.turntable.diagnose:diagnose_turntable",
+        segments=("static", "rotating"), misalignment="lower",
+        nuisance="mounting and trajectory of each cycle"),
     report=("calib_cli.report.sections_turntable",), options_base=TurntableOptionsBase,
     options_name="TurntableFitOptions",
     cli_outputs=((Option("plot", None, "Write the sigma history of the lever arms and "

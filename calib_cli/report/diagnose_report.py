@@ -257,13 +257,14 @@ def calibration_section(d: Diagnosis, source: str = "") -> list[str]:
 
 
 def write_gyro_report(d, out_dir, source: str = "") -> list[str]:
-    """summary.md of a gyro diagnosis (methods/diagnose_gyro.py): the steps, the
-    candidates per round, and the calibration with the turn-angle errors before
-    and after."""
+    """summary.md of a diagnosis on a method's own equations (the gyro fit's,
+    methods/diagnose_gyro.py; the turntable filter's, methods/turntable/diagnose.py): the
+    steps, the candidates per round, and the calibration (the gyro fit's with the
+    turn-angle errors before and after)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     j = d.to_json()
-    lines = [f"# calib diagnose: {md_text(source or 'recording')} (gyro)", "",
+    lines = [f"# calib diagnose: {md_text(source or 'recording')} ({d.method})", "",
              f"Base model: {', '.join(md_text(x) for x in d.base_model)}.", "",
              f"Residual RMS (noise units): {d.residual_rms_initial:.3f} with the base model, "
              f"{d.residual_rms_final:.3f} at the end, noise floor {d.noise_rms:.3f} "
@@ -287,15 +288,50 @@ def write_gyro_report(d, out_dir, source: str = "") -> list[str]:
     lines += ["## The calibration", ""]
     cmd = d.fit_command(source or "RAW.h5", "CAL.h5")
     lines += ([f"    {md_text(cmd)}", ""] if cmd else
-              ["No effect was added: `calib fit gyro` is the calibration.", ""])
-    te = j["turn_angle_error_deg"]
+              [f"No effect was added: `calib fit {d.method}` is the calibration.", ""])
+    te = j.get("turn_angle_error_deg")
     if te:
         lines += ["Turn-angle error (integrated angle minus the plan's, deg), base model -> "
                   "final model:", "", "| turn | base | final |", "|---|---|---|"]
         lines += [f"| {md_text(r['turn'])} | {r['error_initial_deg']:.4f} | "
                   f"{r['error_final_deg']:.4f} |" for r in te] + [""]
-    tr = j["transition_residual_rms_deg"]
+    tr = j.get("transition_residual_rms_deg") or [None, None]
     if tr[0] is not None:
         lines += [f"Transition residual RMS: {tr[0]:.4f} deg -> {tr[1]:.4f} deg.", ""]
+    if "final_chi2" in j:
+        lines += [f"Final model: chi^2 {j['final_chi2']:.0f} for {j['final_dof']:.0f} degrees of "
+                  f"freedom (99 % point {j['final_chi2_99']:.0f}).", ""]
+    files = ["summary.md"]
+    if hasattr(d, "residual_series"):
+        _series_plot(*d.residual_series(), out / "disagreement.png")
+        lines += ["![disagreement](disagreement.png)", ""]
+        files.append("disagreement.png")
+        for k, st in enumerate(d.steps):  # each step: the model before it and after it
+            name = f"step{k + 1}_{(st.sensor + '_' if st.sensor else '')}{st.effect}.png"
+            _series_plot(*d.residual_series(k, k + 1), out / name)
+            lines += [f"![step {k + 1}]({name})", ""]
+            files.append(name)
     (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
-    return ["summary.md"]
+    return files
+
+
+def _series_plot(t, before, after, path) -> None:
+    """The accelerometers' residuals over time (units of their white noise), base model
+    and final model, one panel per axis."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 1, figsize=(9, 6), sharex=True)
+    for i, ax in enumerate(axes):
+        ax.plot(t, before[:, i], ".", ms=1.5, color="tab:red", label="base model")
+        ax.plot(t, after[:, i], ".", ms=1.5, color="tab:blue", label="final model")
+        ax.set_ylabel(f"accel {'xyz'[i]} (sigma)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right", markerscale=6)
+    axes[-1].set_xlabel("time (s)")
+    fig.suptitle("Accelerometer residuals, block means in units of their white noise")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -172,6 +172,12 @@ def effect_sigma(case: str) -> dict:
 
         res = fit_with_gyro(rec, [(name, sensor)], base=base)
         return {s.key: res.sigma[s.key] for s in effect_of(method, name, sensor).specs(rec.layout)}
+    if method == "turntable":  # the filter's own sigma (methods/turntable/diagnose.py)
+        from calib_cli.methods.turntable import TurntableOptions
+        from calib_cli.methods.turntable.diagnose import fit_with
+
+        res = fit_with(rec, TurntableOptions(), [(name, sensor)], base)
+        return {s.key: res.sigma[s.key] for s in effect_of(method, name, sensor).specs(rec.layout)}
     pb = build_problem(rec, method)
     spec, _ = base_spec(pb, base)
     eff = effect_of(method, name, sensor)

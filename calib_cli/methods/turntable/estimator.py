@@ -86,6 +86,7 @@ class Problem:
     sig_enc_floor: float = 0.0  # the angle channel's white noise (setup.angle_noise)
     sig_rate_row: float = AXIS_START  # the rate channel's rows' sigma (estimated, floored)
     fixed_levels: bool = False  # the noise levels are given (plan check: design.py)
+    widen_accel: bool = True  # the accelerometer noise widened where the model misfits
 
     @property
     def g_n(self) -> np.ndarray:
@@ -303,7 +304,7 @@ def settle_noise(pb: Problem, st: State, pr: PassResult, rounds: int = 8) -> tup
         # the accelerometers' noise widened where the model does not explain them (never
         # below their white noise)
         cand = st.inflation * norm["accel"]
-        new = cand if cand > ACCEL_MISFIT else 1.0
+        new = cand if cand > ACCEL_MISFIT and pb.widen_accel else 1.0
         factor = st.inflation / new
         moved_any |= abs(np.log(factor)) > SETTLED
         st.inflation = new

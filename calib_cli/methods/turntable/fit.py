@@ -21,12 +21,13 @@ SHAPE_RATIO = 3.0
 # a rate channel whose normalised residual RMS exceeds this is not used
 RATE_MISFIT = 1.5
 FREE_HEADING = False
-GAIN_TOL = 0.5  # chi^2: a full step that promises less is converged (see _iterate)
+GAIN_TOL = 0.5  # chi^2: a full step that promises less is converged (see iterate)
 START_MOUNT_SD = float(np.radians(0.3))  # rad: the mountings' prior during the start windows
 HELD_SD = 1e-9  # the prior width that holds an entry (hold_undetermined)
 # the noise levels are estimated once a pass moves less than this (sigma): a stiff axis row
 # does not bear the linearisation of a large step
 SETTLE_MOVE = 2.0
+_DEBUG = bool(__import__("os").environ.get("CALIB_TT_DEBUG"))
 
 
 def _check_options(opt: TurntableOptions) -> None:
@@ -50,7 +51,10 @@ def problem(rec: Recording, opt: TurntableOptions) -> es.Problem:
     rotating = [cy for cy in cycles if not cy.static]
     nc = len(rotating)
     est_p = opt.proof_mass == "estimate" or (opt.proof_mass == "auto" and opt.lever_arm != "off")
-    model = su.turntable_model(nc, opt.lever_arm != "off", est_p, opt.tangential, opt.effects)
+    model = su.turntable_model(nc, opt.lever_arm != "off", est_p, opt.tangential, opt.effects,
+                               opt.g_sensitivity or any(n == "g_sensitivity"
+                                                        for n, _ in opt.effects),
+                               opt.base_structure)
     lever_known = None
     if opt.lever_arm == "known":
         missing = [cy.label for cy in rotating if cy.s_plan is None]
@@ -209,7 +213,8 @@ class _TrustRegion:
         self.actual = np.inf
 
 
-def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.PassResult, dict]:
+def iterate(pb: es.Problem, st: es.State, progress=None, windows: bool = True,
+             strict: bool = True) -> tuple[es.State, es.PassResult, dict]:
     """The start windows, then the passes over the whole record to convergence. The
     noise levels (the table axis's, the angle channel's) are re-estimated from the first
     settled window on, at most AXIS_STEP in variance a pass: as the windows grow the
@@ -217,7 +222,10 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
     stiff axis makes the heading observable through the earth's rotation (the tilt it
     leaves where the heading is wrong), and with it the gyro scale about the axis; that
     is linear only while the heading is known to a few tenths of a radian, which the
-    windows keep true and a jump to a stiff axis over the whole record does not."""
+    windows keep true and a jump to a stiff axis over the whole record does not.
+    windows: False where the state is already a solution over the whole record (a refit
+    with one more effect: methods/turntable/diagnose.py); strict: the pass limit reached
+    is an error (else the last state, info["moving"] naming what still moves)."""
     T = pb.block_n / pb.rec.sample_rate
     rep = reported_columns(pb)
     info = {"start_windows": 0, "passes": 0, "last_move": None}
@@ -244,7 +252,7 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
     # local optimum 16 sigma from the truth and 11 in chi^2 above the one near it
     sd_mount = pb.pm.sd[pb.pm.idx["mount"]].copy()
     pb.pm.sd[pb.pm.idx["mount"]] = np.minimum(sd_mount, START_MOUNT_SD)
-    while True:  # the start: windows doubling until they span every cycle
+    while windows:  # the start: windows doubling until they span every cycle
         nbs = [min(n, max(10, int(np.ceil(L / T)))) for n in pb.nb]
         if nbs == pb.nb:
             break
@@ -266,6 +274,7 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
         tick()
     pb.pm.sd[pb.pm.idx["mount"]] = sd_mount
     last, prev = np.inf, np.inf
+    last_kept = (st, None)
     tr.reset()
     for k in range(max(1, pb.opt.passes)):
         pr = es.run_pass(pb, st, pb.nb)
@@ -273,11 +282,13 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
         info["passes"] = k + 1
         if not kept:
             continue
+        last_kept = (st, pr)
         mv = es.moved(pb, pr, rep)
         rms = es.residual_levels(pb, pr)[1] if not settled else None
         # (a model that does not explain the accelerometers settles at once: its noise is
         # widened before its steps are judged in sigma)
-        if settled or float(np.max(mv)) < SETTLE_MOVE or rms["accel"] > es.ACCEL_MISFIT:
+        if settled or float(np.max(mv)) < SETTLE_MOVE or (
+                rms["accel"] > es.ACCEL_MISFIT and pb.widen_accel):
             # (the pass is re-solved at the settled levels: its cost and the next pass's
             # are of the same objective, so the trust region keeps judging the step)
             changed, rms = es.settle_noise(pb, st, pr)
@@ -290,6 +301,10 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
         taken = es.moved_by(pb, pr, tr.prev[2], rep)  # the step taken (damped where damped)
         gain = pr.step.cost - pr.step.predicted  # what the full step promised
         prev, last = last, float(np.max(taken))
+        if _DEBUG:
+            print(f"pass {k + 1}: cost {pr.step.cost:.6g} gain {gain:.3g} actual "
+                  f"{tr.actual:.3g} lam {tr.lam:.2g} full {float(np.max(mv)):.3g} taken {last:.3g}"
+                  f" settled {settled} levels {rms}")
         tick()
         info["last_move"] = last
         info["residual_rms"] = rms
@@ -309,6 +324,9 @@ def _iterate(pb: es.Problem, st: es.State, progress=None) -> tuple[es.State, es.
             tick(final=True)
             return st, pr, info
     names = _moving_names(pb, pr, rep, mv)
+    if not strict:  # the last pass kept, at the point it linearised about
+        info["moving"] = names
+        return last_kept[0], last_kept[1], info
     raise EstimationError(f"the turntable fit did not converge in {pb.opt.passes} passes: "
                           f"{', '.join(names[:6])} still move by up to {float(np.max(mv)):.2g} "
                           "sigma a pass")
@@ -350,7 +368,7 @@ def solved(rec: Recording, opt: TurntableOptions, progress=None, start=None) -> 
     where the model does not explain it. start: (problem, state) from ``prepared``."""
     pb, st = start if start is not None else prepared(rec, opt)
     for _attempt in range(6):
-        st, pr, info = _iterate(pb, st, progress)
+        st, pr, info = iterate(pb, st, progress)
         rms = info["residual_rms"]
         # the table's channels against the model: an angle channel whose residuals stand far
         # above its white noise, or a rate channel whose residuals do not fit, disagree with

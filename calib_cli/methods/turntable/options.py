@@ -32,6 +32,8 @@ class TurntableOptions:
 
     lever_arm: str = "estimate"
     proof_mass: str = "auto"
+    g_sensitivity: bool = True  # the gyros' D (off: reported 0, sigma 0; diagnose's base)
+    base_structure: str = "full"  # "diagonal": K and G diagonal (diagnose --base diagonal)
     tangential: bool = True
     block_s: float = 0.2
     passes: int = 8

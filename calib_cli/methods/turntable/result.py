@@ -193,6 +193,8 @@ def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict):
         extra["lever_arm"] = pb.lever_known
     elif opt.lever_arm == "off":
         extra["lever_arm"] = np.zeros((nc, 3))
+    if not model.has("g_sensitivity"):  # reported, not estimated (the diagnosis's base)
+        extra["gyro_D"] = np.zeros((3, 3))
     if not model.has("proof_mass_offsets"):  # always reported (CONTRACT.md section 7)
         extra["proof_mass_offsets"] = np.zeros((3, 3))
         pm_fixed = [f"proof_mass_offsets[{i},{j}]" for i in range(3) for j in range(3) if i != j]
@@ -202,8 +204,8 @@ def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict):
                        serial=pb.rec.serial, tables=tables, extra_unobservable=pm_fixed)
     for k, v in extra.items():  # reported, not estimated
         res.params[k] = np.asarray(v, float)
-        res.sigma[k] = (np.zeros((nc, 3)) if k == "lever_arm"
-                        else np.where(np.eye(3) > 0, 0.0, np.nan))
+        res.sigma[k] = (np.zeros((nc, 3)) if k == "lever_arm" else np.zeros((3, 3))
+                        if k == "gyro_D" else np.where(np.eye(3) > 0, 0.0, np.nan))
         res.units[k] = "m"
     order = [k for k in (*IMU_KEYS, "lever_arm", "proof_mass_offsets") if k in res.params]
     for d in (res.params, res.sigma, res.units):

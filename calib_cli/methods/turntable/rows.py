@@ -78,12 +78,19 @@ class CycleSystem:
     white: tuple | None = None  # the whitened rows (solve.whitened)
 
 
-def table_angle(C: np.ndarray, a_enu: np.ndarray) -> np.ndarray:
-    """The trajectory's angle (nb,) about the table axis since its first block, unwrapped
-    (rad): the sum of the block-to-block rotations' components along the axis."""
+def table_angle(C: np.ndarray, a_enu: np.ndarray, C_ref: np.ndarray | None = None
+                ) -> np.ndarray:
+    """The trajectory's angle (nb,) about the table axis, unwrapped (rad): the sum of the
+    block-to-block rotations' components along the axis, from the fixed reference attitude
+    C_ref (the cycle's start: then each block's angle depends on its own attitude alone, as
+    its rows' linearisation says; measured from the first block instead, a turn of the
+    whole trajectory about a vertical axis, which nothing else fixes, moved the rows'
+    prediction in the linearisation and not in the next pass) or from the first block."""
     rel = np.einsum("bij,bkj->bik", C[1:], C[:-1])  # C_j+1 C_j^T
     steps = Rotation.from_matrix(rel).as_rotvec() @ a_enu
-    return np.concatenate([[0.0], np.cumsum(steps)])
+    first = 0.0 if C_ref is None else float(
+        Rotation.from_matrix(C[0] @ C_ref.T).as_rotvec() @ a_enu)
+    return first + np.concatenate([[0.0], np.cumsum(steps)])
 
 
 def propagate(C0: np.ndarray, r_end: np.ndarray, E: np.ndarray) -> np.ndarray:
@@ -149,7 +156,7 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
         ti = pm.idx["tilt"][cy.axis_group]
         A_glob[:, AXIS][:, :, ti] = -np.eye(2)
         h_ax = ra @ N.T - theta[ti]
-    psi = table_angle(C, cy.a_enu)
+    psi = table_angle(C, cy.a_enu, C_start)
     if pm.has("runout") and not cy.static:
         ir = pm.idx["runout"][c]
         hp = RUNOUT_HARMONIC * psi
