@@ -32,14 +32,24 @@ def _knots(duration_s: float, ramp: float, rng) -> list:
             trapezoid_knots(duration_s, ramp, LEVELS, lambda: rng.uniform(30.0, 45.0))]
 
 
+# the table axis of a geometry (ENU): horizontal (east), vertical (the classic rate table),
+# 30 deg up from the horizontal
+GEOMETRIES = {"horizontal": None, "vertical": (0.0, 0.0, 1.0),
+              "tilt30": (float(np.cos(np.radians(30.0))), 0.0, float(np.sin(np.radians(30.0))))}
+# per-sample white noise (m/s^2, rad/s) at 100 Hz: the generator's MEMS unit and a tactical one
+NOISE = {"mems": None, "tactical": (0.5e-3 * 9.80665, float(np.radians(0.005)))}
+
+
 def profile_plan_text(seed: int, family: str, kind: str = "instant", duration_s: float = 600.0,
                       wobble_dps: float = 0.5, tilted: bool = False,
-                      tilted_duration_s: float = 300.0) -> str:
+                      tilted_duration_s: float = 300.0, geometry: str = "horizontal") -> str:
     """A turntable plan of the family: the generator's mounting and housing keys with the
-    family's rate keys in every cycle (holds of 30-45 s at +-50 .. +-200 deg/s)."""
+    family's rate keys in every cycle (holds of 30-45 s at +-50 .. +-200 deg/s), the table
+    axis of ``geometry`` (GEOMETRIES)."""
     shape, ramp = FAMILIES[family]
     txt = turntable_plan_text(seed, duration_s=duration_s, tilted=tilted,
-                              tilted_duration_s=tilted_duration_s, wobble_dps=wobble_dps)
+                              tilted_duration_s=tilted_duration_s, wobble_dps=wobble_dps,
+                              table_axis=GEOMETRIES[geometry])
     rng = np.random.default_rng(seed)
     out, c = [], 0
     for line in txt.splitlines():
@@ -82,14 +92,18 @@ ENCODER_KEYS = ("sim_table_encoder_counts = 65536\nsim_table_encoder_opr_deg = 0
 
 def profile_record(seed: int, family: str, kind: str = "instant", duration_s: float = 600.0,
                    tilted: bool = False, wobble: bool | None = None, wide: bool | None = None,
-                   encoder: bool = False):
+                   encoder: bool = False, geometry: str = "horizontal", noise: str = "mems",
+                   full: bool = False):
     """(Recording, truth params) for one validation case. ``wobble`` defaults to every
     other seed, ``wide`` (truths at 3x) to every third. ``encoder``: the log's table
     channels are a 2^16-count angle encoder with a 0.05 deg once-per-revolution error and
-    a rate channel with a 2e-3 scale error (else the nominal profile, not an encoder)."""
+    a rate channel with a 2e-3 scale error (else the nominal profile, not an encoder).
+    ``geometry``: the table axis (GEOMETRIES); ``noise``: the unit's white noise (NOISE).
+    full: also the plan and the Truth (rec, params, plan, truth)."""
     wobble = (seed % 2 == 1) if wobble is None else wobble
     wide = (seed % 3 == 2) if wide is None else wide
-    text = profile_plan_text(seed, family, kind, duration_s, 0.5 if wobble else 0.0, tilted)
+    text = profile_plan_text(seed, family, kind, duration_s, 0.5 if wobble else 0.0, tilted,
+                             geometry=geometry)
     if encoder:
         text = ENCODER_KEYS + text
     text = lever_arm_lines(text, seed)
@@ -106,9 +120,12 @@ def profile_record(seed: int, family: str, kind: str = "instant", duration_s: fl
             if spec.key in ("lever_arm", "proof_mass_offsets"):
                 continue
             params[spec.key] = spec.neutral() + 3.0 * (params[spec.key] - spec.neutral())
-    truth = type(truth)(truth.model, params, truth.noise, truth.counts, truth.quantize)
+    tnoise = dict(truth.noise)
+    if NOISE[noise] is not None:
+        tnoise["accel_white"], tnoise["gyro_white"] = NOISE[noise]
+    truth = type(truth)(truth.model, params, tnoise, truth.counts, truth.quantize)
     rec = simulate(plan, truth, seed)
-    return rec, params
+    return (rec, params, plan, truth) if full else (rec, params)
 
 
 def normalized_errors(res, truth: dict) -> dict:

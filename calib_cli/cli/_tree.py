@@ -820,9 +820,6 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                                             {'choices': ['full', 'diagonal'],
                                                              'name': 'with_base',
                                                              'opts': ['--base']},
-                                                            {'choices': ['auto', 'hf'],
-                                                             'name': 'with_noise',
-                                                             'opts': ['--noise-floor']},
                                                             {'is_flag': True,
                                                              'name': 'as_json',
                                                              'opts': ['--json']},
@@ -899,26 +896,22 @@ TREE = {'commands': {'allan': {'doc': 'Allan deviation and noise terms (IEEE Std
                                                               'auto uses those the log has that '
                                                               'pass the checks.  [default: auto]'],
                                                              ['--with EFFECT[,EFFECT...]',
-                                                              'Add catalogue effects to the base '
-                                                              'model (contract names, optionally '
-                                                              'sensor-qualified: '
-                                                              'accel.temperature_drift).'],
+                                                              'Catalogue effects on the base '
+                                                              'model (accel b, K; gyro d, G), '
+                                                              'optionally sensor-qualified: '
+                                                              'lever_arm, gyro.g_sensitivity, '
+                                                              'time_offset, gyro.scale_asymmetry '
+                                                              '(docs/diagnose.md).'],
                                                              ['--list-effects',
                                                               'List the effects --with accepts, '
                                                               'one a line (with RAW: the ones '
-                                                              'this record can excite, and what '
-                                                              'to record for the others).'],
+                                                              'this record can excite, and why '
+                                                              'not the others).'],
                                                              ['--base [full|diagonal]',
                                                               "With --with: the base model's "
                                                               'scale factors (diagonal: needed by '
                                                               '--with misalignment).  [default: '
                                                               'full]'],
-                                                             ['--noise-floor [auto|hf]',
-                                                              'With --with: the noise floor, as '
-                                                              '`calib diagnose --noise` (auto: '
-                                                              "raised to the 0.5 s means' scatter "
-                                                              'where that is larger; hf: white).  '
-                                                              '[default: auto]'],
                                                              ['--json',
                                                               'Print the calibration as `calib '
                                                               'show --json` does '

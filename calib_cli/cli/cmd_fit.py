@@ -76,7 +76,11 @@ def _list_effects(m: Method, raw, options, base, noise) -> None:
     from calib_cli.io.h5 import read_raw
     from calib_cli.methods import fit_with as fw
 
-    if m.with_engine == "gyro":
+    if m.with_engine == "filter":
+        from calib_cli.methods.method import resolve
+
+        lines = resolve(m.with_lines)(read_raw(raw) if raw else None, base)
+    elif m.with_engine == "gyro":
         acc = options.get("accel")
         lines = (fw.gyro_lines(read_raw(raw), None if acc is None else acc.value, base) if raw
                  else fw.effect_lines(None, m.name, base))
@@ -174,6 +178,9 @@ def make_fit_command(m: Method) -> click.Command:
                          default="full", show_default=True,
                          help="With --with: the base model's scale factors (diagonal: "
                               "needed by --with misalignment).")(f)
+        f = click.option("--list-effects", is_flag=True,
+                         help="List the effects --with accepts, one a line (with RAW: the ones "
+                              "this record can excite, and why not the others).")(f)
         f = with_option(f, "Catalogue effects on the base model (accel b, K; gyro d, G), "
                            "optionally sensor-qualified: lever_arm, gyro.g_sensitivity, "
                            "time_offset, gyro.scale_asymmetry (docs/diagnose.md).")

@@ -359,6 +359,8 @@ class Method:
     with_effects: tuple = ()  # with_engine "own": the effects its with_fit takes
     with_excluded: dict = field(default_factory=dict)  # effect -> why this method has none
     with_uses: tuple = ()  # options the --with fit uses (the others apply to the plain fit)
+    # with_engine "filter": "module:function(rec or None, base) -> [line]" (--list-effects)
+    with_lines: Any = None
     diagnose: Diagnose | None = None
     report: tuple = ()
     export: str = "firmware"

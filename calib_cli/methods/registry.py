@@ -478,8 +478,8 @@ def _notes_turntable(res, o) -> list:
                    "the fit does not model clipping")
     if st.get("accel_noise_inflation", 1.0) > 1.0:
         out.append(f"[yellow]the model does not explain the accelerometer data:[/] noise "
-                   f"widened x{st['accel_noise_inflation']:.1f} (lever arms or proof masses "
-                   "missing?)")
+                   f"widened x{st['accel_noise_inflation']:.1f}: an effect the data show is "
+                   "missing from the model (calib diagnose --method turntable names it)")
     return out
 
 
@@ -693,6 +693,7 @@ register(Method(
     plan_kinds=("turntable",), plan_candidates="calib_cli.design:turntable_candidates",
     notes=_notes_turntable, with_engine="filter",
     with_fit="calib_cli.methods.turntable.diagnose:fit_with",
+    with_lines="calib_cli.methods.turntable.diagnose:effect_lines",
     with_excluded={"misalignment": "the full base model's K and G already hold every "
                                    "misalignment (--base diagonal takes it)",
                    "bias_random_walk": "a wandering bias is not a state of the turntable "

@@ -278,7 +278,8 @@ def turntable_sections(ctx: ReportContext):
     text = [_summary_line(ctx)]
     if st.get("accel_noise_inflation", 1.0) > 1.0:
         text.append(f"The model did not explain the accelerometer data: noise widened "
-                    f"x{st['accel_noise_inflation']:.1f} (lever arms or proof masses missing?).")
+                    f"x{st['accel_noise_inflation']:.1f}: an effect the data show is missing from "
+                    "the model (`calib diagnose --method turntable` names it).")
     tables = []
     if "lever_arm" in cal.params and "lever_arm" not in (st.get("with") or []):
         s = np.asarray(cal.params["lever_arm"], float)

@@ -112,11 +112,17 @@ def turntable_plan_text(seed: int = 0, duration_s: float = 600.0, tilted: bool =
                         rate_error: float = 2e-3, wobble_dps: float = 0.5,
                         max_dps: float = 200.0, latitude_deg: float = 50.45,
                         proof_mass_sigma_m: float = 5e-3, axis_tilt_deg: float = 0.0,
-                        transition_s: float = 4.0) -> str:
+                        transition_s: float = 4.0, table_axis=None) -> str:
     """A turntable plan with random true lever arms, mounting errors and housing
-    measurements (all drawn from ``seed``); ``transition_s``: the remount between cycles."""
+    measurements (all drawn from ``seed``); ``transition_s``: the remount between cycles;
+    ``table_axis`` (ENU): the table's axis (default east, horizontal): the whole set-up
+    turned with it (the cycles' axes in body axes stay the same; gravity sees another
+    geometry: [0, 0, 1] is the classic vertical rate table)."""
     rng = np.random.default_rng(10_000 + seed)
     cycles = cycle_attitudes(tilted, tilt_deg)
+    # the set-up turned so that the east axis goes to table_axis (ENU)
+    turn = Rotation.identity() if table_axis is None else Rotation.align_vectors(
+        [np.asarray(table_axis, float) / np.linalg.norm(table_axis)], [TABLE_AXIS])[0]
     # the table's true axis: tilted from the horizontal by up to axis_tilt_deg, the same for
     # every cycle (one table); the unit sits on it as the plan says, up to the mounting error
     tilt = np.radians(rng.uniform(-1, 1) * axis_tilt_deg)
@@ -127,7 +133,7 @@ def turntable_plan_text(seed: int = 0, duration_s: float = 600.0, tilted: bool =
         rot = attitude_to_rotation(np.radians(att))
         start = Rotation.from_rotvec(TABLE_AXIS * np.radians(rng.uniform(-1, 1) * start_error_deg))
         mount = Rotation.from_rotvec(rng.standard_normal(3) * np.radians(mount_error_deg))
-        true = to_true * start * rot * mount
+        true = turn * to_true * start * rot * mount
         sim_att.append(np.degrees(rotation_to_attitude(true)))
     # the point on the table axis is any: take the one that makes s . a_nominal = 0, the
     # convention of the fit (the component along the axis is unobservable)
@@ -142,9 +148,11 @@ def turntable_plan_text(seed: int = 0, duration_s: float = 600.0, tilted: bool =
         dur = duration_s if c < 3 else tilted_duration_s
         housing = s_true[c] + rng.uniform(-1, 1, 3) * housing_error_m
         housing = housing - a_nom * (housing @ a_nom)
-        lines += ["[[segment]]", f"label = '{label}'", f"attitude_deg = {_fmt(att)}",
+        att_plan = np.degrees(rotation_to_attitude(turn * attitude_to_rotation(np.radians(att))))
+        lines += ["[[segment]]", f"label = '{label}'", f"attitude_deg = {_fmt(att_plan)}",
                   f"sim_attitude_deg = {_fmt(sim_att[c])}",
-                  f"table_axis_enu = {_fmt(TABLE_AXIS)}", f"sim_table_axis_enu = {_fmt(true_axis)}",
+                  f"table_axis_enu = {_fmt(turn.apply(TABLE_AXIS))}",
+                  f"sim_table_axis_enu = {_fmt(turn.apply(true_axis))}",
                   f"lever_arm_m = {_fmt(housing)}", f"sim_lever_arm_m = {_fmt(s_true[c])}",
                   "rate_shape = 'smooth'", f"rate_profile = {rate_profile(dur, max_dps)}"]
     return "\n".join(lines) + "\n"

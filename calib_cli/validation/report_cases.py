@@ -98,7 +98,8 @@ CASES = [
     Case("with-lever_arm", "turntable", ("fit", "turntable", "--with", "lever_arm,g_sensitivity"),
          "lever arms and g-sensitivity on the table"),
     Case("with-proof_mass_offsets", "turntable",
-         ("fit", "turntable", "--with", "lever_arm,proof_mass_offsets,time_offset"),
+         ("fit", "turntable", "--with",
+          "lever_arm,g_sensitivity,proof_mass_offsets,time_offset"),
          "proof-mass offsets and time offset"),
     # every method's diagnosis
     *(Case(f"diagnose-{m}", rec, ("diagnose", "", "--method", m), f"diagnosis, method {m}")

@@ -73,6 +73,36 @@ def with_arg(name: str, sensor: str) -> str:
     return arg(name, sensor)
 
 
+def effect_lines(rec: Recording | None, base: str = "full") -> list[dict]:
+    """``calib fit turntable --list-effects [RAW]``: one entry per effect ``--with`` takes,
+    {"with", "excites", "record", "excited" (None without a record), "why"}."""
+    from calib_cli.methods.diagnose_candidates import effect_key
+    from calib_cli.model.effects import make_effect
+
+    names = [("lever_arm", ""), ("proof_mass_offsets", ""), ("g_sensitivity", "gyro"),
+             ("time_offset", ""), ("scale_asymmetry", "gyro"), ("scale_asymmetry", "accel"),
+             ("accel_nonlinearity", "accel"), ("temperature_drift", "accel"),
+             ("temperature_drift", "gyro"), ("misalignment", "accel"), ("misalignment", "gyro")]
+    why = {}
+    if rec is not None:
+        from calib_cli.methods.turntable.fit import problem
+
+        pb = problem(rec, options_with(TurntableOptions(base_structure=base), ()))
+        why = _candidates(rec, pb, {"lever_arm"}, base)[1]
+        if base != "diagonal":
+            for s in ("accel", "gyro"):
+                why[effect_key("misalignment", s)] = ("the full base model's K and G hold every "
+                                                      "misalignment (--base diagonal)")
+    out = []
+    for name, sensor in names:
+        e = make_effect(name, sensor or "accel")
+        key = effect_key(name, sensor)
+        reason = why.get(key)
+        out.append({"with": with_arg(name, sensor), "excites": e.excites, "record": e.record,
+                    "excited": None if rec is None else reason is None, "why": reason})
+    return out
+
+
 @dataclass
 class Fitted:
     """A converged fit: its problem, state, last pass, iteration info and result."""
@@ -319,7 +349,12 @@ class TurntableDiagnosis:
         return fit_command("turntable", self.with_list, self.base, "auto", raw, out)
 
     def calibration(self, rec=None) -> CalibrationResult:
+        """The final model as ``calib fit turntable --with`` the steps writes it (one
+        computation: the fit from its start, on the record where given)."""
         res = self.results[-1]
+        if rec is not None and self.steps:
+            res = fit_with(rec, TurntableOptions(), [(s.effect, s.sensor) for s in self.steps],
+                           self.base)
         res.stats["with"] = self.with_list
         res.stats["base"] = self.base
         res.stats["base_model"] = list(self.base_model)

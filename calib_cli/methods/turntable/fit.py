@@ -103,22 +103,18 @@ def problem(rec: Recording, opt: TurntableOptions) -> es.Problem:
 
 
 def hold_undetermined(pb: es.Problem) -> None:
-    """Without a gravity reference (result.structural_unobservable) the entries the record
-    cannot determine are held where the fit starts (the neutral unit, the lever arms from
-    the holds) rather than estimated: free, they drift along the valley of nearly equal
-    cost they span, and drag the determined ones (the gyro biases and g-sensitivity) with
-    them. They are reported null and listed in stats.unobservable."""
+    """Without a gravity reference (result.structural_unobservable) a common tilt of the
+    mountings, the accelerometers' K and biases, the lever arms and the gyros'
+    misalignment turn together at nearly equal cost: free, they drift along that valley
+    and drag the determined entries (the gyro biases and g-sensitivity) with them. The
+    mountings are then held at the plan's (a choice of gauge: the accelerometer terms take
+    up the mounting error, which the data see only in their sum), and the entries that
+    gauge decides are reported null and listed in stats.unobservable."""
     from calib_cli.methods.turntable.result import structural_unobservable
 
     held = structural_unobservable(pb)
-    if not held:
-        return
-    pm = pb.pm
-    for q, (key, flat) in enumerate(pm.keys):
-        if key in held or (key, flat) in held:
-            pm.sd[pm.idx["packing"][q]] = HELD_SD
-    if pm.has("lever_arm") and "lever_arm" in held:
-        pm.sd[pm.idx["lever_arm"]] = HELD_SD
+    if held:
+        pb.pm.sd[pb.pm.idx["mount"]] = HELD_SD
     pb.held = held
 
 
@@ -250,7 +246,7 @@ def iterate(pb: es.Problem, st: es.State, progress=None, windows: bool = True,
     # K and biases and the gyros' misalignment turn together along a valley of nearly equal
     # cost, which short windows do not close; started along it, the passes ended in a
     # local optimum 16 sigma from the truth and 11 in chi^2 above the one near it
-    sd_mount = pb.pm.sd[pb.pm.idx["mount"]].copy()
+    sd_mount = pb.pm.sd[pb.pm.idx["mount"]].copy()  # (HELD_SD where held: hold_undetermined)
     pb.pm.sd[pb.pm.idx["mount"]] = np.minimum(sd_mount, START_MOUNT_SD)
     while windows:  # the start: windows doubling until they span every cycle
         nbs = [min(n, max(10, int(np.ceil(L / T)))) for n in pb.nb]
@@ -357,8 +353,6 @@ def prepared(rec: Recording, opt: TurntableOptions) -> tuple[es.Problem, es.Stat
     pb = problem(rec, opt)
     st = start_state(pb)
     hold_undetermined(pb)
-    if getattr(pb, "held", None):  # held at the start's values (the lever arms from the holds)
-        pb.pm.mean = np.where(pb.pm.sd == HELD_SD, st.theta, pb.pm.mean)
     return pb, st
 
 
