@@ -49,11 +49,11 @@ def run(seed: int, kv: dict) -> dict:
                             noise={"accel": n["accel"] * max(an, 1e-3),
                                    "gyro": n["gyro"] * max(gn, 1e-3) * fgn})
     if "floor" in kv:  # the estimated axis noise's floor (rad), default 1e-5
-        import calib_cli.methods.turntable as tt
-        tt._AXIS_FLOOR = float(kv.pop("floor"))
+        from calib_cli.methods.turntable import estimator as es
+        es.AXIS_FLOOR = float(kv.pop("floor"))
     if "walk" in kv:  # the floor's fraction of the attitude walk per block, default 0.5
-        import calib_cli.methods.turntable as tt
-        tt._AXIS_FLOOR_WALK = float(kv.pop("walk"))
+        from calib_cli.methods.turntable import estimator as es
+        es.AXIS_FLOOR_WALK = float(kv.pop("walk"))
     conv = {}
     for k, v in kv.items():
         conv[k] = None if v == "None" else (int(v) if k in ("passes", "coarse_factor") else float(v))

@@ -299,7 +299,7 @@ def test_turntable_geometries_and_noise():
              "plan check / fit (median, range of groups) | gyro_K diag / bound | CPU s |",
              "|---" * (len(GROUPS) + 7) + "|"]
     bad, failures = [], []
-    for lab, fam, geo, noise in GEO_FAMILIES:
+    for lab, *_ in GEO_FAMILIES:
         for enc in (False, True):
             rows = [(a, o, e) for a, o, e in results if a[0] == lab and a[4] == enc]
             failures += [(lab, enc, a[5], e) for a, o, e in rows if e is not None]
@@ -318,7 +318,7 @@ def test_turntable_geometries_and_noise():
                 if not (0.8 <= rms <= 1.25) or mx > 5.0:
                     bad.append((name, enc, k, round(rms, 2), round(mx, 1)))
             # every entry without a sigma is listed (and no listed entry has one)
-            for a, o in ok:
+            for _a, o in ok:
                 n_null = sum(int(np.sum(~np.isfinite(np.asarray(s, float))))
                              for s in o["sigma"].values())
                 if n_null != len(o["unobservable"]):
@@ -329,7 +329,7 @@ def test_turntable_geometries_and_noise():
             if passes > 5:
                 bad.append((name, enc, "passes", passes, 5))
             ratios, crb = {}, []
-            for a, o in ok:
+            for _a, o in ok:
                 if "pred_sigma" not in o:
                     continue
                 if o["pred_unobservable"] != o["unobservable"]:

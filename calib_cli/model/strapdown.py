@@ -179,7 +179,6 @@ def rotation_increments(w: np.ndarray, t: np.ndarray, sample_kind: str = "instan
     consecutive periods (phi_k-1 x phi_k) / 12."""
     w = np.asarray(w, dtype=float)
     dt = np.diff(np.asarray(t, dtype=float))
-    n = len(w)
     if sample_kind == "interval-mean":
         phi = w[1:] * dt[:, None]
         coning = np.zeros_like(phi)

@@ -27,7 +27,6 @@ from scipy import stats
 
 from calib_cli.data import CalibrationResult, Recording
 from calib_cli.errors import EstimationError
-from calib_cli.methods.turntable import estimator as es
 from calib_cli.methods.turntable.options import TurntableOptions
 
 DIAGNOSE_PASSES = 12  # the most passes of each model's fit
@@ -401,7 +400,6 @@ def diagnose_turntable(rec: Recording, base: str = "full", alpha: float | None =
 def _diagnose(rec, opt, alpha, max_steps) -> TurntableDiagnosis:
     from calib_cli.methods.diagnose import Step, zscore
     from calib_cli.methods.diagnose_candidates import Candidate, describe, effect_key
-    from calib_cli.model.effects import make_effect
 
     cur = _solve(rec, opt, ())
     results = [_result(rec, cur)]
@@ -423,16 +421,16 @@ def _diagnose(rec, opt, alpha, max_steps) -> TurntableDiagnosis:
                 untested.setdefault(key, f"the refit failed ({exc.message})")
                 continue
             _result(rec, f)
-            params, sigma, k = _new_entries(f, name, sensor)
+            k = _new_entries(f, name, sensor)[2]
             if k == 0:
                 untested.setdefault(key, "not observable from this record")
                 continue
-            tried.append((name, sensor, f, params, sigma, k, c0 - _neg2ll(f)))
+            tried.append((name, sensor, f, k, c0 - _neg2ll(f)))
         if not tried:
             break
         m = len(tried)
         table, best = [], None
-        for name, sensor, f, params, sigma, k, d in tried:
+        for name, sensor, f, k, d in tried:
             thr = float(stats.chi2.isf(alpha / m, k))
             p = float(stats.chi2.sf(max(d, 0.0), k))
             table.append({"candidate": effect_key(name, sensor), "score": d, "threshold": thr,

@@ -27,13 +27,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calib_cli.errors import EstimationError
 from calib_cli.methods.turntable import setup as su
 from calib_cli.methods.turntable.blocks import accel_rows, gyro_part
 from calib_cli.methods.turntable.rows import ACC, AXIS, ENC, RATE, cycle_system, propagate
 from calib_cli.methods.turntable.setup import RATE_ANGLE_FLOOR
-from calib_cli.methods.turntable.solve import (leverage, residuals_after, scale_weight, set_weight,
-                                               solve)
+from calib_cli.methods.turntable.solve import leverage, residuals_after, scale_weight, set_weight, solve
 from calib_cli.model.strapdown import exp_matrix
 
 START_S = 20.0  # s: the first window of every cycle

@@ -113,9 +113,22 @@ def hold_undetermined(pb: es.Problem) -> None:
     from calib_cli.methods.turntable.result import structural_unobservable
 
     held = structural_unobservable(pb)
+    pb.mount_sd = pb.pm.sd[pb.pm.idx["mount"]].copy()
     if held:
         pb.pm.sd[pb.pm.idx["mount"]] = HELD_SD
     pb.held = held
+
+
+def release_mountings(pb: es.Problem, pr: es.PassResult) -> None:
+    """The converged pass re-solved with the mountings at their prior again (held as a
+    gauge while iterating: hold_undetermined): the covariance then carries what the
+    mountings leave undetermined."""
+    from calib_cli.methods.turntable.solve import solve
+
+    if not getattr(pb, "held", None):
+        return
+    pb.pm.sd[pb.pm.idx["mount"]] = pb.mount_sd
+    pr.step = solve(pr.systems, pb.pm.size, pb.pm.mean, pb.pm.sd, pr.theta_lin)
 
 
 def start_state(pb: es.Problem) -> es.State:
@@ -384,6 +397,7 @@ def solved(rec: Recording, opt: TurntableOptions, progress=None, start=None) -> 
             st = _restart(pb, st, labels)
             continue
         break
+    release_mountings(pb, pr)
     return pb, st, pr, info
 
 
