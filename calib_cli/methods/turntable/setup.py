@@ -59,7 +59,8 @@ def turntable_model(n_cycles: int, lever_arm: bool, proof_mass: bool, tangential
 class Cycle:
     """One rotating segment (or a static position the fit uses). sl: its samples; a_enu:
     the plan's table axis (ENU, unit); a_nom: that axis in body axes at the nominal
-    mounting; basis (3, 2): two unit vectors perpendicular to a_nom (the lever arm's and the mounting error's axes);
+    mounting; basis (3, 2): two unit vectors perpendicular to a_nom (the lever arm's and
+    the mounting error's axes);
     rot_nom: the plan's attitude; s_plan: the plan's lever arm (m) or None; axis_group:
     which of the plan's distinct table axes; mount_sigma (rad): the mounting's prior
     1-sigma, ``mount_stated``: given by the plan (information) or the fit's default."""
