@@ -411,7 +411,11 @@ def _diagnose(rec, opt, alpha, max_steps) -> TurntableDiagnosis:
         cands, why = _candidates(rec, cur.pb, added, opt.base_structure)
         for k, v in why.items():
             untested.setdefault(k, v)
-        c0 = _neg2ll(cur)
+        # the current model refitted as each candidate is (from its solution, at its levels):
+        # a model short of its optimum (a slow valley) would otherwise credit every
+        # candidate with the rest of its own descent
+        ref = _solve(rec, opt, cur.effects, start=cur, fixed=True)
+        c0 = min(_neg2ll(cur), _neg2ll(ref))
         tried = []
         for name, sensor in cands:
             key = effect_key(name, sensor)
