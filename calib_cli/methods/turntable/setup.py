@@ -16,7 +16,7 @@ from calib_cli.methods.turntable.options import ENCODER_MODES, GRADES, PRIOR_KEY
 from calib_cli.model.effects import Layout, make_effect
 from calib_cli.model.frames import attitude_to_rotation
 from calib_cli.model.imu_model import ImuModel, Packing, base_model
-from calib_cli.model.strapdown import step_rotvec
+from calib_cli.model.strapdown import cumulative_integral, step_rotvec
 
 # The fit's model is the effect catalogue's (CONTRACT.md section 2): the unit's core
 # (accelerometer bias and lower-triangular K, gyro bias, full G and D) plus, per the
@@ -530,7 +530,7 @@ def rate_channels(rec: Recording, cycles, block_n: int, opt: TurntableOptions):
             continue
         sign = float(np.sign(slope))
         tt = rec.time[cy.sl] - rec.time[cy.sl][0]
-        ang = np.concatenate([[0.0], np.cumsum(0.5 * (r[1:] + r[:-1]) * np.diff(tt))])
+        ang = cumulative_integral(r, tt)  # the cubic: exact for an oscillation
         idx, ok = block_starts(len(r), block_n, interval)
         out.append(RateChannel(z=sign * ang[idx], t=tt[idx], ok=ok, sign=sign))
         sig.append(sig_r)
