@@ -316,7 +316,8 @@ def test_turntable_geometries_and_noise():
                 rms, mx = float(np.sqrt(np.mean(v**2))), float(np.abs(v).max())
                 row.append(f"{rms:.2f} ({mx:.1f})")
                 if not (0.8 <= rms <= 1.25) or mx > 5.0:
-                    bad.append((name, enc, k, round(rms, 2), round(mx, 1)))
+                    bad.append((name, enc, f"{k} RMS z, max |z|", f"{rms:.2f}, {mx:.1f}",
+                                "[0.8, 1.25], 5"))
             # every entry without a sigma is listed (and no listed entry has one)
             for _a, o in ok:
                 n_null = sum(int(np.sum(~np.isfinite(np.asarray(s, float))))
