@@ -260,3 +260,21 @@ def test_rows_are_the_forward_models_derivative(kind):
             worst[g] = max(worst[g], float(np.abs((fd - an) * cs.weight).max() / scale))
     print(f"\n{kind}: largest column error", {k: f"{v:.1e}" for k, v in worst.items()})
     assert worst["other"] < 3e-2 and worst["gyro"] < 0.15, worst
+
+
+def test_no_gravity_reference_warns():
+    """Issue 32: on a vertical table without a gravity reference the gyro scale factors'
+    sigma is known to be optimistic (docs/turntable.md): fit turntable says so."""
+    from types import SimpleNamespace
+
+    from calib_cli.methods.registry import _notes_turntable
+    from calib_cli.methods.turntable.result import gravity_reference_words
+
+    class _Pb:
+        cycles = []
+
+    words = gravity_reference_words(_Pb())
+    assert words.startswith("none")
+    lines = _notes_turntable(SimpleNamespace(stats={"gravity_reference": words}), None)
+    assert any("optimistic" in ln for ln in lines), lines
+    assert not _notes_turntable(SimpleNamespace(stats={"gravity_reference": "the rotating"}), None)

@@ -480,6 +480,11 @@ def _notes_turntable(res, o) -> list:
         out.append(f"[yellow]the model does not explain the accelerometer data:[/] noise "
                    f"widened x{st['accel_noise_inflation']:.1f}: an effect the data show is "
                    "missing from the model (calib diagnose --method turntable names it)")
+    if str(st.get("gravity_reference", "")).startswith("none"):
+        out.append("[yellow]warning:[/] every table axis is vertical and nothing gives the "
+                   "accelerometers a gravity reference: the gyro scale factors' sigma is known "
+                   "to be optimistic there (docs/turntable.md, \"Known limits on a vertical "
+                   "axis\"); add static positions or a tilted cycle")
     return out
 
 
