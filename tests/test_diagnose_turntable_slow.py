@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.stats import binom
+from scipy.stats import chi2 as chi2_dist
 
 pytestmark = pytest.mark.slow
 SEEDS = int(os.environ.get("CALIB_TT_DIAG_SEEDS", "20"))
@@ -32,17 +34,37 @@ CHANNELS = {"none": "no table channels", "encoder": "exact encoder",
 COARSE_SD = float(np.radians(0.05))
 
 
-def _truth(case: str, rng):
+_SIGMA: dict = {}
+
+
+def _sigma(name: str, channels: str) -> dict:
+    """The effect's 1-sigma on the pilot record as the channel case logs it (a time offset
+    seen through a 0.05 deg encoder is 2-3x less certain than through an exact one: sized
+    by the exact encoder's sigma, it was below detection in 2 of 5 seeds)."""
+    from calib_cli.errors import EstimationError
+    from calib_cli.validation import diagnose_cases as C
+
+    if (name, channels) not in _SIGMA:
+        try:
+            _SIGMA[name, channels] = C.effect_sigma(
+                name, lambda r: with_channels(r, channels, np.random.default_rng(12345)))
+        except EstimationError:  # the pilot fit without channels does not converge: the
+            # exact encoder's sigma (smaller: the effect is then the harder to find)
+            _SIGMA[name, channels] = C.effect_sigma(name)
+    return _SIGMA[name, channels]
+
+
+def _truth(case: str, rng, channels: str = "encoder"):
     from calib_cli.model.imu_model import ImuModel
     from calib_cli.model.truth import Truth
     from calib_cli.validation import diagnose_cases as C
 
     names = CASES[case]
-    t = C.hidden_effect_truth(names[0], rng)
+    t = C.hidden_effect_truth(names[0], rng, sigma=_sigma(names[0], channels))
     for extra in names[1:]:  # a second hidden effect, drawn the same way
         method, name, sensor, _base = C.CASES[extra]
         p = dict(t.params)
-        for key, sig in C.effect_sigma(extra).items():
+        for key, sig in _sigma(extra, channels).items():
             sig = np.asarray(sig, float)
             ok = np.isfinite(sig) & (sig > 0)
             mag = rng.uniform(5.0, 10.0, size=sig.shape) * rng.choice([-1.0, 1.0], size=sig.shape)
@@ -70,7 +92,7 @@ def _one(args):
     from calib_cli.validation import diagnose_cases as C
 
     t0 = time.perf_counter()
-    truth = _truth(case, np.random.default_rng(seed))
+    truth = _truth(case, np.random.default_rng(seed), channels)
     rec = simulate(C.plan_of("turntable"), truth, seed=seed + 1)
     rec = with_channels(rec, channels, np.random.default_rng(70_000 + seed))
     d = diagnose(rec, "turntable")
@@ -78,6 +100,16 @@ def _one(args):
     chi2, dof, p99 = d.final_chi2
     return (case, channels, seed, keys, float(chi2), float(dof), float(p99),
             "time_offset" in d.untested, time.perf_counter() - t0)
+
+
+def final_needed(n: int) -> int:
+    """The fewest of n seeds whose final chi^2 is within its 99 % point for a case to pass:
+    the largest k with P(X < k) < 5 %, X ~ Binomial(n, 0.99) the count a true model gives
+    (19 of 20: P(X <= 18) = 1.7 %)."""
+    for k in range(n, -1, -1):
+        if binom.cdf(k - 1, n, 0.99) < 0.05:
+            return k
+    return 0
 
 
 def expected(case: str, channels: str) -> list:
@@ -88,6 +120,10 @@ def expected(case: str, channels: str) -> list:
 
 
 def test_turntable_diagnose_names_exactly_the_hidden_effects():
+    for names in CASES.values():  # the pilots' sigma, before the workers fork
+        for name in names:
+            for ch in CHANNELS:
+                _sigma(name, ch)
     jobs = [(c, ch, s) for c in CASES for ch in CHANNELS for s in range(SEEDS)]
     t0 = time.perf_counter()
     with get_context("fork").Pool(2) as pool:
@@ -98,15 +134,18 @@ def test_turntable_diagnose_names_exactly_the_hidden_effects():
              f"K=diagnose_turntable`): {SEEDS} seeds per case, the plan of "
              "calib_cli/validation/diagnose_cases.py (six static positions, four rotating "
              "cycles about the vertical, 50 Hz), each observable entry of each hidden effect "
-             "U(5, 10) times its own 1-sigma with a random sign; three channel cases: no "
+             "U(5, 10) times its own 1-sigma (the refit's on a pilot record of the same "
+             "channel case; without channels, where that pilot fit does not converge, the "
+             "exact encoder's) with a random sign; three channel cases: no "
              "table channels, an exact encoder, an encoder with 0.05 deg of white noise per "
              "sample. Exact: the steps name exactly the hidden effects (in any order) and "
              "nothing else (without a table channel a time offset is unobservable: there "
              "exact is no step, time_offset untested). Final: the final model's chi^2 within "
              "the chi^2 99 % point of its degrees of freedom. "
              f"Wall time on 2 workers: {wall / 60:.1f} min.", "",
-             "| hidden | channels | exact | final chi^2 <= 99 % point | largest chi^2 / dof | "
-             "other steps (count) | s per case |", "|---|---|---|---|---|---|---|"]
+             "| hidden | channels | exact | final chi^2 <= 99 % point | pooled chi^2 / dof | "
+             "largest chi^2 / dof | other steps (count) | s per case |",
+             "|---|---|---|---|---|---|---|---|"]
     bad = []
     for case in CASES:
         for ch, words in CHANNELS.items():
@@ -115,6 +154,9 @@ def test_turntable_diagnose_names_exactly_the_hidden_effects():
             exact = sum(sorted(r[3]) == want and (ch != "none" or "time_offset" not in CASES[case]
                                                   or r[7]) for r in rows)
             final = sum(r[4] <= r[6] for r in rows)
+            # pooled over the seeds: sum chi^2 against the 99 % point of the summed dof
+            pooled = (sum(r[4] for r in rows), sum(r[5] for r in rows))
+            pooled_ok = pooled[0] <= chi2_dist.ppf(0.99, pooled[1])
             other: dict = {}
             for r in rows:
                 for k in r[3]:
@@ -122,13 +164,19 @@ def test_turntable_diagnose_names_exactly_the_hidden_effects():
                         other[k] = other.get(k, 0) + 1
             oth = ", ".join(f"{k} {n}" for k, n in sorted(other.items())) or "-"
             lines.append(f"| {case} | {words} | {exact}/{len(rows)} | {final}/{len(rows)} | "
+                         f"{pooled[0] / pooled[1]:.3f} ({'within' if pooled_ok else 'above'}) | "
                          f"{max(r[4] / r[5] for r in rows):.3f} | {oth} | "
                          f"{np.mean([r[8] for r in rows]):.0f} |")
-            if exact < 0.95 * len(rows) or final < len(rows):
+            if exact < 0.95 * len(rows) or final < final_needed(len(rows)) or not pooled_ok:
                 bad.append((case, ch, exact, final,
                             [r[2] for r in rows if sorted(r[3]) != want]))
-    lines += ["", f"Cases outside the rule (>= 19 of 20 exact, every seed's final chi^2 within "
-                  f"its 99 % point): {len(bad)}."]
+    lines += ["", "The final rule: a true model's chi^2 exceeds its 99 % point in 1 % of the "
+              "seeds (in at least one of 20 seeds with probability 1 - 0.99^20 = 18 %; the "
+              "four cases of one channel case share each seed's noise), so a case passes with "
+              f"at least {final_needed(SEEDS)} of {SEEDS} seeds within it (fewer has a "
+              "probability below 5 % under the true model: 1.7 % for 18 of 20) and the chi^2 pooled over its "
+              "seeds within the 99 % point of the pooled degrees of freedom.", "",
+              f"Cases outside the rule (>= 19 of 20 exact, the final rule above): {len(bad)}."]
     lines += [f"- {c} ({ch}): exact {e}, final {f}; seeds not exact: {s}"
               for c, ch, e, f, s in bad]
     DOC.write_text("\n".join(lines) + "\n")

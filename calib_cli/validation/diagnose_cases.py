@@ -162,11 +162,15 @@ def plan_of(method: str):
 
 
 @lru_cache(maxsize=None)
-def effect_sigma(case: str) -> dict:
-    """1-sigma of each entry of the case's effect, from base + effect refit on a pilot."""
+def effect_sigma(case: str, record_as=None) -> dict:
+    """1-sigma of each entry of the case's effect, from base + effect refit on a pilot.
+    record_as: the pilot record as the case logs it (``record_as(rec)``: without the
+    table's channels, a noisier encoder), so the effect is sized by its own sigma there."""
     method, name, sensor, base = CASES[case]
     plan = plan_of(method)
     rec = simulate(plan, base_truth(plan, np.random.default_rng(12345), base), seed=12345)
+    if record_as is not None:
+        rec = record_as(rec)
     if method == "gyro":
         from calib_cli.methods.fit_with import fit_with_gyro
 
@@ -205,8 +209,10 @@ def base_truth(plan, rng, base: str) -> Truth:
     return t
 
 
-def hidden_effect_truth(case: str, rng, scale=(5.0, 10.0), params: dict | None = None) -> Truth:
-    """A random unit with the case's effect hidden in it."""
+def hidden_effect_truth(case: str, rng, scale=(5.0, 10.0), params: dict | None = None,
+                        sigma: dict | None = None) -> Truth:
+    """A random unit with the case's effect hidden in it, each entry U(scale) times its
+    1-sigma (``sigma``, else ``effect_sigma(case)``)."""
     method, name, sensor, base = CASES[case]
     plan = plan_of(method)
     t = base_truth(plan, rng, base)
@@ -230,7 +236,7 @@ def hidden_effect_truth(case: str, rng, scale=(5.0, 10.0), params: dict | None =
         p[f"{sensor}_bias_instability"] = (rng.uniform(*scale, size=3) * BI_BIN_SIGMAS
                                            * white / np.sqrt(n_bin))
     elif params is None:
-        for key, sig in effect_sigma(case).items():
+        for key, sig in (effect_sigma(case) if sigma is None else sigma).items():
             sig = np.asarray(sig, float)
             ok = np.isfinite(sig) & (sig > 0)
             mag = rng.uniform(*scale, size=sig.shape) * rng.choice([-1.0, 1.0], size=sig.shape)
