@@ -59,6 +59,22 @@ def test_low_noise_sinusoid_with_channels():
     assert worst["gyro_K"] < 4.0 and max(worst.values()) < 5.0, worst
 
 
+@pytest.mark.xfail(strict=True, reason="issue 32: on a vertical axis without a gravity "
+                   "reference the held mountings bias the gyro scale factors "
+                   "(docs/turntable.md, 'Known limits on a vertical axis')")
+def test_vertical_axis_with_channels_gyro_scale():
+    """Issue 32 point 1, the classic rate table: 3 cycles (x, y, z up) about a vertical
+    axis with the table's encoder and rate channel. Today gyro_K[0,0] and [1,1] are
+    3.6 and 4.4 sigma off (the mounting held at the plan's, 0.3 deg from the truth, times
+    the gyros' misalignment); a known failure until the mounting-misalignment valley is
+    solved."""
+    rec, truth = profile_record(4, "trapezoid-100", duration_s=400.0, geometry="vertical",
+                                encoder=True)
+    res = fit_turntable(rec, TurntableOptions())
+    z = normalized_errors(res, truth)
+    assert np.abs(z["gyro_K"]).max() < 3.0, np.round(z["gyro_K"], 1)
+
+
 def test_noise_realisation_bias_seed4():
     """A noise realisation that left G_yy 7.5 sigma off (the order-dependent wander of the
     running estimate, docs/turntable.md); within sigma since later passes start from the
