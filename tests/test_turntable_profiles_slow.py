@@ -31,6 +31,16 @@ GROUPS = ["accel_bias", "accel_K", "gyro_bias", "gyro_K", "gyro_D", "lever_arm",
           "proof_mass_offsets"]
 
 
+def group_cell(z) -> tuple[str, float, float, bool]:
+    """A table cell of one parameter group's pooled z: ("RMS (max |z|)", RMS, max, within the
+    rule: RMS in [0.8, 1.25] and max <= 5); "-" (and within) where the group has none."""
+    v = np.asarray(z, float)
+    if not len(v):
+        return "-", float("nan"), float("nan"), True
+    rms, mx = float(np.sqrt(np.mean(v**2))), float(np.abs(v).max())
+    return f"{rms:.2f} ({mx:.1f})", rms, mx, 0.8 <= rms <= 1.25 and mx <= 5.0
+
+
 def _case(args):
     family, kind, seed, tilted = args
     from calib_cli.methods.turntable import TurntableOptions, fit_turntable
@@ -89,13 +99,9 @@ def test_turntable_profile_families():
     for name in sorted(groups):
         row = [name]
         for k in keys:
-            v = np.asarray(groups[name].get(k, []))
-            if not len(v):
-                row.append("-")
-                continue
-            rms, mx = float(np.sqrt(np.mean(v**2))), float(np.abs(v).max())
-            row.append(f"{rms:.2f} ({mx:.1f})")
-            if not (0.8 <= rms <= 1.25) or mx > 5.0:
+            cell, rms, mx, ok = group_cell(groups[name].get(k, []))
+            row.append(cell)
+            if not ok:
                 bad.append((name, k, round(rms, 2), round(mx, 1), worst[(name, k)][1]))
         lines.append("| " + " | ".join(row) + " |")
     if failures:
@@ -306,16 +312,13 @@ def test_turntable_geometries_and_noise():
             ok = [(a, o) for a, o, e in rows if e is None]
             if not ok:
                 continue
-            name = f"{lab}"
+            name = lab
             row = [name, "encoder + rate" if enc else "none"]
             for k in GROUPS:
-                v = np.concatenate([o["z"].get(k, []) for _, o in ok])
-                if not len(v):
-                    row.append("-")
-                    continue
-                rms, mx = float(np.sqrt(np.mean(v**2))), float(np.abs(v).max())
-                row.append(f"{rms:.2f} ({mx:.1f})")
-                if not (0.8 <= rms <= 1.25) or mx > 5.0:
+                cell, rms, mx, within = group_cell(
+                    np.concatenate([o["z"].get(k, []) for _, o in ok]))
+                row.append(cell)
+                if not within:
                     bad.append((name, enc, f"{k} RMS z, max |z|", f"{rms:.2f}, {mx:.1f}",
                                 "[0.8, 1.25], 5"))
             # every entry without a sigma is listed (and no listed entry has one)

@@ -85,6 +85,10 @@ class Problem:
     sig_rate_row: float = AXIS_START  # the rate channel's rows' sigma (estimated, floored)
     fixed_levels: bool = False  # the noise levels are given (plan check: design.py)
     widen_accel: bool = True  # the accelerometer noise widened where the model misfits
+    # what hold_undetermined (fit.py) held: the entries reported null, and the mountings'
+    # prior it replaced while iterating (restored by release_mountings)
+    held: set = field(default_factory=set)
+    mount_sd: np.ndarray | None = None
 
     @property
     def g_n(self) -> np.ndarray:

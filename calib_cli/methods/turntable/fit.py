@@ -107,25 +107,26 @@ def hold_undetermined(pb: es.Problem) -> None:
     mountings, the accelerometers' K and biases, the lever arms and the gyros'
     misalignment turn together at nearly equal cost: free, they drift along that valley
     and drag the determined entries (the gyro biases and g-sensitivity) with them. The
-    mountings are then held at the plan's (a choice of gauge: the accelerometer terms take
-    up the mounting error, which the data see only in their sum), and the entries that
-    gauge decides are reported null and listed in stats.unobservable."""
+    mountings are then held at the plan's while iterating, and the entries that hold
+    decides are reported null and listed in stats.unobservable. It is not a pure gauge
+    (measured on a vertical axis with channels: released, the data fix each mounting to
+    1.4-2 mrad, and the held estimate's gyro scale factors are off by the true mounting
+    error times the misalignment: docs/turntable.md, "Known limits on a vertical axis")."""
     from calib_cli.methods.turntable.result import structural_unobservable
 
-    held = structural_unobservable(pb)
+    pb.held = structural_unobservable(pb)
     pb.mount_sd = pb.pm.sd[pb.pm.idx["mount"]].copy()
-    if held:
+    if pb.held:
         pb.pm.sd[pb.pm.idx["mount"]] = HELD_SD
-    pb.held = held
 
 
 def release_mountings(pb: es.Problem, pr: es.PassResult) -> None:
-    """The converged pass re-solved with the mountings at their prior again (held as a
-    gauge while iterating: hold_undetermined): the covariance then carries what the
-    mountings leave undetermined."""
+    """The converged pass re-solved with the mountings at their prior again (held while
+    iterating: hold_undetermined): the covariance then carries what the mountings leave
+    undetermined."""
     from calib_cli.methods.turntable.solve import solve
 
-    if not getattr(pb, "held", None):
+    if not pb.held:
         return
     pb.pm.sd[pb.pm.idx["mount"]] = pb.mount_sd
     pr.step = solve(pr.systems, pb.pm.size, pb.pm.mean, pb.pm.sd, pr.theta_lin)
