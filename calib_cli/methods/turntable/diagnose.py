@@ -131,6 +131,7 @@ def _solve(rec, opt, effects, start: Fitted | None = None, fixed: bool = False) 
         st.C = [C.copy() for C in start.st.C]
         st.rho = [None if r is None else r.copy() for r in start.st.rho]
         st.C_start = list(start.st.C_start)
+        st.angle_ref = None if start.st.angle_ref is None else list(start.st.angle_ref)
         st.axis_var = start.st.axis_var
         st.lever2 = None if start.st.lever2 is None else list(start.st.lever2)
         st.inflation = start.st.inflation

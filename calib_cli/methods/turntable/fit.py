@@ -426,4 +426,5 @@ def _restart(pb: es.Problem, st: es.State, old_labels: list) -> es.State:
             new[i] = st.theta[pos[lab]]
     rho = [None if pb.rate is None or pb.rate[c] is None else
            (r if r is not None else np.zeros(len(C))) for c, (r, C) in enumerate(zip(st.rho, st.C))]
-    return es.State(new, st.C, rho, st.C_start, st.axis_var, st.inflation)
+    return es.State(new, st.C, rho, st.C_start, st.axis_var, st.inflation,
+                    angle_ref=st.angle_ref)

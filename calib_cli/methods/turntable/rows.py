@@ -107,8 +107,9 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
                  sig_g: np.ndarray, axis_var: float, enc=None, sig_enc: float = 0.0,
                  rate=None, sig_rate: float = 0.0, C_start: np.ndarray | None = None,
                  sd0: float = float(np.radians(5.0)), free_heading: bool = False,
-                 rate_row_sd: float = RATE_ANGLE_FLOOR) -> CycleSystem:
-    """The rows of cycle c at (theta, trajectory C (nb, 3, 3), rate walk rho)."""
+                 rate_row_sd: float = RATE_ANGLE_FLOOR, angle_ref=None) -> CycleSystem:
+    """The rows of cycle c at (theta, trajectory C (nb, 3, 3), rate walk rho); the table
+    angle from angle_ref = (C_ref, offset) (estimator.angle_reference), else from C_start."""
     nb = gp.nb
     use_rate = rate is not None
     # the integrated channel's own noise over the whole cycle: below the rows' floor it is
@@ -156,7 +157,8 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
         ti = pm.idx["tilt"][cy.axis_group]
         A_glob[:, AXIS][:, :, ti] = -np.eye(2)
         h_ax = ra @ N.T - theta[ti]
-    psi = table_angle(C, cy.a_enu, C_start)
+    ref, offset = (C_start, 0.0) if angle_ref is None else angle_ref
+    psi = offset + table_angle(C, cy.a_enu, ref)
     if pm.has("runout") and not cy.static:
         ir = pm.idx["runout"][c]
         hp = RUNOUT_HARMONIC * psi
