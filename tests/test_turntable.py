@@ -315,3 +315,39 @@ def test_table_angle_linearised_exactly_at_the_pass():
     fixed = table_angle(C1, a, C_start) - before
     assert np.abs(rebased - lin).max() < 1e-4 * np.abs(phi).max()
     assert np.abs(fixed - lin).max() > 1e-2 * abs(lin[0])  # the fixed reference: 3.6 %
+
+
+def test_follow_valley_keeps_the_gyro_response_linear():
+    """estimator.follow_valley: after a step of the mountings and gyro_K, each rotating
+    cycle's gyro response about its axis (K a_b) is where the step's linearisation puts
+    it (the second-order part goes into K, along a_b), and nothing but gyro_K changes."""
+    from calib_cli.methods.turntable import estimator as es
+    from calib_cli.methods.turntable.fit import prepared
+    from calib_cli.methods.turntable.setup import axis_in_body
+    from tests.turntable_profiles import profile_record
+
+    rec, _truth = profile_record(1, "trapezoid-100", duration_s=120.0, geometry="vertical",
+                                 encoder=True)
+    pb, _st = prepared(rec, TurntableOptions())
+    assert pb.follow_valley and not pb.mounts_held
+    rng = np.random.default_rng(0)
+    pm = pb.pm
+    th0 = pm.mean.copy()
+    th1 = th0.copy()
+    th1[pm.idx["mount"].ravel()] += rng.normal(0, 0.01, pm.idx["mount"].size)
+    K_step = rng.normal(0, 0.01, (3, 3))
+    pm.set_params(th1, {"gyro_K": np.asarray(pm.params(th0)["gyro_K"]) + K_step})
+    out = es.follow_valley(pb, th0, th1)
+    K0 = np.asarray(pm.params(th0)["gyro_K"])
+    K = np.asarray(pm.params(out)["gyro_K"])
+    for c, cy in enumerate(pb.cycles):
+        if cy.static:
+            continue
+        a0, J0 = axis_in_body(cy, th0[pm.idx["mount"][c]])
+        a1, _ = axis_in_body(cy, out[pm.idx["mount"][c]])
+        du = out[pm.idx["mount"][c]] - th0[pm.idx["mount"][c]]
+        want = K0 @ a0 + K_step @ a0 + K0 @ (J0 @ du)
+        np.testing.assert_allclose(K @ a1, want, atol=1e-12)
+    other = np.ones(pm.size, bool)
+    other[[int(pm.idx["packing"][q]) for q, (key, _f) in enumerate(pm.keys) if key == "gyro_K"]] = False
+    np.testing.assert_array_equal(out[other], th1[other])

@@ -105,18 +105,25 @@ def problem(rec: Recording, opt: TurntableOptions) -> es.Problem:
 def hold_undetermined(pb: es.Problem) -> None:
     """Without a gravity reference (result.structural_unobservable) a common tilt of the
     mountings, the accelerometers' K and biases, the lever arms and the gyros'
-    misalignment turn together at nearly equal cost: free, they drift along that valley
-    and drag the determined entries (the gyro biases and g-sensitivity) with them. The
-    mountings are then held at the plan's while iterating, and the entries that hold
-    decides are reported null and listed in stats.unobservable. It is not a pure gauge
-    (measured on a vertical axis with channels: released, the data fix each mounting to
-    1.4-2 mrad, and the held estimate's gyro scale factors are off by the true mounting
-    error times the misalignment: docs/turntable.md, "Known limits on a vertical axis")."""
+    misalignment turn together at nearly equal cost, and the entries only the mountings'
+    prior decides are reported null and listed in stats.unobservable. With a table channel
+    the data fix each cycle's mounting (1.4-2 mrad on a vertical axis: held at the plan's,
+    the gyro scale factors came out off by the true mounting error times the misalignment,
+    RMS z 2.5): the mountings stay at their prior and the steps follow the valley
+    (estimator.follow_valley). Without one, free, they drift along it and drag the gyro
+    biases and g-sensitivity with them (0 of 6 records converged in 8 passes): they are
+    held at the plan's while iterating (release_mountings restores their prior for the
+    covariance)."""
     from calib_cli.methods.turntable.result import structural_unobservable
 
     pb.held = structural_unobservable(pb)
     pb.mount_sd = pb.pm.sd[pb.pm.idx["mount"]].copy()
-    if pb.held:
+    if not pb.held:
+        return
+    if pb.enc is not None or pb.rate is not None:
+        pb.follow_valley = True
+    else:
+        pb.mounts_held = True
         pb.pm.sd[pb.pm.idx["mount"]] = HELD_SD
 
 
@@ -126,7 +133,7 @@ def release_mountings(pb: es.Problem, pr: es.PassResult) -> None:
     undetermined."""
     from calib_cli.methods.turntable.solve import solve
 
-    if not pb.held:
+    if not pb.mounts_held:
         return
     pb.pm.sd[pb.pm.idx["mount"]] = pb.mount_sd
     pr.step = solve(pr.systems, pb.pm.size, pb.pm.mean, pb.pm.sd, pr.theta_lin)
@@ -192,6 +199,7 @@ class _TrustRegion:
         self.prev = None  # (state before the step, its pass, the step taken)
         self.actual = np.inf  # the cost's fall over the last step kept
         self.axes = lambda st: es.table_axes(pb, st.theta)
+        self.pb = pb
 
     def check(self, st, pr):
         """The state to linearise next and whether the pass ``pr`` at ``st`` is kept."""
@@ -204,7 +212,7 @@ class _TrustRegion:
             self.lam = max(10.0 * self.lam, 1e-2)
             step = damped(pr0.step, self.lam)
             self.prev = (st0, pr0, step)
-            return es.apply_step(st0, pr0, step=step, axes=self.axes(st0)), False
+            return self._apply(st0, pr0, step), False
         self.actual = actual
         ratio = actual / predicted if predicted > 0 else 1.0
         if ratio > 0.75:
@@ -216,7 +224,13 @@ class _TrustRegion:
     def step(self, st, pr):
         step = pr.step if self.lam == 0 else damped(pr.step, self.lam)
         self.prev = (st, pr, step)
-        return es.apply_step(st, pr, step=step, axes=self.axes(st))
+        return self._apply(st, pr, step)
+
+    def _apply(self, st, pr, step):
+        new = es.apply_step(st, pr, step=step, axes=self.axes(st))
+        if self.pb.follow_valley:
+            new.theta = es.follow_valley(self.pb, st.theta, new.theta)
+        return new
 
     def reset(self):
         self.prev = None
@@ -326,8 +340,9 @@ def iterate(pb: es.Problem, st: es.State, progress=None, windows: bool = True,
         # stand above the noise: the trust region then damps it away)
         # (a pass whose noise levels settled was re-solved at them: its step is the one
         # the new levels give, so it counts as any other)
+        # (along a valley the steps do not shrink as Gauss-Newton's: not extrapolated there)
         if ((tr.lam == 0 and (last < pb.opt.converge_sigma or (
-                not changed and np.isfinite(prev)
+                not changed and np.isfinite(prev) and not pb.follow_valley
                 and last * min(last / prev, 1.0) < pb.opt.converge_sigma)))
                 or (last < pb.opt.converge_sigma and min(gain, tr.actual) < GAIN_TOL)):
             info["moving"] = []
@@ -413,6 +428,7 @@ def _without(pb: es.Problem, channel: str) -> es.Problem:
         mode = "off"
     new = problem(pb.rec, replace(opt, table_encoder=mode))
     new.notes = pb.notes
+    hold_undetermined(new)
     return new
 
 

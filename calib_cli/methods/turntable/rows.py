@@ -33,7 +33,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calib_cli.methods.turntable.blocks import AccelRows, GyroPart
-from calib_cli.methods.turntable.setup import RATE_ANGLE_FLOOR, perp_basis
+from calib_cli.methods.turntable.setup import RATE_ANGLE_FLOOR, axis_in_body, perp_basis
 from calib_cli.model.frames import skew
 
 # row slots of a block: accelerometers 0-2, table axis 3-4, angle channel 5, rate channel 6
@@ -135,12 +135,7 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
     if gp.skip is not None:
         wt[gp.skip, ACC] = 0.0
     # the table axis: N (C_j r_mean a_b) = tilt - runout, N the ENU directions across it
-    u = theta[pm.idx["mount"][c]]
-    a_u = cy.a_nom + cy.basis @ u
-    a_b = a_u / np.linalg.norm(a_u)
-    # d a_b / d u: the normalisation's derivative (with a stiff axis, 10 urad, the plain
-    # basis was wrong by u^2 ~ 1e-5 and Gauss-Newton stalled)
-    da = (np.eye(3) - np.outer(a_b, a_b)) @ cy.basis / np.linalg.norm(a_u)
+    a_b, da = axis_in_body(cy, theta[pm.idx["mount"][c]])
     # at each block's start (its mean attitude would carry the gyro noise integrated within
     # the block, 2e-5 rad at MEMS noise, correlated with the propagation's walk)
     ra = C @ a_b  # (nb, 3)

@@ -80,6 +80,17 @@ class Cycle:
     static: bool = False  # a static position of known attitude (see select_cycles)
 
 
+def axis_in_body(cy, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cycle cy's table axis in body axes at mounting u (2,): (a_b (3,), d a_b / d u (3, 2)),
+    the plan's a_nom turned by u along the basis and normalised (with a stiff axis, 10
+    urad, the plain basis as the derivative was wrong by u^2 ~ 1e-5 and Gauss-Newton
+    stalled)."""
+    a_u = cy.a_nom + cy.basis @ u
+    n = float(np.linalg.norm(a_u))
+    a_b = a_u / n
+    return a_b, (np.eye(3) - np.outer(a_b, a_b)) @ cy.basis / n
+
+
 def perp_basis(a: np.ndarray) -> np.ndarray:
     """(3, 2): two orthonormal vectors perpendicular to the unit vector a (the other two
     body axes where a is one)."""
