@@ -118,7 +118,7 @@ class State:
     angle_ref: list | None = None
 
 
-def angle_reference(pb: "Problem", st: State) -> None:
+def angle_reference(pb: Problem, st: State) -> None:
     """Rebase each cycle's table angle onto its first block's attitude, the turn from the
     old reference moved into the offset: the angle's value stays, and its linearisation
     (d angle / d phi_0 = a^T C_0) is exact at the pass's point. Measured from a fixed
@@ -240,12 +240,12 @@ def follow_valley(pb: Problem, th0: np.ndarray, th1: np.ndarray) -> np.ndarray:
     (K a_b, the rate the gyros see per unit of table rate) put where the step's
     linearisation takes it, by the least change of K that does it for every cycle (least
     squares where the cycles outnumber the axes): the scale factors take the step's
-    second-order part. On a vertical axis the mountings and the
-    gyros' misalignment trade along a valley whose second-order term (|du|^2 / 2 in the
-    axis's component along itself, dK du) the table's channels see at 2e-5 rad: measured
-    there, a Gauss-Newton step promising a fall of 6 in chi^2 raised it by 5000 (a second-
-    order term of 1200 per unit step squared), the passes crept (8 and more, one record 5
-    sigma off at its stop); corrected, 3-6 passes to a lower cost."""
+    second-order part. On a vertical axis the mountings and the gyros' misalignment trade
+    along a valley whose second-order terms (|du|^2 / 2 in the axis's component along
+    itself, dK du) the table's channels see at 2e-5 rad: measured there, a Gauss-Newton
+    step promising a fall of 6 in chi^2 raised it by 5000 (1200 per unit step squared),
+    and the passes crept (8 and more, one record 5 sigma off where it stopped); with the
+    correction 3-8 passes, to a lower cost (fit.hold_undetermined decides where)."""
     pm = pb.pm
     if "gyro_K" not in pm.model.neutral_params():
         return th1
