@@ -58,6 +58,17 @@ TURNTABLE_PLAN = ('name = "diag-turntable"\nkind = "turntable"\nsample_rate_hz =
                   'temperature_profile = [[0, 20.0], [70, 35.0], [140, 24.0], [220, 30.0]]\n'
                   + _SITE + _STATIC_AND_ROTATING)
 
+# the rough stand of the turntable method (issue 32): four rotating cycles about a
+# horizontal axis (East), no static positions: gravity turns through the body axes
+TURNTABLE_H_PLAN = ('name = "diag-turntable-horizontal"\nkind = "turntable"\n'
+                    'sample_rate_hz = 50.0\ntransition_s = 2.0\n'
+                    'temperature_profile = [[0, 20.0], [70, 35.0], [140, 24.0], [220, 30.0]]\n'
+                    + _SITE + "".join(
+                        f'[[segment]]\nlabel = "r{i}"\nattitude_deg = [{a}, {b}, {c}]\n'
+                        f'table_axis_enu = [1, 0, 0]\nrate_profile = {_PROFILE}\n'
+                        for i, (a, b, c) in enumerate([(0, 0, 0), (0, 0, 90), (90, 0, 0),
+                                                       (30, 40, 20)])))
+
 # a redundant unit (tetrahedron profile, 9 sensors) on a rate table: six static
 # positions and four rotating cycles, temperature up and down
 RIMU_PLAN = ('name = "diag-rimu"\nkind = "rimu"\nsample_rate_hz = 50.0\ntransition_s = 2.0\n'
@@ -95,7 +106,8 @@ GYRO_PLAN = ('name = "diag-gyro"\nkind = "static"\nsample_rate_hz = 50.0\ntransi
 
 BI_BIN_SIGMAS = 0.1  # flicker figure B per unit of scale, in bin-mean sigmas
 
-PLANS = {"accel": ACCEL_PLAN, "turntable": TURNTABLE_PLAN, "rimu": RIMU_PLAN,
+PLANS = {"accel": ACCEL_PLAN, "turntable": TURNTABLE_PLAN,
+         "turntable-horizontal": TURNTABLE_H_PLAN, "rimu": RIMU_PLAN,
          "align": ALIGN_PLAN, "gyro": GYRO_PLAN}
 
 # case key -> (method, effect name, sensor, base, options)
@@ -162,12 +174,13 @@ def plan_of(method: str):
 
 
 @lru_cache(maxsize=None)
-def effect_sigma(case: str, record_as=None) -> dict:
+def effect_sigma(case: str, record_as=None, plan_key: str | None = None) -> dict:
     """1-sigma of each entry of the case's effect, from base + effect refit on a pilot.
     record_as: the pilot record as the case logs it (``record_as(rec)``: without the
-    table's channels, a noisier encoder), so the effect is sized by its own sigma there."""
+    table's channels, a noisier encoder), so the effect is sized by its own sigma there;
+    plan_key: another plan of PLANS for the method (a horizontal table's)."""
     method, name, sensor, base = CASES[case]
-    plan = plan_of(method)
+    plan = plan_of(plan_key or method)
     rec = simulate(plan, base_truth(plan, np.random.default_rng(12345), base), seed=12345)
     if record_as is not None:
         rec = record_as(rec)
