@@ -61,15 +61,11 @@ def _truth(case: str, rng, channels: str = "encoder", plan: str = "turntable"):
     from calib_cli.validation import diagnose_cases as C
 
     names = CASES[case]
-    t = C.hidden_effect_truth(names[0], rng, sigma=_sigma(names[0], channels, plan))
+    t = C.hidden_effect_truth(names[0], rng, sigma=_sigma(names[0], channels, plan),
+                              plan_key=plan)
     for extra in names[1:]:  # a second hidden effect, drawn the same way
         method, name, sensor, _base = C.CASES[extra]
-        p = dict(t.params)
-        for key, sig in _sigma(extra, channels, plan).items():
-            sig = np.asarray(sig, float)
-            ok = np.isfinite(sig) & (sig > 0)
-            mag = rng.uniform(5.0, 10.0, size=sig.shape) * rng.choice([-1.0, 1.0], size=sig.shape)
-            p[key] = np.where(ok, mag * np.where(ok, sig, 0.0), 0.0)
+        p = {**t.params, **C.effect_draws(_sigma(extra, channels, plan), rng)}
         t = Truth(ImuModel(t.model.effects + (C.effect_of(method, name, sensor),),
                            t.model.layout), p, t.noise)
     return t

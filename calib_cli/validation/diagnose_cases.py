@@ -222,12 +222,25 @@ def base_truth(plan, rng, base: str) -> Truth:
     return t
 
 
+def effect_draws(sigma: dict, rng, scale=(5.0, 10.0)) -> dict:
+    """Each observable entry (finite sigma > 0) of an effect U(scale) times its 1-sigma with
+    a random sign, the others 0: {key: value}."""
+    out = {}
+    for key, sig in sigma.items():
+        sig = np.asarray(sig, float)
+        ok = np.isfinite(sig) & (sig > 0)
+        mag = rng.uniform(*scale, size=sig.shape) * rng.choice([-1.0, 1.0], size=sig.shape)
+        out[key] = np.where(ok, mag * np.where(ok, sig, 0.0), 0.0)
+    return out
+
+
 def hidden_effect_truth(case: str, rng, scale=(5.0, 10.0), params: dict | None = None,
-                        sigma: dict | None = None) -> Truth:
+                        sigma: dict | None = None, plan_key: str | None = None) -> Truth:
     """A random unit with the case's effect hidden in it, each entry U(scale) times its
-    1-sigma (``sigma``, else ``effect_sigma(case)``)."""
+    1-sigma (``sigma``, else ``effect_sigma(case)``); plan_key: the record's plan where it
+    is not the method's (PLANS)."""
     method, name, sensor, base = CASES[case]
-    plan = plan_of(method)
+    plan = plan_of(plan_key or method)
     t = base_truth(plan, rng, base)
     eff = effect_of(method, name, sensor)
     p = dict(t.params)
@@ -249,11 +262,7 @@ def hidden_effect_truth(case: str, rng, scale=(5.0, 10.0), params: dict | None =
         p[f"{sensor}_bias_instability"] = (rng.uniform(*scale, size=3) * BI_BIN_SIGMAS
                                            * white / np.sqrt(n_bin))
     elif params is None:
-        for key, sig in (effect_sigma(case) if sigma is None else sigma).items():
-            sig = np.asarray(sig, float)
-            ok = np.isfinite(sig) & (sig > 0)
-            mag = rng.uniform(*scale, size=sig.shape) * rng.choice([-1.0, 1.0], size=sig.shape)
-            p[key] = np.where(ok, mag * np.where(ok, sig, 0.0), 0.0)
+        p.update(effect_draws(effect_sigma(case) if sigma is None else sigma, rng, scale))
     else:
         p.update(params)
     return Truth(ImuModel(t.model.effects + (eff,), t.model.layout), p, t.noise)

@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from calib_cli.methods.turntable import setup as su
 from calib_cli.methods.turntable.blocks import accel_rows, gyro_part
-from calib_cli.methods.turntable.rows import ACC, AXIS, ENC, RATE, cycle_system, propagate
+from calib_cli.methods.turntable.rows import ACC, AXIS, ENC, RATE, cycle_system, propagate, table_angle
 from calib_cli.methods.turntable.setup import RATE_ANGLE_FLOOR
 from calib_cli.methods.turntable.solve import leverage, residuals_after, scale_weight, set_weight, solve
 from calib_cli.model.strapdown import exp_matrix
@@ -130,8 +130,7 @@ def angle_reference(pb: Problem, st: State) -> None:
         st.angle_ref = [(C0, 0.0) for C0 in st.C_start]
     out = []
     for cy, C, (ref, off) in zip(pb.cycles, st.C, st.angle_ref):
-        turn = float(Rotation.from_matrix(C[0] @ ref.T).as_rotvec() @ cy.a_enu)
-        out.append((C[0].copy(), off + turn))
+        out.append((C[0].copy(), off + float(table_angle(C[:1], cy.a_enu, ref)[0])))
     st.angle_ref = out
 
 
