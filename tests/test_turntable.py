@@ -329,7 +329,7 @@ def test_follow_valley_keeps_the_gyro_response_linear():
     rec, _truth = profile_record(1, "trapezoid-100", duration_s=120.0, geometry="vertical",
                                  encoder=True)
     pb, _st = prepared(rec, TurntableOptions())
-    assert pb.follow_valley and not pb.mounts_held
+    assert pb.follow_valley
     rng = np.random.default_rng(0)
     pm = pb.pm
     th0 = pm.mean.copy()
@@ -351,3 +351,81 @@ def test_follow_valley_keeps_the_gyro_response_linear():
     other = np.ones(pm.size, bool)
     other[[int(pm.idx["packing"][q]) for q, (key, _f) in enumerate(pm.keys) if key == "gyro_K"]] = False
     np.testing.assert_array_equal(out[other], th1[other])
+
+
+def test_propagation_rows_exact_along_a_re_propagated_heading():
+    """rows.cycle_system: the propagation rows' Jacobian in the blocks' attitude errors is
+    exact to first order (F = Exp(-e_j) r_end^T), also along a step that re-propagates
+    the trajectory (phi_j+1 = r_end^T phi_j: a vertical axis's heading carried by the
+    gyros' bias and scale), where r_end^T alone misses e_j x phi_j, the whole of the
+    mismatch's change."""
+    from scipy.spatial.transform import Rotation
+
+    from calib_cli.methods.turntable import estimator as es
+    from calib_cli.methods.turntable.fit import prepared
+    from tests.turntable_profiles import profile_record
+
+    rec, _truth = profile_record(1, "trapezoid-100", duration_s=60.0, geometry="vertical")
+    pb, st = prepared(rec, TurntableOptions(table_encoder="off"))
+    es.run_pass(pb, st, pb.nb)  # (the trajectory propagated over the whole cycle)
+    # a trajectory off its propagation by the gyros' noise over a block (4e-5 rad)
+    noise = np.random.default_rng(2).normal(0.0, 4e-5, (len(st.C[0]), 3))
+    st.C[0] = np.einsum("bij,bjk->bik", st.C[0], Rotation.from_rotvec(noise).as_matrix())
+    pr = es.run_pass(pb, st, pb.nb)
+    cs, gp = pr.systems[0], pr.gps[0]
+    F_plain = np.swapaxes(gp.r_end[:-1], 1, 2)
+    phi = np.zeros((cs.nb, 3))
+    phi[0] = 1e-3 * (st.C[0][0].T @ pb.cycles[0].a_enu)  # a heading of 1 mrad, carried on
+    for j in range(cs.nb - 1):
+        phi[j + 1] = F_plain[j] @ phi[j]
+    C = [np.einsum("bij,bjk->bik", st.C[0][:cs.nb], Rotation.from_rotvec(phi).as_matrix())]
+    moved = es.State(st.theta, C + st.C[1:], st.rho, st.C_start, st.axis_var, st.inflation,
+                     st.lever2, st.angle_ref)
+    de = es.run_pass(pb, moved, pb.nb).systems[0].e - cs.e
+    lin = phi[1:] - np.einsum("bij,bj->bi", cs.F, phi[:-1])
+    lin_plain = phi[1:] - np.einsum("bij,bj->bi", F_plain, phi[:-1])  # = 0
+    assert np.abs(de).max() > 1e-8  # the mismatch does change: e_j x phi_j
+    assert np.abs(de - lin).max() < 1e-2 * np.abs(de).max()
+    assert np.abs(de - lin_plain).max() > 0.5 * np.abs(de).max()
+
+
+def test_rate_sensitivity_carries_the_accelerometer_path():
+    """blocks.rate_sensitivity with accelerometer columns: the corrected rates' change
+    with the accelerometer parameters through the gyros' g-sensitivity D f, against
+    finite differences of the corrections."""
+    from calib_cli.methods.turntable.blocks import rate_sensitivity
+    from calib_cli.methods.turntable.estimator import columns_of
+    from calib_cli.methods.turntable.fit import prepared
+    from calib_cli.model.correction import correct
+    from calib_cli.model.kinematics import Kinematics
+    from tests.turntable_profiles import profile_record
+
+    rec, _truth = profile_record(1, "trapezoid-100", duration_s=60.0, geometry="vertical",
+                                 encoder=True)
+    pb, _st = prepared(rec, TurntableOptions())
+    assert pb.accel_path
+    pm = pb.pm
+    th = pm.mean.copy()
+    rng = np.random.default_rng(3)
+    pm.set_params(th, {"gyro_D": rng.normal(0, 1e-3, (3, 3)),
+                       "accel_bias": rng.normal(0, 0.05, 3)})
+    A, W = rec.accel[:200], rec.gyro[:200]
+
+    def rates(theta):
+        p = pm.params(theta, pb.lever_known)
+        f = correct(pb.model, p, "accel", A)
+        return correct(pb.model, p, "gyro", W, other=f), f
+
+    w, f = rates(th)
+    kin = Kinematics(rec.time[:200], f, w, np.zeros_like(w))
+    acc_cols, acc_idx = columns_of(pb.model, pm, "accel")
+    s = rate_sensitivity(pb.model, pm.params(th, pb.lever_known), kin, pb.gyro_cols, acc_cols)
+    ng = len(pb.gyro_cols)
+    for k, i in enumerate(acc_idx):
+        if acc_cols[k][0] not in ("accel_bias", "accel_K"):  # (the rigid-body terms: rows)
+            continue
+        h = 1e-4 * max(pm.sd[i], 1e-3)
+        t1 = th.copy()
+        t1[i] += h
+        fd = (rates(t1)[0] - w) / h
+        np.testing.assert_allclose(s[:, :, ng + k], fd, rtol=1e-3, atol=1e-9)

@@ -70,14 +70,15 @@ class GyroPart:
 
 def gyro_part(rec: Recording, sl: slice, model, params: dict, block_n: int, nb: int,
               gyro_cols: list, tangential: bool, sig_g: np.ndarray,
-              accel_skip: float = 0.02) -> GyroPart:
+              accel_skip: float = 0.02, acc_cols: list = ()) -> GyroPart:
     """The gyro-driven quantities of the first ``nb`` blocks of a cycle (GyroPart), from
     its samples (and two after the last block, where the segment has them, for the
     integration's and the edge rates' stencils). The rates' sensitivity to the parameters
     is taken per group of samples (``sensitivity_group``): the Jacobian of effects linear
     in the kinematics at a group's mean kinematics is its mean over the group. Without the
     tangential term the blocks whose mean angular acceleration exceeds ``accel_skip``
-    (rad/s^2) are marked to be left out of the accelerometer rows."""
+    (rad/s^2) are marked to be left out of the accelerometer rows. acc_cols: accelerometer
+    columns appended to the gyro columns of the sensitivity (``rate_sensitivity``)."""
     n = nb * block_n
     n_ext = min(n + 2, sl.stop - sl.start)
     t = rec.time[sl][:n_ext]
@@ -98,11 +99,12 @@ def gyro_part(rec: Recording, sl: slice, model, params: dict, block_n: int, nb: 
     # d w / d theta = -(d W / d w)^-1 d W / d theta (the implicit inverse of the gyro
     # model), per group of samples
     grp = sensitivity_group(block_n)
-    ng = n // grp
+    # (the angular acceleration only where the accelerometer model's inverse needs it)
+    dwdt = np.gradient(w, t, axis=0) if acc_cols and len(t) > 1 else np.zeros_like(w)
     kin_g = Kinematics(group_means(t[:n], grp), group_means(f[:n], grp),
-                       group_means(w[:n], grp), np.zeros((ng, 3)),
+                       group_means(w[:n], grp), group_means(dwdt[:n], grp),
                        temp=None if temp is None else group_means(temp[:n], grp))
-    sg = rate_sensitivity(model, params, kin_g, gyro_cols)
+    sg = rate_sensitivity(model, params, kin_g, gyro_cols, acc_cols)
     kind = rec.sample_kind
     integ = block_integration(w, sg, t, block_n, nb, kind, grp)
     # the blocks' mean kinematics: rates, the centripetal operator and its sensitivity
@@ -125,9 +127,9 @@ def gyro_part(rec: Recording, sl: slice, model, params: dict, block_n: int, nb: 
     # the stencil's samples alone
     idx, cw = edge_stencil(len(w), block_n, nb, kind)
     ue = np.unique(idx)
-    kin_e = Kinematics(t[ue], f[ue], w[ue], np.zeros((len(ue), 3)),
+    kin_e = Kinematics(t[ue], f[ue], w[ue], dwdt[ue],
                        temp=None if temp is None else temp[ue])
-    se = rate_sensitivity(model, params, kin_e, gyro_cols)
+    se = rate_sensitivity(model, params, kin_e, gyro_cols, acc_cols)
     s_edge = np.einsum("kj,kjap->kap", cw, se[np.searchsorted(ue, idx)])
     ddw = (s_edge[1:] - s_edge[:-1]) / T
     dw_var = _corner_variance(w[:n], sig_g, block_n, nb, dt)
@@ -145,15 +147,27 @@ def gyro_part(rec: Recording, sl: slice, model, params: dict, block_n: int, nb: 
                     skip)
 
 
-def rate_sensitivity(model, params: dict, kin: Kinematics, gyro_cols: list) -> np.ndarray:
-    """d w / d theta (n, 3, P_g) of the corrected rates at the kinematics ``kin`` by the
-    gyro columns: -(d W / d w)^-1 d W / d theta of the gyro model. (The accelerometer
-    terms' path through the specific force the gyros' D sees is left out: carried, it
-    took the rows' largest column error from 2e-2 to 6e-4 and cost 60 % more time a pass
-    for nothing a converged estimate shows: a Jacobian error moves the fixed point by
-    that fraction of the noise's projection.)"""
-    lin = model.jacobian(params, kin, "gyro", gyro_cols, ("w",))
-    return -np.einsum("nij,njp->nip", inverse3(lin.d_inputs["w"]), lin.d_params)
+def rate_sensitivity(model, params: dict, kin: Kinematics, gyro_cols: list,
+                     acc_cols: list = ()) -> np.ndarray:
+    """d w / d theta (n, 3, P_g + P_a) of the corrected rates at the kinematics ``kin``:
+    by the gyro columns, -(d W / d w)^-1 d W / d theta of the gyro model; by the
+    accelerometer columns ``acc_cols``, their path through the specific force the gyros'
+    g-sensitivity sees, -(d W / d w)^-1 (d W / d f) (d f / d theta_a), d f / d theta_a =
+    -(d A / d f)^-1 d A / d theta_a of the accelerometer model's inverse. That path is
+    left out where the accelerometers are determined (a few 1e-3 m/s^2 through a D of
+    1e-3: 1e-2 of the gyro biases' sigma, for 60 % more time a pass); without a gravity
+    reference their biases and K move freely along the mountings' valley and the gyros'
+    D f with them (0.1 m/s^2: 5 sigma of the gyro biases), and the fixed point of the
+    passes without it lay 5-15 sigma from the truth in the gyro biases and D."""
+    lin = model.jacobian(params, kin, "gyro", gyro_cols, ("w", "f") if acc_cols else ("w",))
+    inv = inverse3(lin.d_inputs["w"])
+    sg = -np.einsum("nij,njp->nip", inv, lin.d_params)
+    if not acc_cols:
+        return sg
+    la = model.jacobian(params, kin, "accel", acc_cols, ("f",))
+    dfa = -np.einsum("nij,njp->nip", inverse3(la.d_inputs["f"]), la.d_params)
+    sa = -np.einsum("nij,njk,nkp->nip", inv, lin.d_inputs["f"], dfa)
+    return np.concatenate([sg, sa], axis=2)
 
 
 def sensitivity_group(block_n: int) -> int:

@@ -89,11 +89,10 @@ class Problem:
     sig_rate_row: float = AXIS_START  # the rate channel's rows' sigma (estimated, floored)
     fixed_levels: bool = False  # the noise levels are given (plan check: design.py)
     widen_accel: bool = True  # the accelerometer noise widened where the model misfits
-    # what hold_undetermined (fit.py) held: the entries reported null, and the mountings'
-    # prior it replaced while iterating (restored by release_mountings)
-    held: set = field(default_factory=set)
-    mount_sd: np.ndarray | None = None
-    mounts_held: bool = False  # the mountings held at the plan's while iterating
+    held: set = field(default_factory=set)  # the entries reported null (fit.hold_undetermined)
+    # the rates' sensitivity carries the accelerometer columns' path through the gyros' D f
+    # (blocks.rate_sensitivity; fit.hold_undetermined decides where)
+    accel_path: bool = False
     follow_valley: bool = False  # the steps corrected along the mountings' valley
 
     @property
@@ -170,9 +169,11 @@ def run_pass(pb: Problem, st: State, nbs: list) -> PassResult:
     T = pb.block_n / fs
     E = exp_matrix(-pb.rec.site.earth_rate_enu * T)
     systems, gps = [], []
+    rate_idx = np.concatenate([pb.gyro_idx, pb.acc_idx]) if pb.accel_path else pb.gyro_idx
     for c, cy in enumerate(pb.cycles):
         gp = gyro_part(pb.rec, cy.sl, pb.model, params, pb.block_n, nbs[c], pb.gyro_cols,
-                       pb.opt.tangential, pb.sig_g, pb.opt.accel_skip)
+                       pb.opt.tangential, pb.sig_g, pb.opt.accel_skip,
+                       pb.acc_cols if pb.accel_path else ())
         if len(st.C[c]) < nbs[c]:  # a new window: the trajectory propagated into it
             ext = propagate(st.C[c][-1], gp.r_end[len(st.C[c]) - 1:], E)
             st.C[c] = np.concatenate([st.C[c], ext[1:nbs[c] - len(st.C[c]) + 1]])
@@ -190,7 +191,7 @@ def run_pass(pb: Problem, st: State, nbs: list) -> PassResult:
         if pb.rate is not None and pb.rate[c] is not None and st.rho[c] is None:
             st.rho[c] = np.zeros(nbs[c])
         cs = cycle_system(c, cy, gp, acc, C, None if st.rho[c] is None else st.rho[c][:nbs[c]],
-                          st.theta, pb.pm, pb.gyro_idx, pb.acc_idx, E, pb.sig_g, st.axis_var,
+                          st.theta, pb.pm, rate_idx, pb.acc_idx, E, pb.sig_g, st.axis_var,
                           None if pb.enc is None else pb.enc[c], pb.sig_enc,
                           None if pb.rate is None else pb.rate[c], pb.sig_rate,
                           st.C_start[c], free_heading=pb.free_heading[c],

@@ -23,7 +23,6 @@ RATE_MISFIT = 1.5
 FREE_HEADING = False
 GAIN_TOL = 0.5  # chi^2: a full step that promises less is converged (see iterate)
 START_MOUNT_SD = float(np.radians(0.3))  # rad: the mountings' prior during the start windows
-HELD_SD = 1e-9  # the prior width that holds an entry (hold_undetermined)
 # the noise levels are estimated once a pass moves less than this (sigma): a stiff axis row
 # does not bear the linearisation of a large step
 SETTLE_MOVE = 2.0
@@ -106,37 +105,28 @@ def hold_undetermined(pb: es.Problem) -> None:
     """Without a gravity reference (result.structural_unobservable) a common tilt of the
     mountings, the accelerometers' K and biases, the lever arms and the gyros'
     misalignment turn together at nearly equal cost, and the entries only the mountings'
-    prior decides are reported null and listed in stats.unobservable. With a table channel
-    the data fix each cycle's mounting (1.4-2 mrad on a vertical axis: held at the plan's,
-    the gyro scale factors came out off by the true mounting error times the misalignment,
-    RMS z 2.5): the mountings stay at their prior and the steps follow the valley
-    (estimator.follow_valley). Without one, free, they drift along it and drag the gyro
-    biases and g-sensitivity with them (0 of 6 records converged in 8 passes): they are
-    held at the plan's while iterating (release_mountings restores their prior for the
-    covariance)."""
+    prior decides are reported null and listed in stats.unobservable. The mountings keep
+    their prior (held at the plan's, the accelerometers misfit by 20-26 % in RMS: the
+    centripetal terms see each cycle's axis in body axes; with a table channel the gyro
+    scale factors took the true mounting error times the misalignment, RMS z 2.5).
+    With a table channel every step follows the valley the mountings form with the gyros'
+    misalignment (estimator.follow_valley). Without one the heading about the vertical
+    axis is measured by nothing but the earth rate's phase, and through it the gyro scale
+    about the axis (sigma 2e-3: a heading of a radian by the cycle's end at one sigma,
+    where that phase is far from linear; Gauss-Newton steps of 1.2 % in scale and 1.3 rad
+    in heading were rejected, and the passes crept): the turn about the table axis is not
+    propagated there (rows.cycle_system's free_heading), which leaves the up axis's gyro
+    bias and scale to the other cycles and the centripetal terms."""
     from calib_cli.methods.turntable.result import structural_unobservable
 
     pb.held = structural_unobservable(pb)
-    pb.mount_sd = pb.pm.sd[pb.pm.idx["mount"]].copy()
     if not pb.held:
         return
     if pb.enc is not None or pb.rate is not None:
         pb.follow_valley = True
+        pb.accel_path = True
     else:
-        pb.mounts_held = True
-        pb.pm.sd[pb.pm.idx["mount"]] = HELD_SD
-
-
-def release_mountings(pb: es.Problem, pr: es.PassResult) -> None:
-    """The converged pass re-solved with the mountings at their prior again (held while
-    iterating: hold_undetermined): the covariance then carries what the mountings leave
-    undetermined."""
-    from calib_cli.methods.turntable.solve import solve
-
-    if not pb.mounts_held:
-        return
-    pb.pm.sd[pb.pm.idx["mount"]] = pb.mount_sd
-    pr.step = solve(pr.systems, pb.pm.size, pb.pm.mean, pb.pm.sd, pr.theta_lin)
+        pb.free_heading = [not cy.static for cy in pb.cycles]
 
 
 def start_state(pb: es.Problem) -> es.State:
@@ -274,7 +264,7 @@ def iterate(pb: es.Problem, st: es.State, progress=None, windows: bool = True,
     # K and biases and the gyros' misalignment turn together along a valley of nearly equal
     # cost, which short windows do not close; started along it, the passes ended in a
     # local optimum 16 sigma from the truth and 11 in chi^2 above the one near it
-    sd_mount = pb.pm.sd[pb.pm.idx["mount"]].copy()  # (HELD_SD where held: hold_undetermined)
+    sd_mount = pb.pm.sd[pb.pm.idx["mount"]].copy()
     pb.pm.sd[pb.pm.idx["mount"]] = np.minimum(sd_mount, START_MOUNT_SD)
     while windows:  # the start: windows doubling until they span every cycle
         nbs = [min(n, max(10, int(np.ceil(L / T)))) for n in pb.nb]
@@ -328,7 +318,7 @@ def iterate(pb: es.Problem, st: es.State, progress=None, windows: bool = True,
         if _DEBUG:
             print(f"pass {k + 1}: cost {pr.step.cost:.6g} gain {gain:.3g} actual "
                   f"{tr.actual:.3g} lam {tr.lam:.2g} full {float(np.max(mv)):.3g} taken {last:.3g}"
-                  f" settled {settled} levels {rms}")
+                  f" settled {settled} levels {rms} axis {np.sqrt(st.axis_var):.3g}")
         tick()
         info["last_move"] = last
         info["residual_rms"] = rms
@@ -413,7 +403,6 @@ def solved(rec: Recording, opt: TurntableOptions, progress=None, start=None) -> 
             st = _restart(pb, st, labels)
             continue
         break
-    release_mountings(pb, pr)
     return pb, st, pr, info
 
 
