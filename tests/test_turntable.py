@@ -263,8 +263,9 @@ def test_rows_are_the_forward_models_derivative(kind):
 
 
 def test_no_gravity_reference_warns():
-    """Issue 32: on a vertical table without a gravity reference the gyro scale factors'
-    sigma is known to be optimistic (docs/turntable.md): fit turntable says so."""
+    """Issue 32: on a vertical table without a gravity reference the accelerometers'
+    terms are not determined and some fits do not converge (docs/turntable.md): fit
+    turntable says so."""
     from types import SimpleNamespace
 
     from calib_cli.methods.registry import _notes_turntable
@@ -276,7 +277,7 @@ def test_no_gravity_reference_warns():
     words = gravity_reference_words(_Pb())
     assert words.startswith("none")
     lines = _notes_turntable(SimpleNamespace(stats={"gravity_reference": words}), None)
-    assert any("optimistic" in ln for ln in lines), lines
+    assert any("not determined" in ln and "exit 4" in ln for ln in lines), lines
     assert not _notes_turntable(SimpleNamespace(stats={"gravity_reference": "the rotating"}), None)
 
 

@@ -482,10 +482,12 @@ def _notes_turntable(res, o) -> list:
                    "missing from the model (calib diagnose --method turntable names it)")
     if str(st.get("gravity_reference", "")).startswith("none"):
         out.append("[yellow]warning:[/] every table axis is vertical and nothing gives the "
-                   "accelerometers a gravity reference: the gyro biases' sigma is known to be "
-                   "optimistic there, by about 1.3x, and without table channels most such fits "
-                   "do not converge (docs/turntable.md, \"Known limits on a vertical axis\"); "
-                   "add static positions or a tilted cycle")
+                   "accelerometers a gravity reference: their biases and K, the lever arms and "
+                   "the gyros' misalignment are not determined (reported null), and the gyro "
+                   "biases and g-sensitivity only through the centripetal terms: a record at "
+                   "one rate per cycle, or without table channels 1 in 10, ends in exit 4 "
+                   "(docs/turntable.md, \"Known limits on a vertical axis\"); add static "
+                   "positions or a tilted cycle")
     return out
 
 

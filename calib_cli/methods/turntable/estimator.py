@@ -84,7 +84,7 @@ class Problem:
     rate: list | None = None
     sig_rate: float = 0.0
     notes: list = field(default_factory=list)
-    free_heading: list = field(default_factory=list)
+    free_heading: list = field(default_factory=list)  # per cycle: the heading not propagated
     sig_enc_floor: float = 0.0  # the angle channel's white noise (setup.angle_noise)
     sig_rate_row: float = AXIS_START  # the rate channel's rows' sigma (estimated, floored)
     fixed_levels: bool = False  # the noise levels are given (plan check: design.py)

@@ -20,7 +20,6 @@ from calib_cli.model.correction import correct
 SHAPE_RATIO = 3.0
 # a rate channel whose normalised residual RMS exceeds this is not used
 RATE_MISFIT = 1.5
-FREE_HEADING = False
 GAIN_TOL = 0.5  # chi^2: a full step that promises less is converged (see iterate)
 START_MOUNT_SD = float(np.radians(0.3))  # rad: the mountings' prior during the start windows
 # the noise levels are estimated once a pass moves less than this (sigma): a stiff axis row
@@ -97,7 +96,7 @@ def problem(rec: Recording, opt: TurntableOptions) -> es.Problem:
     # (estimator.settle_noise): a rough start against a stiff channel does not linearise
     if enc is not None and not opt.encoder_sigma:
         pb.sig_enc = max(sig_enc, es.AXIS_START)
-    pb.free_heading = [FREE_HEADING for cy in cycles]
+    pb.free_heading = [False for cy in cycles]  # (fit.hold_undetermined)
     return pb
 
 

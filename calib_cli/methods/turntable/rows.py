@@ -226,7 +226,7 @@ def cycle_system(c: int, cy, gp: GyroPart, acc: AccelRows, C: np.ndarray, rho, t
     q_phi = gp.m * float(np.mean(sig_g**2)) * (gp.T / gp.m) ** 2
     Wq = np.tile(np.eye(3) / q_phi, (nb - 1, 1, 1))
     anchor = None
-    if free_heading:  # the turn about the table axis does not propagate (see fit.py)
+    if free_heading:  # the turn about the table axis does not propagate (fit.hold_undetermined)
         ah = np.einsum("bji,j->bi", C, cy.a_enu)  # the table axis in each block's body axes
         P = np.einsum("bi,bj->bij", ah[1:], ah[1:])
         Wq = Wq - P / q_phi
