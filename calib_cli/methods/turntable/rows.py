@@ -48,8 +48,10 @@ class CycleSystem:
     """The rows of one cycle (nb blocks, nl local states per block): measurement rows
     A_loc (nb, 7, nl), A_glob (nb, 7, p), r (nb, 7), weight (nb, 7) (0: no row);
     propagation rows between blocks j and j+1, phi_j+1 - F_j phi_j - B_j dtheta_g = -e_j:
-    F (nb - 1, 3, 3) the block's turn (its attitude errors are in body axes), B (nb - 1,
-    3, P_g) on the gyro columns ``gyro_idx``, e (nb - 1, 3) the trajectory's mismatch,
+    F (nb - 1, 3, 3) the blocks' relative turn (its attitude errors are in body axes), B
+    (nb - 1, 3, P_g) on the rates' columns ``gyro_idx`` (the gyros', and where the rates'
+    sensitivity carries them the accelerometers': estimator.run_pass), e (nb - 1, 3) the
+    trajectory's mismatch,
     q_phi the attitude walk's variance per block; the rate channel's walk q_rho (variance per block) and its
     current values rho (nb,); the start prior on phi_0 (r0 (3,), sd0)."""
 
