@@ -276,15 +276,22 @@ def block_integration(w: np.ndarray, s: np.ndarray, t: np.ndarray, block_n: int,
     # the sensitivity: sample i's rate sensitivity s_g + (i - mid) ds_g within group g (its
     # mean and slope), so the sums of R J dt s over a group take the first and second
     # moments of R J dt: q_k+1 = q_k + M0 s_g + M1 ds_g
-    sg = s.reshape(nb, G, 3, P)
+    # X (nb, G, 9, P): each group's [qb; s; ds], the sensitivity at the group's start, the
+    # rates' sensitivity and its slope, written in place (no concatenation of the largest
+    # arrays of a pass)
+    X = np.empty((nb, G, 9, P))
+    X[:, :, 3:6] = s.reshape(nb, G, 3, P)
     flat = s.reshape(nb * G, 3, P)
-    slope = np.zeros_like(flat)  # per sample, from the neighbouring groups' means
+    slope = X[:, :, 6:9].reshape(nb * G, 3, P)  # per sample, from the neighbouring groups
     if len(flat) > 2:
-        slope[1:-1] = (flat[2:] - flat[:-2]) / (2.0 * group)
+        np.subtract(flat[2:], flat[:-2], out=slope[1:-1])
+        slope[1:-1] /= 2.0 * group
     if len(flat) > 1:
         slope[0] = (flat[1] - flat[0]) / group
         slope[-1] = (flat[-1] - flat[-2]) / group
-    dsg = slope.reshape(nb, G, 3, P)
+    else:
+        slope[:] = 0.0
+    X[:, :, 6:9] = slope.reshape(nb, G, 3, P)
     RJg = RJ.reshape(nb, G, group, 3, 3)
     # each step's offset from the group's middle: instant samples' step k -> k+1 takes the
     # sensitivity half-way between the stamps (at stamp k, the step lagged by half a
@@ -292,10 +299,13 @@ def block_integration(w: np.ndarray, s: np.ndarray, t: np.ndarray, block_n: int,
     # axis's valley); an interval mean's step is its own sample's
     off = np.arange(group) - 0.5 * (group - 1) + (0.0 if interval else 0.5)
     RJ1 = RJg * off[None, None, :, None, None]
-    sd2 = np.concatenate([sg, dsg], axis=2)  # (nb, G, 6, P): each group's mean and slope
-    dq = np.matmul(np.concatenate([RJg.sum(axis=2), RJ1.sum(axis=2)], axis=3), sd2)
-    qb = np.concatenate([np.zeros((nb, 1, 3, P)), np.cumsum(dq, axis=1)], axis=1)
-    q_end = qb[:, -1]
+    # the sample sensitivity's sums over a group take the first and second moments of
+    # R J dt: q_k+1 = q_k + M0 s_g + M1 ds_g
+    dq = np.matmul(RJg.sum(axis=2), X[:, :, 3:6]) + np.matmul(RJ1.sum(axis=2), X[:, :, 6:9])
+    X[:, 0, :3] = 0.0
+    if G > 1:
+        np.cumsum(dq[:, :-1], axis=1, out=X[:, 1:, :3])
+    q_end = X[:, -1, :3] + dq[:, -1]
     # within a group, sample i's sensitivity is qb + P0_i s + P1_i ds, the partial sums of
     # R J dt (times the offset) up to it (instant samples: the steps before its stamp;
     # interval means: to the middle of its own period)
@@ -303,20 +313,24 @@ def block_integration(w: np.ndarray, s: np.ndarray, t: np.ndarray, block_n: int,
     P0 = np.cumsum(RJg, axis=2) - half * RJg
     P1 = np.cumsum(RJ1, axis=2) - half * RJ1
     # wg[c] = mean dR^T [e_c x] q over the block's samples, q_i = qb_g + P0_i s_g + P1_i
-    # ds_g: the per-sample 3 x 3 products averaged over each group first, then one
-    # product with the group's sensitivity (linear in it). N_i: dR_i^T [e_c x] for the
-    # three c stacked (9, 3); each group's rows [mean N, mean N P0, mean N P1] (and the
-    # mean sensitivity's [I, mean P0, mean P1]) times [qb; s; ds] in one product
-    dRs = np.swapaxes(dR.reshape(nb, G, group, 3, 3), 3, 4)  # dR_i^T
-    N = np.swapaxes(dRs[..., _CROSS_K] * _CROSS_SIGN, -3, -2).reshape(nb, G, group, 9, 3)
-    eye = np.broadcast_to(np.eye(3), (nb, G, 3, 3))
-    # (einsum's contraction order: 2-5x faster than matmul over the stacked small matrices)
-    NP = [np.einsum("bgiam,bgimn->bgan", N, X, optimize=True) / group for X in (P0, P1)]
-    rows = np.concatenate([np.concatenate([N.mean(axis=2)] + NP, axis=3),
-                           np.concatenate([eye, P0.mean(axis=2), P1.mean(axis=2)], axis=3)],
-                          axis=2)
-    out = np.einsum("bgij,bgjp->bip", rows, np.concatenate([qb[:, :G], sd2], axis=2),
-                    optimize=True) / G  # (nb, 12, P)
+    # ds_g: (dR^T [e_c x] Y)_an = sum_km eps_kcm dR_ka Y_mn, so each group's mean of the
+    # per-sample products dR_ka Y_mn (one 9 x 9 product over the group's samples) and then
+    # the Levi-Civita contraction; rows (nb, 12, G, 9): per group [mean N, mean N P0, mean
+    # N P1] (N = dR^T [e_c x], the three c stacked: 9 x 3) over [I, mean P0, mean P1],
+    # times X in one product over the groups
+    dRf = np.swapaxes(dR.reshape(nb, G, group, 9), 2, 3)  # (nb, G, 9 [k a], group)
+    rows = np.empty((nb, 12, G, 9))
+    top = rows[:, :9].reshape(nb, 3, 3, G, 9)  # [c, a, g, j]
+    top[..., :3] = np.einsum("kcm,bgka->bcagm", _LEVI_CIVITA,
+                             dR.reshape(nb, G, group, 3, 3).mean(axis=2), optimize=True)
+    for j, Y in ((3, P0), (6, P1)):
+        S = np.matmul(dRf, Y.reshape(nb, G, group, 9)).reshape(nb, G, 3, 3, 3, 3) / group
+        top[..., j:j + 3] = np.einsum("kcm,bgkamn->bcagn", _LEVI_CIVITA, S, optimize=True)
+    rows[:, :9] = top.reshape(nb, 9, G, 9)
+    rows[:, 9:, :, :3] = np.eye(3)[None, :, None, :]
+    rows[:, 9:, :, 3:6] = np.swapaxes(P0.mean(axis=2), 1, 2)
+    rows[:, 9:, :, 6:9] = np.swapaxes(P1.mean(axis=2), 1, 2)
+    out = np.matmul(rows.reshape(nb, 12, G * 9), X.reshape(nb, G * 9, P)) / G  # (nb, 12, P)
     wg = np.moveaxis(out[:, :9].reshape(nb, 3, 3, P), 1, 0)
     q_mean = out[:, 9:]
     return BlockIntegration(dR, dR.mean(axis=1), R, q_end, q_mean, wg)
@@ -340,9 +354,6 @@ def cross_e(c: int, X: np.ndarray) -> np.ndarray:
 
 # eps[k, c, m] = ([e_c x])_km, so (M [e_c x])_am = sum_k M_ak eps[k, c, m]
 _LEVI_CIVITA = np.stack([cross_e(c, np.eye(3)) for c in range(3)], axis=1)
-# its one nonzero k per (c, m), and its sign: (M [e_c x])_am = sign_cm M_a,k_cm
-_CROSS_K = np.abs(_LEVI_CIVITA).argmax(axis=0)
-_CROSS_SIGN = _LEVI_CIVITA.sum(axis=0)
 
 
 def group_means(x: np.ndarray, group: int) -> np.ndarray:
