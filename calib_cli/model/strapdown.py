@@ -277,20 +277,17 @@ def block_integration(w: np.ndarray, s: np.ndarray, t: np.ndarray, block_n: int,
     # mean and slope), so the sums of R J dt s over a group take the first and second
     # moments of R J dt: q_k+1 = q_k + M0 s_g + M1 ds_g
     # X (nb, G, 9, P): each group's [qb; s; ds], the sensitivity at the group's start, the
-    # rates' sensitivity and its slope, written in place (no concatenation of the largest
+    # rates' sensitivity and its slope, in one buffer (no concatenation of the largest
     # arrays of a pass)
     X = np.empty((nb, G, 9, P))
     X[:, :, 3:6] = s.reshape(nb, G, 3, P)
     flat = s.reshape(nb * G, 3, P)
-    slope = X[:, :, 6:9].reshape(nb * G, 3, P)  # per sample, from the neighbouring groups
+    slope = np.zeros_like(flat)  # per sample, from the neighbouring groups' means
     if len(flat) > 2:
-        np.subtract(flat[2:], flat[:-2], out=slope[1:-1])
-        slope[1:-1] /= 2.0 * group
+        slope[1:-1] = (flat[2:] - flat[:-2]) / (2.0 * group)
     if len(flat) > 1:
         slope[0] = (flat[1] - flat[0]) / group
         slope[-1] = (flat[-1] - flat[-2]) / group
-    else:
-        slope[:] = 0.0
     X[:, :, 6:9] = slope.reshape(nb, G, 3, P)
     RJg = RJ.reshape(nb, G, group, 3, 3)
     # each step's offset from the group's middle: instant samples' step k -> k+1 takes the
@@ -299,8 +296,6 @@ def block_integration(w: np.ndarray, s: np.ndarray, t: np.ndarray, block_n: int,
     # axis's valley); an interval mean's step is its own sample's
     off = np.arange(group) - 0.5 * (group - 1) + (0.0 if interval else 0.5)
     RJ1 = RJg * off[None, None, :, None, None]
-    # the sample sensitivity's sums over a group take the first and second moments of
-    # R J dt: q_k+1 = q_k + M0 s_g + M1 ds_g
     dq = np.matmul(RJg.sum(axis=2), X[:, :, 3:6]) + np.matmul(RJ1.sum(axis=2), X[:, :, 6:9])
     X[:, 0, :3] = 0.0
     if G > 1:
