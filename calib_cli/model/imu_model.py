@@ -5,6 +5,7 @@ residuals and the discrepancy workflow."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -41,13 +42,19 @@ class ImuModel:
     # -- structure ---------------------------------------------------------
     def specs(self) -> list[ParamSpec]:
         """Parameter specs of all effects, each key once, in effect order."""
+        return list(self._specs)
+
+    @cached_property
+    def _specs(self) -> tuple[ParamSpec, ...]:
+        # the effects and the layout are frozen: computed once per model (the fits ask
+        # for them per block)
         out, seen = [], set()
         for e in self.effects:
             for s in e.specs(self.layout):
                 if s.key not in seen:
                     seen.add(s.key)
                     out.append(s)
-        return out
+        return tuple(out)
 
     def spec(self, key: str) -> ParamSpec:
         for s in self.specs():

@@ -189,12 +189,13 @@ def _accel_fit(f: Fitted, dof: bool = True, after: bool = True) -> tuple[float, 
     return ss, n, max(n - tr, 1.0)
 
 
-def _result(rec, f: Fitted) -> CalibrationResult:
+def _result(rec, f: Fitted, light: bool = False) -> CalibrationResult:
+    """The fit's result (``light``: only what scoring a candidate needs, result.build)."""
     from calib_cli.methods.turntable.result import build
     from calib_cli.methods.turntable.solve import residuals_after
 
     if f.result is None:
-        f.result = build(f.pb, f.st, f.pr, f.info)
+        f.result = build(f.pb, f.st, f.pr, f.info, light=light)
         chi2, n, dof = _accel_fit(f)
         f.result.stats.update({"accel_chi2": chi2, "accel_n": n, "accel_dof": dof})
         f.result.residuals.clear()
@@ -425,7 +426,7 @@ def _diagnose(rec, opt, alpha, max_steps) -> TurntableDiagnosis:
             except EstimationError as exc:
                 untested.setdefault(key, f"the refit failed ({exc.message})")
                 continue
-            _result(rec, f)
+            _result(rec, f, light=True)
             k = _new_entries(f, name, sensor)[2]
             if k == 0:
                 untested.setdefault(key, "not observable from this record")

@@ -160,8 +160,9 @@ def _clipped(rec, cycles) -> list[int]:
     return out
 
 
-def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict):
-    """The CalibrationResult of a converged fit."""
+def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict, light: bool = False):
+    """The CalibrationResult of a converged fit; ``light``: without the sigma history and
+    the position check (a diagnosis's scored candidates, never shown)."""
     pm, model, opt = pb.pm, pb.pm.model, pb.opt
     theta, cov_full = st.theta, pr.step.cov
     packing, T, prior_sd = _reported(pb, theta)
@@ -199,7 +200,7 @@ def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict):
         extra["proof_mass_offsets"] = np.zeros((3, 3))
         pm_fixed = [f"proof_mass_offsets[{i},{j}]" for i in range(3) for j in range(3) if i != j]
     stats = _stats(pb, st, pr, info, params)
-    tables = history_tables(pb, st, pr)
+    tables = {} if light else history_tables(pb, st, pr)
     res = build_result("turntable", model, packing, fit, base, pb.rec.units, stats,
                        serial=pb.rec.serial, tables=tables, extra_unobservable=pm_fixed)
     for k, v in extra.items():  # reported, not estimated
@@ -213,9 +214,10 @@ def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict):
         rest = {k: d.pop(k) for k in list(d)}
         d.update(items)
         d.update(rest)
-    from calib_cli.methods.check_positions import check_positions
+    if not light:
+        from calib_cli.methods.check_positions import check_positions
 
-    res.stats["check_positions"] = check_positions(pb.rec, res)
+        res.stats["check_positions"] = check_positions(pb.rec, res)
     return res
 
 
