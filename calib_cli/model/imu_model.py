@@ -54,6 +54,8 @@ class ImuModel:
                 if s.key not in seen:
                     seen.add(s.key)
                     out.append(s)
+                    if s.fixed is not None:  # shared by every caller now: read-only
+                        s.fixed.setflags(write=False)
         return tuple(out)
 
     def spec(self, key: str) -> ParamSpec:
