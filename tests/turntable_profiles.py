@@ -44,19 +44,25 @@ NOISE = {"mems": None, "tactical": (0.5e-3 * 9.80665, float(np.radians(0.005))),
 
 def profile_plan_text(seed: int, family: str, kind: str = "instant", duration_s: float = 600.0,
                       wobble_dps: float = 0.5, tilted: bool = False,
-                      tilted_duration_s: float = 300.0, geometry: str = "horizontal") -> str:
+                      tilted_duration_s: float = 300.0, geometry: str = "horizontal",
+                      attitude_sigma_deg: float | None = None,
+                      mount_error_deg: float = 0.3) -> str:
     """A turntable plan of the family: the generator's mounting and housing keys with the
     family's rate keys in every cycle (holds of 30-45 s at +-50 .. +-200 deg/s), the table
-    axis of ``geometry`` (GEOMETRIES)."""
+    axis of ``geometry`` (GEOMETRIES); the true mountings off the plan's by
+    ``mount_error_deg`` per axis (1 sigma), stated as ``attitude_sigma_deg`` if given."""
     shape, ramp = FAMILIES[family]
     txt = turntable_plan_text(seed, duration_s=duration_s, tilted=tilted,
                               tilted_duration_s=tilted_duration_s, wobble_dps=wobble_dps,
-                              table_axis=GEOMETRIES[geometry])
+                              table_axis=GEOMETRIES[geometry],
+                              mount_error_deg=mount_error_deg)
     rng = np.random.default_rng(seed)
     out, c = [], 0
     for line in txt.splitlines():
         if line.startswith("rate_shape"):
             continue
+        if line.startswith("attitude_deg") and attitude_sigma_deg is not None:
+            line += f"\nattitude_sigma_deg = {attitude_sigma_deg}"
         if line.startswith("rate_profile"):
             dur = duration_s if c < 3 else tilted_duration_s
             c += 1
@@ -95,7 +101,8 @@ ENCODER_KEYS = ("sim_table_encoder_counts = 65536\nsim_table_encoder_opr_deg = 0
 def profile_record(seed: int, family: str, kind: str = "instant", duration_s: float = 600.0,
                    tilted: bool = False, wobble: bool | None = None, wide: bool | None = None,
                    encoder: bool = False, geometry: str = "horizontal", noise: str = "mems",
-                   full: bool = False):
+                   full: bool = False, attitude_sigma_deg: float | None = None,
+                   mount_error_deg: float = 0.3):
     """(Recording, truth params) for one validation case. ``wobble`` defaults to every
     other seed, ``wide`` (truths at 3x) to every third. ``encoder``: the log's table
     channels are a 2^16-count angle encoder with a 0.05 deg once-per-revolution error and
@@ -105,7 +112,8 @@ def profile_record(seed: int, family: str, kind: str = "instant", duration_s: fl
     wobble = (seed % 2 == 1) if wobble is None else wobble
     wide = (seed % 3 == 2) if wide is None else wide
     text = profile_plan_text(seed, family, kind, duration_s, 0.5 if wobble else 0.0, tilted,
-                             geometry=geometry)
+                             geometry=geometry, attitude_sigma_deg=attitude_sigma_deg,
+                             mount_error_deg=mount_error_deg)
     if encoder:
         text = ENCODER_KEYS + text
     text = lever_arm_lines(text, seed)

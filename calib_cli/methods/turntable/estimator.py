@@ -94,6 +94,7 @@ class Problem:
     # (blocks.rate_sensitivity; fit.hold_undetermined decides where)
     accel_path: bool = False
     follow_valley: bool = False  # the steps corrected along the mountings' valley
+    pinned: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # theta not moved
 
     @property
     def g_n(self) -> np.ndarray:

@@ -115,11 +115,21 @@ def hold_undetermined(pb: es.Problem) -> None:
     where that phase is far from linear; Gauss-Newton steps of 1.2 % in scale and 1.3 rad
     in heading were rejected, and the passes crept): the turn about the table axis is not
     propagated there (rows.cycle_system's free_heading), which leaves the up axis's gyro
-    bias and scale to the other cycles and the centripetal terms."""
+    bias and scale to the other cycles and the centripetal terms. With a stated mounting
+    but no angle channel and no static position, the gyro scale about a vertical axis is
+    pinned at its prior mean (result.considered: its prior spread kept
+    in the others' sigma)."""
     from calib_cli.methods.turntable.result import structural_unobservable
+    from calib_cli.methods.turntable.setup import gravity_reference
 
     pb.held = structural_unobservable(pb)
-    if not pb.held:
+    if gravity_reference(pb.cycles) or any(cy.static for cy in pb.cycles):
+        # at most the gyro scale about a vertical axis held: pinned at its prior mean
+        # (free, it crept with the heading and the earth rate's phase: 8 passes still
+        # moving 6 sigma); its prior stays in the covariance (the biases' and
+        # g-sensitivities' sigma keep its spread: fixed, they came out 3-4 sigma off)
+        pb.pinned = np.array([int(pb.pm.idx["packing"][q])
+                              for q, kf in enumerate(pb.pm.keys) if kf in pb.held], int)
         return
     if pb.enc is not None or pb.rate is not None:
         pb.follow_valley = True
@@ -199,7 +209,7 @@ class _TrustRegion:
         predicted = pr0.step.cost - step0.predicted
         if actual < 0 and pr.step.cost > pr0.step.cost * (1 + 1e-9):  # rose: redo damped
             self.lam = max(10.0 * self.lam, 1e-2)
-            step = damped(pr0.step, self.lam)
+            step = damped(pr0.step, self.lam, self.pb.pinned)
             self.prev = (st0, pr0, step)
             return self._apply(st0, pr0, step), False
         self.actual = actual
@@ -211,7 +221,8 @@ class _TrustRegion:
         return st, True
 
     def step(self, st, pr):
-        step = pr.step if self.lam == 0 else damped(pr.step, self.lam)
+        step = pr.step if self.lam == 0 and not len(self.pb.pinned) else damped(
+            pr.step, self.lam, self.pb.pinned)
         self.prev = (st, pr, step)
         return self._apply(st, pr, step)
 

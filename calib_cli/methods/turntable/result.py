@@ -11,7 +11,7 @@ from calib_cli.methods.result import build_result
 from calib_cli.methods.turntable import estimator as es
 from calib_cli.methods.turntable.options import GRADES
 from calib_cli.methods.turntable.rows import ACC
-from calib_cli.methods.turntable.setup import IMU_KEYS, perp_basis, prior_widths
+from calib_cli.methods.turntable.setup import IMU_KEYS, axis_in_body, perp_basis, prior_widths
 from calib_cli.model.imu_model import Packing
 
 # An entry is determined by the record when its sigma from the data alone (and the priors
@@ -20,6 +20,46 @@ from calib_cli.model.imu_model import Packing
 # the grade's widths count as no information (CONTRACT.md section 8)
 OBSERVABLE = 0.5
 LOW_RATE = float(np.radians(0.5))  # rad/s: blocks slower than this give the |g| figures
+VALLEY_SAMPLES = 32  # antithetic pairs of mounting errors for the valley's even part
+
+
+def mounting_valley(pb: es.Problem, theta: np.ndarray, P: np.ndarray) -> np.ndarray | None:
+    """(9, 9) over gyro_K's entries (row-major): the covariance the mountings' uncertainty
+    adds to the gyro scale factors at second order, which the linearised covariance cannot
+    see. The gyros measure K a_c(u_c) for each cycle c; a mounting error d moves a_c along
+    a circle, so K changes by dK(d) with dK a_c(u + d) = K a_c(u) - K a_c(u + d). Its odd
+    part in d is the linear trade already in the covariance; its even part (the axis's
+    component along itself falls by |d|^2 / 2) is not, and on a vertical table axis, where
+    nothing but the plan's attitude fixes the mountings, it is the diagonal's largest
+    term: (mounting sigma)^2, 2.7e-5 at 0.3 deg. E[q q^T] of the even part q, d drawn from
+    the mountings' covariance (a fixed Sobol sequence, so a record gives one answer).
+    None where the model has no gyro_K or no cycle rotates."""
+    pm = pb.pm
+    if "gyro_K" not in pm.model.neutral_params():
+        return None
+    rot = [(c, cy) for c, cy in enumerate(pb.cycles) if not cy.static]
+    if not rot:
+        return None
+    idx = np.concatenate([pm.idx["mount"][c] for c, _ in rot])
+    w, V = np.linalg.eigh(0.5 * (P[np.ix_(idx, idx)] + P[np.ix_(idx, idx)].T))
+    L = V * np.sqrt(np.clip(w, 0.0, None))
+    K = np.asarray(pm.params(theta)["gyro_K"], float)
+    u0 = [theta[pm.idx["mount"][c]] for c, _ in rot]
+    a0 = np.array([axis_in_body(cy, u)[0] for (_, cy), u in zip(rot, u0)])
+    from scipy.stats import norm, qmc
+
+    z = norm.ppf(qmc.Sobol(len(idx), scramble=True, seed=0).random(VALLEY_SAMPLES))
+    Q = np.zeros((9, 9))
+    for zi in z:
+        d = (L @ zi).reshape(len(rot), 2)
+        dK = []
+        for sign in (1.0, -1.0):
+            A = np.array([axis_in_body(cy, u + sign * dc)[0]
+                          for (_, cy), u, dc in zip(rot, u0, d)])
+            dK.append(np.linalg.lstsq(A, (a0 - A) @ K.T, rcond=None)[0].T)
+        q = 0.5 * (dK[0] + dK[1]).ravel()
+        Q += np.outer(q, q)
+    return Q / len(z)
 
 
 def theta_labels(pb: es.Problem) -> list:
@@ -99,21 +139,34 @@ def structural_unobservable(pb) -> set:
     biases, the lever arms and proof-mass offsets and the gyros' misalignment together
     at nearly equal cost (measured: 16 sigma apart for 11 in chi^2, along a curved path
     the local covariance does not see). Entries {key} or {(key, flat)}; the gyro scale
-    about each axis stays where a cycle about it has an angle channel."""
-    from calib_cli.methods.turntable.setup import gravity_reference
+    about each axis stays where a cycle about it has an angle channel. With a stated
+    mounting as the only gravity reference, the gyro scale about a body axis whose every
+    cycle turns about a vertical table axis without an angle channel (fit.hold_undetermined
+    pins it); nothing where a static position is in the record."""
+    from calib_cli.methods.turntable.setup import VERTICAL, gravity_reference
 
-    if gravity_reference(pb.cycles) or any(cy.static for cy in pb.cycles):
-        return set()
-    out = {"accel_bias", "accel_K", "lever_arm", "proof_mass_offsets"}
+    if any(cy.static for cy in pb.cycles):  # the turns between static positions of
+        return set()  # known attitude measure the gyro scale (pinned, chi^2/dof 140-17874)
+    out = set()
+    for i in range(3):  # the gyro scale about body axis i on vertical axes: only an angle
+        # channel about it fixes it (else the earth rate's phase and omega^2 against
+        # d omega / dt, too weak and curved to converge on: 8 passes still moving 6 sigma)
+        about = [(c, cy) for c, cy in enumerate(pb.cycles)
+                 if not cy.static and abs(cy.a_nom[i]) > np.cos(VERTICAL)]
+        if about and not any(pb.enc is not None and pb.enc[c] is not None
+                             or abs(cy.a_enu[2]) < np.cos(VERTICAL) for c, cy in about):
+            out.add(("gyro_K", 4 * i))
+    if gravity_reference(pb.cycles):
+        return out
+    out |= {"accel_bias", "accel_K", "lever_arm", "proof_mass_offsets"}
     for k in range(9):
         i, j = divmod(k, 3)
         if i != j:
             out.add(("gyro_K", k))
-    for i in range(3):  # the scale about body axis i: only an angle channel about it fixes it
-        measured = any(pb.enc is not None and pb.enc[c] is not None
-                       and abs(cy.a_nom[i]) > np.cos(np.radians(10.0))
-                       for c, cy in enumerate(pb.cycles) if not cy.static)
-        if not measured:
+    for i in range(3):  # no cycle about the axis: nothing else fixes its scale either
+        if not any(pb.enc is not None and pb.enc[c] is not None
+                   and abs(cy.a_nom[i]) > np.cos(VERTICAL)
+                   for c, cy in enumerate(pb.cycles) if not cy.static):
             out.add(("gyro_K", 4 * i))
     return out
 
@@ -160,13 +213,37 @@ def _clipped(rec, cycles) -> list[int]:
     return out
 
 
+def considered(S: np.ndarray, pinned: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """The covariance of an estimate that held ``pinned`` at their prior means (variance
+    ``var``) and fitted the rest given them (S: the information with the priors): the
+    rest's conditional covariance plus the pinned entries' prior spread carried through
+    their sensitivity (a consider covariance; the data's weak hold on the pinned entries
+    is not counted: they never moved)."""
+    free = np.setdiff1d(np.arange(len(S)), pinned)
+    Pf = np.linalg.inv(S[np.ix_(free, free)])
+    G = -Pf @ S[np.ix_(free, pinned)]
+    out = np.zeros_like(S)
+    out[np.ix_(free, free)] = Pf + (G * var) @ G.T
+    out[np.ix_(free, pinned)] = G * var
+    out[np.ix_(pinned, free)] = (G * var).T
+    out[np.ix_(pinned, pinned)] = np.diag(var)
+    return out
+
+
 def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict, light: bool = False):
     """The CalibrationResult of a converged fit; ``light``: without the sigma history and
     the position check (a diagnosis's scored candidates, never shown)."""
     pm, model, opt = pb.pm, pb.pm.model, pb.opt
     theta, cov_full = st.theta, pr.step.cov
     packing, T, prior_sd = _reported(pb, theta)
+    if len(pb.pinned):
+        cov_full = considered(pr.step.S, pb.pinned, pm.sd[pb.pinned] ** 2)
     cov = T @ cov_full @ T.T
+    valley = mounting_valley(pb, theta, cov_full)
+    if valley is not None:
+        rows = [q for q, (k, _) in enumerate(packing.labels()) if k == "gyro_K"]
+        flats = [f for k, f in packing.labels() if k == "gyro_K"]
+        cov[np.ix_(rows, rows)] += valley[np.ix_(flats, flats)]
     dsig = data_sigma(pr.step.S, pm, T, prior_sd)
     unobs = ~(dsig < OBSERVABLE)
     labels = packing.labels()
@@ -235,7 +312,9 @@ def _stats(pb, st, pr, info, params) -> dict:
     res_acc = np.concatenate(res_acc) if res_acc else np.zeros((0, 3))
     before, after = _g_errors(pb, pr, params)
     a_b, u_sd = [], []
-    for c, cy in enumerate(pm.rotating()):
+    for c, cy in enumerate(pb.cycles):  # (the mounting's rows: every cycle's, static too)
+        if cy.static:
+            continue
         u = st.theta[pm.idx["mount"][c]]
         v = cy.a_nom + cy.basis @ u
         a_b.append([float(x) for x in v / np.linalg.norm(v)])

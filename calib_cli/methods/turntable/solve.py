@@ -231,11 +231,18 @@ def solve(systems: list, p: int, prior_mean: np.ndarray, prior_sd: np.ndarray,
     return Step(dtheta, dlocal, cov, cost, pred, S, normals, XG, s, Xb, base)
 
 
-def damped(step: Step, lam: float) -> Step:
+def damped(step: Step, lam: float, pinned: np.ndarray | None = None) -> Step:
     """The step with the parameters' part damped (Levenberg-Marquardt: S + lam diag(S)),
-    the locals at their best for it; its predicted cost on the same linearisation."""
+    the locals at their best for it; its predicted cost on the same linearisation.
+    pinned: parameter indices that do not move (the others at their best given that;
+    the covariance stays the full one, so their sigma keeps the pinned ones' spread)."""
     Sd = step.S + lam * np.diag(np.diag(step.S))
-    d = np.linalg.solve(Sd, step.s)
+    if pinned is None or len(pinned) == 0:
+        d = np.linalg.solve(Sd, step.s)
+    else:
+        free = np.setdiff1d(np.arange(len(step.s)), pinned)
+        d = np.zeros_like(step.s)
+        d[free] = np.linalg.solve(Sd[np.ix_(free, free)], step.s[free])
     dlocal = [(xb - xg @ d).reshape(dl.shape) for xb, xg, dl in zip(step.Xb, step.XG,
                                                                      step.dlocal)]
     pred = step.cost - step.base - 2.0 * float(d @ step.s) + float(d @ step.S @ d)
