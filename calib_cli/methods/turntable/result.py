@@ -231,15 +231,16 @@ def considered(S: np.ndarray, pinned: np.ndarray, var: np.ndarray) -> np.ndarray
 
 
 def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict, light: bool = False):
-    """The CalibrationResult of a converged fit; ``light``: without the sigma history and
-    the position check (a diagnosis's scored candidates, never shown)."""
+    """The CalibrationResult of a converged fit; ``light``: without the sigma history, the
+    mountings' valley and the position check (a diagnosis's scored candidates, never shown)."""
     pm, model, opt = pb.pm, pb.pm.model, pb.opt
     theta, cov_full = st.theta, pr.step.cov
     packing, T, prior_sd = _reported(pb, theta)
     if len(pb.pinned):
         cov_full = considered(pr.step.S, pb.pinned, pm.sd[pb.pinned] ** 2)
     cov = T @ cov_full @ T.T
-    valley = mounting_valley(pb, theta, cov_full)
+    # (a scored candidate's gyro_K sigma is never read: diagnose.py's _new_entries)
+    valley = None if light else mounting_valley(pb, theta, cov_full)
     if valley is not None:
         rows = [q for q, (k, _) in enumerate(packing.labels()) if k == "gyro_K"]
         flats = [f for k, f in packing.labels() if k == "gyro_K"]
