@@ -258,6 +258,13 @@ def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict, light: bo
                               "body axes, at several rates")
     cov[unobs, :] = np.nan
     cov[:, unobs] = np.nan
+    # a gyro scale nothing determines is reported at its nominal value: free along its
+    # valley it ended at 1.45-1.80 on a vertical axis without channels, which `calib apply`
+    # would have used (the reported entries do not depend on it: it is held)
+    theta = theta.copy()
+    for q, kf in enumerate(pm.keys):
+        if kf in held and kf[0] == "gyro_K" and kf[1] % 4 == 0:
+            theta[pm.idx["packing"][q]] = pm.mean[pm.idx["packing"][q]]
     params = pm.params(theta, pb.lever_known)
     # the values through the parameter map (the lever arm is not linear in theta); T is
     # its linearisation there, for the covariance
