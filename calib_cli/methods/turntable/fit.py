@@ -11,7 +11,7 @@ from calib_cli.errors import EstimationError, InputError
 from calib_cli.methods.turntable import estimator as es
 from calib_cli.methods.turntable import setup as su
 from calib_cli.methods.turntable.options import TurntableOptions
-from calib_cli.methods.turntable.result import build, theta_labels
+from calib_cli.methods.turntable.result import build, held_scales, structural_unobservable, theta_labels
 from calib_cli.methods.turntable.solve import damped
 from calib_cli.model.correction import correct
 
@@ -119,17 +119,13 @@ def hold_undetermined(pb: es.Problem) -> None:
     but no angle channel and no static position, the gyro scale about a vertical axis is
     pinned at its prior mean (result.considered: its prior spread kept
     in the others' sigma)."""
-    from calib_cli.methods.turntable.result import structural_unobservable
-    from calib_cli.methods.turntable.setup import gravity_reference
-
     pb.held = structural_unobservable(pb)
-    if gravity_reference(pb.cycles) or any(cy.static for cy in pb.cycles):
+    if su.gravity_reference(pb.cycles) or any(cy.static for cy in pb.cycles):
         # at most the gyro scale about a vertical axis held: pinned at its prior mean
         # (free, it crept with the heading and the earth rate's phase: 8 passes still
         # moving 6 sigma); its prior stays in the covariance (the biases' and
         # g-sensitivities' sigma keep its spread: fixed, they came out 3-4 sigma off)
-        pb.pinned = np.array([int(pb.pm.idx["packing"][q])
-                              for q, kf in enumerate(pb.pm.keys) if kf in pb.held], int)
+        pb.pinned = held_scales(pb)
         return
     if pb.enc is not None or pb.rate is not None:
         pb.follow_valley = True
@@ -172,10 +168,8 @@ def start_state(pb: es.Problem) -> es.State:
 
 def reported_columns(pb: es.Problem) -> np.ndarray:
     """The theta indices of the reported parameters that the record can determine
-    (convergence is judged on them; result.structural_unobservable: the others)."""
-    from calib_cli.methods.turntable.result import structural_unobservable
-
-    held = structural_unobservable(pb)
+    (convergence is judged on them; pb.held, set by hold_undetermined: the others)."""
+    held = pb.held
     idx = [int(pb.pm.idx["packing"][q]) for q, (key, flat) in enumerate(pb.pm.keys)
            if key not in held and (key, flat) not in held]
     if pb.pm.has("lever_arm") and "lever_arm" not in held:

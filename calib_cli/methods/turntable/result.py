@@ -11,7 +11,14 @@ from calib_cli.methods.result import build_result
 from calib_cli.methods.turntable import estimator as es
 from calib_cli.methods.turntable.options import GRADES
 from calib_cli.methods.turntable.rows import ACC
-from calib_cli.methods.turntable.setup import IMU_KEYS, axis_in_body, perp_basis, prior_widths
+from calib_cli.methods.turntable.setup import (
+    IMU_KEYS,
+    VERTICAL,
+    axis_in_body,
+    gravity_reference,
+    perp_basis,
+    prior_widths,
+)
 from calib_cli.model.imu_model import Packing
 
 # An entry is determined by the record when its sigma from the data alone (and the priors
@@ -46,7 +53,7 @@ def mounting_valley(pb: es.Problem, theta: np.ndarray, P: np.ndarray) -> np.ndar
     K = np.asarray(pm.params(theta)["gyro_K"], float)
     u0 = [theta[pm.idx["mount"][c]] for c, _ in rot]
     a0 = np.array([axis_in_body(cy, u)[0] for (_, cy), u in zip(rot, u0)])
-    from scipy.stats import norm, qmc
+    from scipy.stats import norm, qmc  # here: SciPy's stats take ~1 s to import
 
     z = norm.ppf(qmc.Sobol(len(idx), scramble=True, seed=0).random(VALLEY_SAMPLES))
     Q = np.zeros((9, 9))
@@ -143,8 +150,6 @@ def structural_unobservable(pb) -> set:
     mounting as the only gravity reference, the gyro scale about a body axis whose every
     cycle turns about a vertical table axis without an angle channel (fit.hold_undetermined
     pins it); nothing where a static position is in the record."""
-    from calib_cli.methods.turntable.setup import VERTICAL, gravity_reference
-
     if any(cy.static for cy in pb.cycles):  # the turns between static positions of
         return set()  # known attitude measure the gyro scale (pinned, chi^2/dof 140-17874)
     out = set()
@@ -173,7 +178,6 @@ def structural_unobservable(pb) -> set:
 
 def gravity_reference_words(pb) -> str:
     """Where the accelerometers' gravity reference comes from (stats.gravity_reference)."""
-    from calib_cli.methods.turntable.setup import gravity_reference
 
     if gravity_reference(pb.cycles):
         return "the rotating cycles (a table axis away from the vertical, or a stated mounting)"
@@ -199,6 +203,14 @@ def _g_errors(pb, pr, params) -> tuple:
     if not raw:
         return None, None
     return float(np.sqrt(np.mean(np.square(raw)))), float(np.sqrt(np.mean(np.square(cor))))
+
+
+def held_scales(pb: es.Problem) -> np.ndarray:
+    """The theta indices of the gyro scale factors (K's diagonal) in pb.held: pinned at
+    their prior mean where a gravity reference fixes the rest (fit.hold_undetermined),
+    reported at it always."""
+    return np.array([int(pb.pm.idx["packing"][q]) for q, kf in enumerate(pb.pm.keys)
+                     if kf in pb.held and kf[0] == "gyro_K" and kf[1] % 4 == 0], int)
 
 
 def _clipped(rec, cycles) -> list[int]:
@@ -248,7 +260,7 @@ def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict, light: bo
     dsig = data_sigma(pr.step.S, pm, T, prior_sd)
     unobs = ~(dsig < OBSERVABLE)
     labels = packing.labels()
-    held = structural_unobservable(pb)
+    held = pb.held
     unobs |= np.array([(k, f) in held or k in held for k, f in labels], bool)
     imu = np.array([k in IMU_KEYS for k, _ in labels])
     if imu.any() and unobs[imu].all():
@@ -262,9 +274,7 @@ def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict, light: bo
     # valley it ended at 1.45-1.80 on a vertical axis without channels, which `calib apply`
     # would have used (the reported entries do not depend on it: it is held)
     theta = theta.copy()
-    for q, kf in enumerate(pm.keys):
-        if kf in held and kf[0] == "gyro_K" and kf[1] % 4 == 0:
-            theta[pm.idx["packing"][q]] = pm.mean[pm.idx["packing"][q]]
+    theta[held_scales(pb)] = pm.mean[held_scales(pb)]
     params = pm.params(theta, pb.lever_known)
     # the values through the parameter map (the lever arm is not linear in theta); T is
     # its linearisation there, for the covariance
