@@ -594,12 +594,43 @@ def initial_lever_arm(rec: Recording, cy: Cycle) -> np.ndarray | None:
     return s - cy.a_nom * (s @ cy.a_nom)
 
 
-def start_attitude(cy: Cycle, f0: np.ndarray, g_enu: np.ndarray) -> np.ndarray:
+def gyro_mounting(rec: Recording, cy: Cycle) -> np.ndarray | None:
+    """The mounting u (2,) at which the table axis in body axes is the direction the gyros
+    turn about: the principal axis of the cycle's 1 s gyro means (their second moment, so
+    the turns in both senses add). Off the truth by the gyros' misalignment (mrad) where
+    the plan's attitude may be degrees off. None for a cycle that barely turns."""
+    fs = rec.sample_rate
+    W = rec.gyro[cy.sl]
+    m = max(1, int(round(fs)))
+    nw = len(W) // m
+    if nw < 4:
+        return None
+    wm = W[: nw * m].reshape(nw, m, 3).mean(axis=1)
+    w, V = np.linalg.eigh(wm.T @ wm / nw)
+    if w[-1] < (np.radians(5.0)) ** 2 or w[-2] > 0.1 * w[-1]:  # slow, or not one axis
+        return None
+    a = V[:, -1] * np.sign(V[:, -1] @ cy.a_nom)
+    if a @ cy.a_nom < np.cos(np.radians(30.0)):  # far from the plan's: a wrong plan
+        return None
+    return cy.basis.T @ (a / (a @ cy.a_nom))
+
+
+def vertical(cy: Cycle) -> bool:
+    """The cycle's table axis within VERTICAL of the vertical."""
+    return abs(float(cy.a_enu[2])) > np.cos(VERTICAL)
+
+
+def start_attitude(cy: Cycle, f0: np.ndarray, g_enu: np.ndarray,
+                   u: np.ndarray | None = None) -> np.ndarray:
     """The attitude (3, 3, body -> ENU) a cycle starts from: the plan's mounting turned
     about the table axis so that the specific force f0 (body axes) seen at the start points
     up (the table's angle at the segment start is unknown); on a vertical axis, where
-    gravity does not fix that angle, the plan's attitude."""
+    gravity does not fix that angle, the plan's attitude tilted to the start's mounting u
+    (its table axis in body axes onto the table's)."""
     R = cy.rot_nom.as_matrix()
+    if u is not None and np.any(u != 0.0) and vertical(cy):
+        a_b = axis_in_body(cy, u)[0]
+        return R @ Rotation.align_vectors([cy.a_nom], [a_b])[0].as_matrix()
     a = cy.a_enu
     v = R @ (f0 / max(np.linalg.norm(f0), 1e-12))
     gh = g_enu / np.linalg.norm(g_enu)
