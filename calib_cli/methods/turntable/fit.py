@@ -149,9 +149,12 @@ def start_state(pb: es.Problem) -> es.State:
         # on a vertical axis gravity does not modulate with the table angle: the mounting
         # starts where the gyros turn (started at the plan's 3 deg off, the passes ended in
         # a local optimum 30 mrad from the truth, gyro_K up to 14 sigma off)
-        # (within the start windows' hold of the plan's, the plan's: the gyros' direction
-        # carries their misalignment, which the windows then put into the mounting)
-        u0 = None if cy.static or not su.vertical(cy) else su.gyro_mounting(rec, cy)
+        # (within the start windows' hold of the plan's, or where the plan states the
+        # mounting, the plan's: the gyros' direction carries their misalignment, which the
+        # windows then put into the mounting; with a stated one, 1 of 20 fits more ended
+        # in exit 4)
+        u0 = None if cy.static or cy.mount_stated or not su.vertical(cy) else \
+            su.gyro_mounting(rec, cy)
         if u0 is not None and np.linalg.norm(u0) > 3.0 * START_MOUNT_SD:
             theta[pb.pm.idx["mount"][c]] = u0
     params = pb.pm.params(theta, pb.lever_known)
