@@ -585,6 +585,7 @@ class Injected:
     samples: int = 0
     corrupted_seq: list = field(default_factory=list)
     dropped_seq: list = field(default_factory=list)
+    overflow_seq: list = field(default_factory=list)  # frames the full FIFO lost
 
     @property
     def lost(self) -> int:
@@ -738,6 +739,7 @@ class Emulator:
         f, inj = self.faults, self.injected
         seqs = k0 + np.arange(n)
         out = bytearray()
+        queued = []  # the counters of the frames in ``out``
         for i, fr in enumerate(frames):
             kk = int(seqs[i])
             inj.samples += 1
@@ -761,10 +763,13 @@ class Emulator:
                 inj.corrupted += 1
                 inj.corrupted_seq.append(kk)
             out += fr
+            queued.append(kk)
             inj.frames += 1
         if out and self.imu_port is not None:
             if self.imu_port.master is None or not self.imu_port.write(bytes(out)):
-                inj.overflow += len(frames)  # approximate: whole chunk lost
+                # the whole chunk lost (a recorder that falls behind on a loaded machine)
+                inj.overflow += len(queued)
+                inj.overflow_seq.extend(queued)
         if self.imu_port is not None:
             self.imu_port.pump()
 
