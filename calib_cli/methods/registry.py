@@ -488,7 +488,7 @@ def _notes_turntable(res, o) -> list:
                    "one rate per cycle, or without table channels 1 in 10, ends in exit 4 "
                    "(docs/turntable.md, \"Known limits on a vertical axis\"); the gyro scale "
                    "factors hold only for mountings within a few tenths of a degree of the "
-                   "plan's (3 deg off, with channels: up to 11 sigma wrong); state "
+                   "plan's (3 deg off: 4 of 5 such fits end in exit 4); state "
                    "attitude_sigma_deg, add static positions or a tilted cycle")
     return out
 
