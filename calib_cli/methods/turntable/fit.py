@@ -386,6 +386,7 @@ def _start_windows(pb: es.Problem, st: es.State, tr: _TrustRegion, rep: np.ndarr
     finally:  # the priors as the plan gives them, whatever ends the windows
         pb.pm.sd[mi], pb.pm.mean[mi] = sd_mount, mean_mount
 
+
 def _moving_names(pb, pr, rep, mv) -> list:
     labels = theta_labels(pb)
     order = np.argsort(-mv)

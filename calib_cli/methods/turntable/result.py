@@ -18,6 +18,7 @@ from calib_cli.methods.turntable.setup import (
     gravity_reference,
     perp_basis,
     prior_widths,
+    vertical,
 )
 from calib_cli.model.imu_model import Packing
 
@@ -159,7 +160,7 @@ def structural_unobservable(pb) -> set:
         about = [(c, cy) for c, cy in enumerate(pb.cycles)
                  if not cy.static and abs(cy.a_nom[i]) > np.cos(VERTICAL)]
         if about and not any(pb.enc is not None and pb.enc[c] is not None
-                             or abs(cy.a_enu[2]) < np.cos(VERTICAL) for c, cy in about):
+                             or not vertical(cy) for c, cy in about):
             out.add(("gyro_K", 4 * i))
     if gravity_reference(pb.cycles):
         return out
@@ -178,7 +179,6 @@ def structural_unobservable(pb) -> set:
 
 def gravity_reference_words(pb) -> str:
     """Where the accelerometers' gravity reference comes from (stats.gravity_reference)."""
-
     if gravity_reference(pb.cycles):
         return "the rotating cycles (a table axis away from the vertical, or a stated mounting)"
     if any(cy.static for cy in pb.cycles):
@@ -273,8 +273,8 @@ def build(pb: es.Problem, st: es.State, pr: es.PassResult, info: dict, light: bo
     # a gyro scale nothing determines is reported at its nominal value: free along its
     # valley it ended at 1.45-1.80 on a vertical axis without channels, which `calib apply`
     # would have used (the reported entries do not depend on it: it is held)
-    theta = theta.copy()
-    theta[held_scales(pb)] = pm.mean[held_scales(pb)]
+    theta, scales = theta.copy(), held_scales(pb)
+    theta[scales] = pm.mean[scales]
     params = pm.params(theta, pb.lever_known)
     # the values through the parameter map (the lever arm is not linear in theta); T is
     # its linearisation there, for the covariance

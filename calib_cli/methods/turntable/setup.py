@@ -152,14 +152,18 @@ VERTICAL = float(np.radians(10.0))
 STATIC_ATTITUDE_SD = float(np.radians(0.05))
 
 
+def vertical(cy: Cycle) -> bool:
+    """The cycle's table axis within VERTICAL of the vertical."""
+    return abs(float(cy.a_enu[2])) > np.cos(VERTICAL)
+
+
 def gravity_reference(cycles) -> bool:
     """Whether the rotating cycles give the accelerometers a gravity reference: a table
     axis away from the vertical turns gravity through the body axes (both signs), and a
     stated mounting fixes its direction on a vertical one. Without either, a common tilt of
     the mountings, the accelerometers' K and biases and the gyros' misalignment turn
     together at nearly equal cost (methods/turntable/result.py: what is then reported)."""
-    return any(cy.mount_stated or abs(cy.a_enu[2]) < np.cos(VERTICAL) for cy in cycles
-               if not cy.static)
+    return any(cy.mount_stated or not vertical(cy) for cy in cycles if not cy.static)
 
 
 def static_positions(rec: Recording) -> list[Cycle]:
@@ -613,11 +617,6 @@ def gyro_mounting(rec: Recording, cy: Cycle) -> np.ndarray | None:
     if a @ cy.a_nom < np.cos(np.radians(30.0)):  # far from the plan's: a wrong plan
         return None
     return cy.basis.T @ (a / (a @ cy.a_nom))
-
-
-def vertical(cy: Cycle) -> bool:
-    """The cycle's table axis within VERTICAL of the vertical."""
-    return abs(float(cy.a_enu[2])) > np.cos(VERTICAL)
 
 
 def start_attitude(cy: Cycle, f0: np.ndarray, g_enu: np.ndarray,
