@@ -12,7 +12,7 @@ from calib_cli.methods.turntable import estimator as es
 from calib_cli.methods.turntable import setup as su
 from calib_cli.methods.turntable.options import TurntableOptions
 from calib_cli.methods.turntable.result import build, held_scales, structural_unobservable, theta_labels
-from calib_cli.methods.turntable.solve import damped
+from calib_cli.methods.turntable.solve import damped, scaled
 from calib_cli.model.correction import correct
 
 # an angle channel whose residuals stand this far above its own white noise disagrees
@@ -22,6 +22,9 @@ SHAPE_RATIO = 3.0
 RATE_MISFIT = 1.5
 GAIN_TOL = 0.5  # chi^2: a full step that promises less is converged (see iterate)
 HELD_BACK = 1.0  # sigma: a full step this large, damped to nothing, is not converged
+HOLD_FRACTION = 0.1  # a damped step promising less of the full one's chi^2: a line search
+PROBE = 1.0 / 8.0  # the line search's first step, a fraction of the full one
+ALPHA_MIN = PROBE  # shorter than its first step, the line search gives up
 # with the table's channels the accelerometers' noise widened more than this: the fit is
 # tried without them (solved)
 CHANNEL_ACCEL_MISFIT = 2.0
@@ -201,10 +204,20 @@ class _TrustRegion:
     redone damped; damping shrinks again after steps that did what they predicted. A
     weakly determined, strongly curved direction (a vertical axis's gyro scale against
     the lever arms, seen only through omega^2 against d omega / dt) otherwise makes
-    Gauss-Newton overshoot."""
+    Gauss-Newton overshoot.
+    Once the noise levels have settled, a damped step that promises less than HOLD_FRACTION
+    of the full one's fall in chi^2 (or less than GAIN_TOL) is replaced by the full step shortened along its own direction (a
+    line search, alpha halved where the cost rose, doubled where the step did what it
+    promised; at 1 back to Gauss-Newton): along a valley whose curvature is a tiny part
+    of its parameters' own (a vertical axis's mountings against the gyros'
+    misalignment: 1e-8 of diag(S)) the diagonal damping shrinks the step to nothing
+    while it still promises chi^2, and the passes creep."""
 
     def __init__(self, pb):
         self.lam = 0.0
+        self.alpha = None  # the line search's fraction of the full step; None: damped
+        self.line_failed = False
+        self.probe_failed = False  # the last check found the line search's step raised the cost
         self.prev = None  # (state before the step, its pass, the step taken)
         self.actual = np.inf  # the cost's fall over the last step kept
         self.axes = lambda st: es.table_axes(pb, st.theta)
@@ -215,26 +228,58 @@ class _TrustRegion:
         if self.prev is None:
             return st, True
         st0, pr0, step0 = self.prev
+        self.probe_failed = False
         actual = pr0.step.cost - pr.step.cost
         predicted = pr0.step.cost - step0.predicted
-        if actual < 0 and pr.step.cost > pr0.step.cost * (1 + 1e-9):  # rose: redo damped
-            self.lam = max(10.0 * self.lam, 1e-2)
-            step = damped(pr0.step, self.lam, self.pb.pinned)
+        if actual < 0 and pr.step.cost > pr0.step.cost * (1 + 1e-9):  # rose: redo shorter
+            if self.alpha is not None:
+                self.alpha /= 4.0
+                if self.alpha < ALPHA_MIN:  # the direction does not hold: damped again
+                    self.alpha, self.line_failed, self.probe_failed = None, True, True
+            else:
+                self.lam = max(10.0 * self.lam, 1e-2)
+            step = self._shortened(pr0)
             self.prev = (st0, pr0, step)
             return self._apply(st0, pr0, step), False
         self.actual = actual
         ratio = actual / predicted if predicted > 0 else 1.0
-        if ratio > 0.75:
+        if self.alpha is not None:
+            if ratio > 0.75:
+                self.alpha = min(1.0, 2.0 * self.alpha)
+                if self.alpha == 1.0:  # Gauss-Newton again
+                    self.alpha, self.lam = None, 0.0
+            elif ratio < 0.25:
+                self.alpha /= 2.0
+                if self.alpha < ALPHA_MIN:
+                    self.alpha, self.line_failed = None, True
+        elif ratio > 0.75:
             self.lam = self.lam / 10.0 if self.lam > 1e-6 else 0.0
         elif ratio < 0.25:
             self.lam = max(4.0 * self.lam, 1e-3)
         return st, True
 
-    def step(self, st, pr):
-        step = pr.step if self.lam == 0 and not len(self.pb.pinned) else damped(
-            pr.step, self.lam, self.pb.pinned)
+    def step(self, st, pr, settled: bool = False):
+        # (not where the model does not explain the accelerometers, its noise widened:
+        # its full step never comes to nothing, iterate reports it as it stands)
+        if (settled and self.alpha is None and self.lam > 0 and not self.line_failed
+                and st.inflation == 1.0):
+            sd = np.sqrt(np.clip(np.diag(pr.step.cov), 1e-300, None))
+            full = float(np.max(np.abs(pr.step.dtheta) / sd))
+            gain = pr.step.cost - pr.step.predicted
+            kept = pr.step.cost - damped(pr.step, self.lam, self.pb.pinned).predicted
+            if full >= self.pb.opt.converge_sigma and kept < max(HOLD_FRACTION * gain,
+                                                                 GAIN_TOL):
+                self.alpha = PROBE
+        step = self._shortened(pr)
         self.prev = (st, pr, step)
         return self._apply(st, pr, step)
+
+    def _shortened(self, pr):
+        if self.alpha is not None:
+            return scaled(pr.step, self.alpha, self.pb.pinned)
+        if self.lam == 0 and not len(self.pb.pinned):
+            return pr.step
+        return damped(pr.step, self.lam, self.pb.pinned)
 
     def _apply(self, st, pr, step):
         new = es.apply_step(st, pr, step=step, axes=self.axes(st))
@@ -287,6 +332,14 @@ def iterate(pb: es.Problem, st: es.State, progress=None, windows: bool = True,
         st, kept = tr.check(st, pr)
         info["passes"] = k + 1
         if not kept:
+            if tr.probe_failed and last_kept[1] is not None and _damped_quiet(pb, tr, last_kept[1], rep):
+                # the full step's direction raised the cost an eighth of the way along,
+                # and the damped step promises nothing: what the full step still promises
+                # is the linearisation's error (its sensitivities taken per group of
+                # samples), the state a minimum of the cost itself
+                info["moving"] = []
+                tick(final=True)
+                return last_kept[0], last_kept[1], info
             continue
         last_kept = (st, pr)
         mv = es.moved(pb, pr, rep)
@@ -303,13 +356,13 @@ def iterate(pb: es.Problem, st: es.State, progress=None, windows: bool = True,
                 mv = es.moved(pb, pr, rep)
         else:
             changed = True
-        st = tr.step(st, pr)
+        st = tr.step(st, pr, settled)
         taken = es.moved_by(pb, pr, tr.prev[2], rep)  # the step taken (damped where damped)
         gain = pr.step.cost - pr.step.predicted  # what the full step promised
         prev, last = last, float(np.max(taken))
         if _DEBUG:
             print(f"pass {k + 1}: cost {pr.step.cost:.6g} gain {gain:.3g} actual "
-                  f"{tr.actual:.3g} lam {tr.lam:.2g} full {float(np.max(mv)):.3g} taken {last:.3g}"
+                  f"{tr.actual:.3g} lam {tr.lam:.2g} alpha {tr.alpha} full {float(np.max(mv)):.3g} taken {last:.3g}"
                   f" settled {settled} levels {rms} axis {np.sqrt(st.axis_var):.3g}")
         tick()
         info["last_move"] = last
@@ -387,6 +440,14 @@ def _start_windows(pb: es.Problem, st: es.State, tr: _TrustRegion, rep: np.ndarr
         pb.pm.sd[mi], pb.pm.mean[mi] = sd_mount, mean_mount
 
 
+def _damped_quiet(pb: es.Problem, tr: _TrustRegion, pr: es.PassResult, rep) -> bool:
+    """Whether the damped step from the pass ``pr`` promises less than GAIN_TOL of chi^2
+    and moves every reported entry less than the convergence tolerance."""
+    d = damped(pr.step, max(tr.lam, 1e-6), pb.pinned)
+    return (pr.step.cost - d.predicted < GAIN_TOL
+            and float(np.max(es.moved_by(pb, pr, d, rep))) < pb.opt.converge_sigma)
+
+
 def _moving_names(pb, pr, rep, mv) -> list:
     labels = theta_labels(pb)
     order = np.argsort(-mv)
@@ -456,6 +517,10 @@ def solved(rec: Recording, opt: TurntableOptions, progress=None, start=None) -> 
                                 "motion (a table that logs its commanded profile?)")
                 alt[0].notes = pb.notes
                 pb, st, pr, info = alt
+            else:
+                pb.notes.append(f"table channels used although the accelerometers misfit "
+                                f"with them (noise widened x{st.inflation:.3g}): the fit "
+                                "without them did not explain the data better")
         break
     return pb, st, pr, info
 

@@ -243,12 +243,22 @@ def damped(step: Step, lam: float, pinned: np.ndarray | None = None) -> Step:
         free = np.setdiff1d(np.arange(len(step.s)), pinned)
         d = np.zeros_like(step.s)
         d[free] = np.linalg.solve(Sd[np.ix_(free, free)], step.s[free])
+    return _moved_by(step, d)
+
+
+def scaled(step: Step, alpha: float, pinned: np.ndarray | None = None) -> Step:
+    """The Gauss-Newton step (pinned: as in ``damped``) shortened to alpha of itself along
+    its own direction, the locals at their best for it; its predicted cost."""
+    return _moved_by(step, alpha * damped(step, 0.0, pinned).dtheta)
+
+
+def _moved_by(step: Step, d: np.ndarray) -> Step:
+    """The step whose parameters' part is d, the locals at their best given d."""
     dlocal = [(xb - xg @ d).reshape(dl.shape) for xb, xg, dl in zip(step.Xb, step.XG,
                                                                      step.dlocal)]
     pred = step.cost - step.base - 2.0 * float(d @ step.s) + float(d @ step.S @ d)
-    out = Step(d, dlocal, step.cov, step.cost, pred, step.S, step.normals, step.XG, step.s,
-               step.Xb, step.base)
-    return out
+    return Step(d, dlocal, step.cov, step.cost, pred, step.S, step.normals, step.XG, step.s,
+                step.Xb, step.base)
 
 
 def solve_more(step: Step, yL: list, yG: np.ndarray) -> tuple[list, np.ndarray]:
