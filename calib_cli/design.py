@@ -268,13 +268,18 @@ def _turntable_prediction(rec: Recording, noise: Noise, options: dict) -> Calibr
     """The turntable fit's covariance at the simulated unit: its own rows and noise model
     on the noise-free record, the table's levels and channels from --like's fit
     (methods/turntable/design.py)."""
-    from calib_cli.methods.registry import options_from
     from calib_cli.methods.turntable.design import covariance_at
 
-    o = options_from("turntable", {k: v for k, v in options.items()
-                                   if k in TURNTABLE_OPTIONS and v is not None})
-    return covariance_at(rec, o.to_method(), {"accel": noise.accel, "gyro": noise.gyro},
-                         like=noise.like)
+    return covariance_at(rec, _turntable_options(options),
+                         {"accel": noise.accel, "gyro": noise.gyro}, like=noise.like)
+
+
+def _turntable_options(options: dict):
+    """The turntable fit's options (methods/turntable/options.py) from plan check's."""
+    from calib_cli.methods.registry import options_from
+
+    return options_from("turntable", {k: v for k, v in options.items()
+                                      if k in TURNTABLE_OPTIONS and v is not None}).to_method()
 
 
 def attitudes_like(plan: Plan, like: Recording) -> Plan:
@@ -325,6 +330,10 @@ def predict_result(plan: Plan, method: str, noise: Noise, truth: Truth | None = 
     p = _with_rate(plan, noise.rate)
     if noise.like is not None:
         p = attitudes_like(p, noise.like)
+        if plan.kind == "turntable" and truth is None and method == "turntable":
+            from calib_cli.methods.turntable.design import lever_arms_like
+
+            plan = p = lever_arms_like(p, noise.like, _turntable_options(options or {}))
     rec = simulate(p, nominal_truth(plan, truth), seed=0)
     try:
         return _fit(method, rec, noise, options or {}), rec

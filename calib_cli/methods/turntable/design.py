@@ -40,9 +40,49 @@ class Levels:
     rate_cycles: tuple = ()
 
 
+_FITS: list = []  # the last fits of --like recordings: (recording, options, (pb, st))
+
+
+def _like_fit(rec: Recording, opt: TurntableOptions) -> tuple:
+    """(problem, state) of the fit of ``rec``, run once per recording and options (the
+    levels and the lever arms come from the same fit)."""
+    for r, o, out in _FITS:
+        if r is rec and o == opt:
+            return out
+    pb, st, _, _ = solved(rec, opt)
+    _FITS[:] = _FITS[-3:] + [(rec, opt, (pb, st))]
+    return pb, st
+
+
+def lever_arms_like(plan, like: Recording, opt: TurntableOptions):
+    """The plan with each rotating segment's lever arm (``lever_arm_m``, the unit the
+    prediction is simulated at and the fit's prior mean) as the fit of ``like`` estimates
+    it: the centripetal and tangential terms carry the information that separates the
+    gyros' biases from their g-sensitivity and the accelerometers' terms, in proportion
+    to the lever arms (on a vertical axis, predicted at the plan's own lever arms, half
+    the sigma the fit delivered). Segments the fit does not estimate keep the plan's."""
+    pb, st = _like_fit(like, opt)
+    if not pb.pm.has("lever_arm"):
+        return plan
+    by_plan = {}
+    for cy in pb.cycles:
+        if not cy.static:
+            # the lever arm per unit of the gyros' rate squared (the centripetal term the
+            # accelerometers see), which the prediction's unit (K = I) reproduces; the
+            # lever arm itself is that times the gyro scale about the axis squared, which
+            # on a vertical axis without channels nothing determines (1.5 at the fit's end)
+            u = cy.basis @ st.theta[pb.pm.idx["lever_arm"][cy.model_index]]
+            by_plan.setdefault(like.segments[cy.seg_index].plan_index, u)
+    segs = list(plan.segments)
+    for i, seg in enumerate(segs):
+        if seg.kind == "rotating" and i in by_plan:
+            segs[i] = replace(seg, lever_arm=by_plan[i].copy())
+    return replace(plan, segments=tuple(segs))
+
+
 def levels_of(rec: Recording, opt: TurntableOptions) -> Levels:
     """The levels the fit estimates on ``rec`` (the recording --like names)."""
-    pb, st, _, _ = solved(rec, opt)
+    pb, st = _like_fit(rec, opt)
     return Levels(pb.sig_a.copy(), pb.sig_g.copy(), float(np.sqrt(st.axis_var)),
                   pb.sig_enc if pb.enc is not None else None,
                   pb.sig_enc_floor if pb.enc is not None else None,
