@@ -488,7 +488,8 @@ def _notes_turntable(res, o) -> list:
                    "one rate per cycle, or without table channels 1 in 10, ends in exit 4 "
                    "(docs/turntable.md, \"Known limits on a vertical axis\"); the gyro scale "
                    "factors hold only for mountings within a few tenths of a degree of the "
-                   "plan's (3 deg off: 4 of 5 such fits end in exit 4); state "
+                   "plan's (3 deg off: half such fits end in exit 4, the rest with sigma "
+                   "up to 1.4x small); state "
                    "attitude_sigma_deg, add static positions or a tilted cycle")
     return out
 

@@ -205,13 +205,15 @@ class _TrustRegion:
     weakly determined, strongly curved direction (a vertical axis's gyro scale against
     the lever arms, seen only through omega^2 against d omega / dt) otherwise makes
     Gauss-Newton overshoot.
-    Once the noise levels have settled, a damped step that promises less than HOLD_FRACTION
-    of the full one's fall in chi^2 (or less than GAIN_TOL) is replaced by the full step shortened along its own direction (a
-    line search, alpha halved where the cost rose, doubled where the step did what it
-    promised; at 1 back to Gauss-Newton): along a valley whose curvature is a tiny part
-    of its parameters' own (a vertical axis's mountings against the gyros'
-    misalignment: 1e-8 of diag(S)) the diagonal damping shrinks the step to nothing
-    while it still promises chi^2, and the passes creep."""
+    Once the noise levels have settled, a damped step that promises less than
+    HOLD_FRACTION of the full one's fall in chi^2 (or less than GAIN_TOL) is replaced by
+    the full step shortened along its own direction, PROBE of it first (a line search:
+    doubled where the step did what it promised, back to Gauss-Newton at the full length;
+    the first rise of the cost shorter than twice PROBE ends it, and iterate then judges
+    convergence): along a valley whose curvature is a tiny part of its parameters' own (a
+    vertical axis's mountings against the gyros' misalignment: 1e-8 of diag(S)) the
+    diagonal damping shrinks the step to nothing while it still promises chi^2, and the
+    passes crept (5 of 20 vertical records with channels exit 4 after 8 passes)."""
 
     def __init__(self, pb):
         self.lam = 0.0
@@ -332,7 +334,8 @@ def iterate(pb: es.Problem, st: es.State, progress=None, windows: bool = True,
         st, kept = tr.check(st, pr)
         info["passes"] = k + 1
         if not kept:
-            if tr.probe_failed and last_kept[1] is not None and _damped_quiet(pb, tr, last_kept[1], rep):
+            if tr.probe_failed and last_kept[1] is not None and \
+                    _damped_quiet(pb, tr, last_kept[1], rep):
                 # the full step's direction raised the cost an eighth of the way along,
                 # and the damped step promises nothing: what the full step still promises
                 # is the linearisation's error (its sensitivities taken per group of
@@ -362,7 +365,8 @@ def iterate(pb: es.Problem, st: es.State, progress=None, windows: bool = True,
         prev, last = last, float(np.max(taken))
         if _DEBUG:
             print(f"pass {k + 1}: cost {pr.step.cost:.6g} gain {gain:.3g} actual "
-                  f"{tr.actual:.3g} lam {tr.lam:.2g} alpha {tr.alpha} full {float(np.max(mv)):.3g} taken {last:.3g}"
+                  f"{tr.actual:.3g} lam {tr.lam:.2g} alpha {tr.alpha} full "
+                  f"{float(np.max(mv)):.3g} taken {last:.3g}"
                   f" settled {settled} levels {rms} axis {np.sqrt(st.axis_var):.3g}")
         tick()
         info["last_move"] = last
