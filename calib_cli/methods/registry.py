@@ -485,11 +485,11 @@ def _notes_turntable(res, o) -> list:
                    "accelerometers a gravity reference: their biases and K, the lever arms and "
                    "the gyros' misalignment are not determined (reported null), and the gyro "
                    "biases and g-sensitivity only through the centripetal terms: a record at "
-                   "one rate per cycle, or without table channels 1 in 10, ends in exit 4 "
-                   "(docs/turntable.md, \"Known limits on a vertical axis\"); the gyro scale "
-                   "factors hold only for mountings within a few tenths of a degree of the "
-                   "plan's (3 deg off: half such fits end in exit 4, the rest with sigma "
-                   "up to 1.4x small); state "
+                   "one rate per cycle, and most records without the table's channels, end "
+                   "in exit 4 (docs/turntable.md, \"Known limits on a vertical axis\"); the "
+                   "gyro scale factors hold only for mountings within a few tenths of a "
+                   "degree of the plan's (3 deg off: half such fits end in exit 4, the rest "
+                   "with sigma up to 1.4x small); log the table's channels, state "
                    "attitude_sigma_deg, add static positions or a tilted cycle")
     return out
 
