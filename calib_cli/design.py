@@ -268,10 +268,15 @@ def _turntable_prediction(rec: Recording, noise: Noise, options: dict) -> Calibr
     """The turntable fit's covariance at the simulated unit: its own rows and noise model
     on the noise-free record, the table's levels and channels from --like's fit
     (methods/turntable/design.py)."""
+    from calib_cli.io.plan import parse_plan
     from calib_cli.methods.turntable.design import covariance_at
 
+    # (rec is the plan's simulated record: its plan text is the plan's)
+    per_cycle = noise.like is None or not rec.plan_text or \
+        recorded_from(parse_plan(rec.plan_text), noise.like)
     return covariance_at(rec, _turntable_options(options),
-                         {"accel": noise.accel, "gyro": noise.gyro}, like=noise.like)
+                         {"accel": noise.accel, "gyro": noise.gyro}, like=noise.like,
+                         per_cycle=per_cycle)
 
 
 def _turntable_options(options: dict):
@@ -280,6 +285,25 @@ def _turntable_options(options: dict):
 
     return options_from("turntable", {k: v for k, v in options.items()
                                       if k in TURNTABLE_OPTIONS and v is not None}).to_method()
+
+
+def recorded_from(plan: Plan, like: Recording) -> bool:
+    """Whether the recording --like names was recorded from this plan: the same segments
+    (kind and label, in order) in the plan text it carries; one without a plan text
+    (imported) is taken as the plan's. Only then are its per-segment findings (the static
+    positions' attitudes, the lever arms, the channels cycle by cycle) the plan's: from a
+    recording of another plan, segment i is some other segment, and only its noise levels
+    carry over."""
+    if not like.plan_text:
+        return True
+    from calib_cli.io.plan import parse_plan
+
+    try:
+        rec_plan = parse_plan(like.plan_text)
+    except InputError:  # a plan text this version does not read: not the same plan
+        return False
+    return [(s.kind, s.label) for s in rec_plan.segments] == \
+        [(s.kind, s.label) for s in plan.segments]
 
 
 def attitudes_like(plan: Plan, like: Recording) -> Plan:
@@ -328,7 +352,7 @@ def predict_result(plan: Plan, method: str, noise: Noise, truth: Truth | None = 
 
     check_plannable(plan)
     p = _with_rate(plan, noise.rate)
-    if noise.like is not None:
+    if noise.like is not None and recorded_from(plan, noise.like):
         p = attitudes_like(p, noise.like)
         if plan.kind == "turntable" and truth is None and method == "turntable":
             from calib_cli.methods.turntable.design import lever_arms_like
@@ -690,6 +714,9 @@ def check(plan: Plan, method: str = "auto", noise: Noise | None = None,
     weak entries and the ranked additions that help them."""
     m = resolve_method(plan, method)
     noise = noise or default_noise(plan, truth=truth)
+    if noise.like is not None and not recorded_from(plan, noise.like):
+        noise = replace(noise, source=f"{noise.source}, a recording of another plan: its "
+                                      "noise levels only")
     res, rec = predict_result(plan, m, noise, truth, options)
     weak = weak_entries(res)
     targets = list(res.stats.get("unobservable", [])) + weak

@@ -92,6 +92,25 @@ def test_like_through_the_command_line(run_cli, tmp_path):
     assert pred["unobservable"] == fit["stats"]["unobservable"]
 
 
+
+def test_like_a_recording_of_another_plan_lends_its_noise_only():
+    """--like a recording of another plan (a new plan checked against last week's record):
+    its segment i is some other position, so its attitudes (and a turntable's lever arms
+    and channels) are not the plan's; only its noise levels carry over, and the output
+    says so."""
+    text = CONTRACT_PLANS["scalar-unknown-attitudes"]
+    plan = parse_plan(text, "a.toml")
+    rec = simulate(plan, design.nominal_truth(plan), 4)
+    other = parse_plan(text.replace('label = "p3"', 'label = "q3"'), "b.toml")
+    assert design.recorded_from(plan, rec) and not design.recorded_from(other, rec)
+    assert design.recorded_from(other, rec.with_(plan_text=""))  # imported: taken as is
+    nz = design.noise_like(rec)
+    own = design.check(plan, "auto", nz, suggestions=False)
+    pred = design.check(other, "auto", nz, suggestions=False)
+    assert "another plan" in pred.noise.source and "another plan" not in own.noise.source
+    np.testing.assert_allclose(pred.noise.accel, own.noise.accel)
+
+
 # -- unobservable entries predicted exactly ---------------------------------------
 
 def test_two_position_east_axis_unobservable_exact():
@@ -392,3 +411,19 @@ def test_optimize_turntable_family(tmp_path, run_cli):
     plan = _write(tmp_path, "nogen", d)
     code, _, err = run_cli("plan", "optimize", plan, "--target", "proof_mass_offsets=1e-3")
     assert code == 4 and "plan make turntable" in err and len(err.strip().splitlines()) == 1
+
+
+def test_turntable_like_a_recording_of_another_plan():
+    """The same for a turntable plan: --like a record of another plan lends the levels the
+    fit of that record estimates (and which channels it used), not its lever arms or its
+    channels cycle by cycle."""
+    from tests.turntable_profiles import profile_plan_text, profile_record
+
+    rec, _ = profile_record(0, "trapezoid-100", duration_s=150.0)
+    text = profile_plan_text(0, "trapezoid-100", duration_s=150.0)
+    other = parse_plan(text.replace("label = 'x-axis'", "label = 'renamed'", 1), "b.toml")
+    assert not design.recorded_from(other, rec)
+    pred = design.check(other, "turntable", design.noise_like(rec), suggestions=False)
+    assert "another plan" in pred.noise.source
+    assert pred.result.stats["prediction_levels"]["source"] == "like"
+    assert np.all(np.isfinite(np.asarray(pred.result.sigma["gyro_bias"], float)))

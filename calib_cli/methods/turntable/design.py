@@ -100,19 +100,21 @@ def _mode(pb) -> str:
 
 
 def covariance_at(rec: Recording, opt: TurntableOptions, noise: dict,
-                  like: Recording | None = None) -> CalibrationResult:
+                  like: Recording | None = None, per_cycle: bool = True) -> CalibrationResult:
     """The fit's covariance on the noise-free record ``rec`` of a plan. noise: {"accel":
-    (3,), "gyro": (3,)} per-sample sigma (SI); like: a recording of the same plan whose
-    fit gives the table's levels and channels (else the table at its best)."""
+    (3,), "gyro": (3,)} per-sample sigma (SI); like: a recording whose fit gives the
+    table's levels and channels (else the table at its best); per_cycle: ``like`` was
+    recorded from this plan, so its channels are taken cycle by cycle (else only which
+    channels its fit used)."""
     from calib_cli.methods.blas_threads import one_blas_thread
 
     with one_blas_thread():
-        return _covariance_at(rec, opt, noise, like)
+        return _covariance_at(rec, opt, noise, like, per_cycle)
 
 
-def _covariance_at(rec, opt, noise, like) -> CalibrationResult:
+def _covariance_at(rec, opt, noise, like, per_cycle=True) -> CalibrationResult:
     lv = levels_of(like, opt) if like is not None else None
-    if lv is not None:
+    if lv is not None and per_cycle:
         rec = _channels_as(rec, lv)
         sig = {"accel": lv.accel, "gyro": lv.gyro}
         mode = lv.mode if opt.table_encoder in ("auto", lv.mode) else opt.table_encoder
