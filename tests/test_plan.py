@@ -92,7 +92,6 @@ def test_like_through_the_command_line(run_cli, tmp_path):
     assert pred["unobservable"] == fit["stats"]["unobservable"]
 
 
-
 def test_like_a_recording_of_another_plan_lends_its_noise_only():
     """--like a recording of another plan (a new plan checked against last week's record):
     its segment i is some other position, so its attitudes (and a turntable's lever arms
@@ -100,7 +99,7 @@ def test_like_a_recording_of_another_plan_lends_its_noise_only():
     says so."""
     text = CONTRACT_PLANS["scalar-unknown-attitudes"]
     plan = parse_plan(text, "a.toml")
-    rec = simulate(plan, design.nominal_truth(plan), 4)
+    rec = simulate(plan, None, 4)  # the simulator's unit, with noise
     other = parse_plan(text.replace('label = "p3"', 'label = "q3"'), "b.toml")
     assert design.recorded_from(plan, rec) and not design.recorded_from(other, rec)
     assert design.recorded_from(other, rec.with_(plan_text=""))  # imported: taken as is
@@ -109,6 +108,10 @@ def test_like_a_recording_of_another_plan_lends_its_noise_only():
     pred = design.check(other, "auto", nz, suggestions=False)
     assert "another plan" in pred.noise.source and "another plan" not in own.noise.source
     np.testing.assert_allclose(pred.noise.accel, own.noise.accel)
+    # the plans differ in one label only: the prediction differs because the other plan's
+    # positions are not simulated at the recorded attitudes
+    a, b = (np.asarray(x.result.sigma["accel_K"], float) for x in (own, pred))
+    assert not np.allclose(a, b, rtol=1e-3), (a, b)
 
 
 # -- unobservable entries predicted exactly ---------------------------------------
